@@ -1,0 +1,28 @@
+# Two commands on a fresh machine: `make serve` and `make test`. Each does its own set-up.
+VENV := .venv
+STAMP := $(VENV)/.installed
+HOST ?= 127.0.0.1
+PORT ?= 8000
+
+.PHONY: serve test lint bench setup clean
+
+$(STAMP): pyproject.toml scripts/setup_env.sh
+	bash scripts/setup_env.sh
+
+setup: $(STAMP)
+
+serve: $(STAMP)
+	$(VENV)/bin/lidarmap serve --host $(HOST) --port $(PORT)
+
+test:
+	LIDARMAP_SETUP_TEST_DEPS=1 bash scripts/setup_env.sh
+	$(VENV)/bin/python -m pytest
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+
+bench: $(STAMP)
+	$(VENV)/bin/python -m bench
+
+clean:
+	rm -rf $(VENV) .pytest_cache bench/results

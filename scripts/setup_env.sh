@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# Creates .venv and installs lidarmap with its test extras; installs the system libraries it
+# needs when running as root (CI, containers), otherwise says exactly what to install.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+need_pkgs=()
+have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
+have_lib "libusb-1.0.so.0" || need_pkgs+=(libusb-1.0-0)
+if [[ "${LIDARMAP_SETUP_TEST_DEPS:-0}" == "1" ]]; then
+    command -v redis-server >/dev/null 2>&1 || need_pkgs+=(redis-server)
+    command -v chromium >/dev/null 2>&1 || need_pkgs+=(chromium)
+fi
+if ((${#need_pkgs[@]})); then
+    if [[ "$(id -u)" == "0" ]] && command -v apt-get >/dev/null 2>&1; then
+        echo "setup: installing system packages: ${need_pkgs[*]}"
+        export DEBIAN_FRONTEND=noninteractive
+        apt-get update -qq >/dev/null || true
+        apt-get install -y -qq --no-install-recommends "${need_pkgs[@]}" >/dev/null
+    else
+        echo "setup: missing system packages: ${need_pkgs[*]}" >&2
+        echo "setup: install them with: sudo apt-get install ${need_pkgs[*]}" >&2
+        have_lib "libusb-1.0.so.0" || exit 1
+    fi
+fi
+
+PYTHON="${PYTHON:-}"
+if [[ -z "$PYTHON" ]]; then
+    for cand in python3.11 python3.12 python3; do
+        if command -v "$cand" >/dev/null 2>&1 && "$cand" -c 'import sys; sys.exit(not ((3, 11) <= sys.version_info[:2] < (3, 13)))'; then
+            PYTHON="$cand"; break
+        fi
+    done
+fi
+if [[ -z "$PYTHON" ]]; then
+    echo "setup: lidarmap needs Python 3.11 or 3.12 (python3.11 not found on PATH)" >&2
+    exit 1
+fi
+if [[ -f .venv/.installed && .venv/.installed -nt pyproject.toml && .venv/.installed -nt scripts/setup_env.sh ]]; then
+    exit 0  # already installed and up to date
+fi
+[[ -x .venv/bin/python ]] || "$PYTHON" -m venv .venv
+.venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip 2>/dev/null || true
+.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[dev,distributed]" 2>&1 \
+    | grep -v "is ignored: it is neither a file nor a directory" || true
+.venv/bin/python -c "import slam_engine, service, open3d" || {
+    echo "setup: installation check failed (see the messages above)" >&2; exit 1; }
+touch .venv/.installed

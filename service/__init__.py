@@ -1,0 +1,1 @@
+"""lidarmap's mapping service: FastAPI app, job runner, storage and the command line."""

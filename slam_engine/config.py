@@ -1,0 +1,74 @@
+"""SLAM configuration: one nested pydantic model, documented defaults and units, saved with every
+result. Bounds on every field keep a run's cost finite."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class GridConfig(_Section):
+    """Log-odds occupancy grid."""
+
+    resolution_m: float = Field(0.05, ge=0.01, le=1.0, description="Cell size [m].")
+    log_odds_hit: float = Field(0.9, gt=0.0, le=10.0, description="Added to a beam's end cell.")
+    log_odds_miss: float = Field(-0.4, lt=0.0, ge=-10.0, description="Added to cells a beam crosses.")
+    log_odds_min: float = Field(-5.0, ge=-50.0, lt=0.0, description="Lower clamp.")
+    log_odds_max: float = Field(5.0, gt=0.0, le=50.0, description="Upper clamp.")
+    max_range_m: float = Field(30.0, gt=0.1, le=200.0, description="Beams are used up to this range [m]; "
+                               "longer or no-return beams clear free space to here but add no hit.")
+
+
+class MotionNoiseConfig(_Section):
+    """Odometry motion-model noise (rot1-trans-rot2), proportional to the motion: standing still
+    adds no noise."""
+
+    rot_from_rot: float = Field(0.1, ge=0.0, le=2.0, description="sd(rot) per |rot| [rad/rad].")
+    rot_from_trans: float = Field(0.05, ge=0.0, le=2.0, description="sd(rot) per metre [rad/m].")
+    trans_from_trans: float = Field(0.05, ge=0.0, le=2.0, description="sd(trans) per metre [m/m].")
+    trans_from_rot: float = Field(0.02, ge=0.0, le=2.0, description="sd(trans) per |rot| [m/rad].")
+
+
+class MatcherConfig(_Section):
+    """Scan-matched proposal: local search around each particle's odometry prediction."""
+
+    search_xy_m: float = Field(0.3, ge=0.0, le=5.0, description="Half width of the xy search window [m].")
+    search_theta_rad: float = Field(0.2, ge=0.0, le=1.5, description="Half width of the heading window [rad].")
+    sigma_m: float = Field(0.05, gt=0.0, le=2.0, description="Std. dev. of the endpoint likelihood [m].")
+    beam_skip: int = Field(1, ge=1, le=50, description="Use every n-th beam for matching.")
+    min_score: float = Field(0.3, ge=0.0, le=1.0, description="Below this normalised score the "
+                             "odometry proposal is used instead of the match.")
+
+
+class SchedulingConfig(_Section):
+    """When to process a scan (odometry is integrated continuously)."""
+
+    linear_update_m: float = Field(0.2, ge=0.0, le=10.0, description="Process after this much travel [m].")
+    angular_update_rad: float = Field(0.1, ge=0.0, le=3.2, description="... or this much rotation [rad].")
+    temporal_update_s: float = Field(0.0, ge=0.0, le=3600.0, description="... or this much time [s]; 0 = off.")
+
+
+class LidarFilterConfig(_Section):
+    """Per-scan point filtering for LiDARs mounted with a 3-D extrinsic."""
+
+    ground_z_m: float = Field(0.2, ge=-5.0, le=5.0, description="Points below this height in the vehicle "
+                              "frame are ground hits and dropped [m].")
+    ceiling_z_m: float = Field(3.0, ge=-5.0, le=50.0, description="Points above this height are dropped [m].")
+
+
+class SlamConfig(_Section):
+    """Everything a run needs besides the log and the random generator."""
+
+    particles: int = Field(30, ge=1, le=1000, description="Number of particles.")
+    seed: int = Field(0, ge=0, le=2**32 - 1, description="Seed for numpy.random.default_rng.")
+    resample_threshold: float = Field(0.5, gt=0.0, le=1.0, description="Resample when N_eff < this * N.")
+    grid: GridConfig = GridConfig()
+    motion: MotionNoiseConfig = MotionNoiseConfig()
+    matcher: MatcherConfig = MatcherConfig()
+    scheduling: SchedulingConfig = SchedulingConfig()
+    lidar_filter: LidarFilterConfig = LidarFilterConfig()
+    snapshot_every_scans: int = Field(0, ge=0, le=100000, description="Keep a map snapshot every n "
+                                      "processed scans (0 = none); used for animations.")

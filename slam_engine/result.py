@@ -1,0 +1,115 @@
+"""The engine's output: trajectories, the occupancy grid, the texture map and per-scan statistics.
+
+Map frame: the world frame of the run, x/y in metres, theta in radians, origin at the first pose.
+Grid layout: ``log_odds[iy, ix]``; cell (ix, iy) covers
+``[origin_x_m + ix * resolution_m, +resolution_m) x [origin_y_m + iy * resolution_m, +resolution_m)``,
+so row index grows with y (north up means flipping rows for an image).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from slam_engine.config import SlamConfig
+
+
+@dataclass
+class Trajectory:
+    """Timestamped SE(2) poses: ``t_s`` (N,) seconds, ``poses`` (N, 3) [x_m, y_m, theta_rad]."""
+
+    t_s: np.ndarray
+    poses: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+
+@dataclass
+class OccupancyGrid:
+    """A log-odds occupancy grid with its placement in the map frame."""
+
+    log_odds: np.ndarray
+    resolution_m: float
+    origin_x_m: float
+    origin_y_m: float
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.log_odds.shape  # (rows = y cells, cols = x cells)
+
+    def probability(self) -> np.ndarray:
+        """(H, W) occupancy probability in [0, 1]; 0.5 where unknown."""
+        return 1.0 / (1.0 + np.exp(-self.log_odds.astype(np.float64)))
+
+    def known(self) -> np.ndarray:
+        """(H, W) bool: cells that at least one beam observed."""
+        return self.log_odds != 0.0
+
+    def world_to_cell(self, x_m: np.ndarray, y_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Integer cell indices (ix, iy) of map-frame points [m]."""
+        ix = np.floor((np.asarray(x_m) - self.origin_x_m) / self.resolution_m).astype(np.int64)
+        iy = np.floor((np.asarray(y_m) - self.origin_y_m) / self.resolution_m).astype(np.int64)
+        return ix, iy
+
+    def cell_to_world(self, ix: np.ndarray, iy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Map-frame coordinates [m] of cell centres."""
+        x = self.origin_x_m + (np.asarray(ix) + 0.5) * self.resolution_m
+        y = self.origin_y_m + (np.asarray(iy) + 0.5) * self.resolution_m
+        return x, y
+
+
+@dataclass
+class TextureMap:
+    """Ground colours on the occupancy grid's geometry: ``colors`` (H, W, 3) uint8 RGB, or (H, W)
+    for grayscale cameras; ``counts`` (H, W) observations per cell (0 = never seen)."""
+
+    colors: np.ndarray
+    counts: np.ndarray
+    resolution_m: float
+    origin_x_m: float
+    origin_y_m: float
+
+
+@dataclass
+class ScanStats:
+    """Per processed scan: time [s], effective sample size, resampled?, best match score,
+    whether the scan matcher's correction was used, and the step's wall time [s]."""
+
+    t_s: np.ndarray
+    n_eff: np.ndarray
+    resampled: np.ndarray
+    match_score: np.ndarray
+    matched: np.ndarray
+    step_time_s: np.ndarray
+
+
+@dataclass
+class MapSnapshot:
+    """The best particle's map part-way through a run (for animations and live previews)."""
+
+    scan_index: int
+    t_s: float
+    grid: OccupancyGrid
+    trajectory: Trajectory
+
+
+@dataclass
+class SlamResult:
+    """Everything one run produces. ``trajectory`` and ``dead_reckoning`` have one pose per scan
+    of the log (scans skipped by the motion thresholds get odometry-propagated poses)."""
+
+    trajectory: Trajectory
+    dead_reckoning: Trajectory
+    grid: OccupancyGrid
+    scan_stats: ScanStats
+    config: SlamConfig
+    texture: TextureMap | None = None
+    snapshots: list[MapSnapshot] = field(default_factory=list)
+    wall_time_s: float = 0.0
+    peak_memory_bytes: int = 0
+    warnings: list[str] = field(default_factory=list)
+    input_summary: dict = field(default_factory=dict)
