@@ -8,6 +8,13 @@ from service.cli import serve
 
 app = typer.Typer(name="lidarmap", help="Maps from drive logs with particle-filter SLAM.",
                   no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False)
+
+
+@app.callback()
+def _root() -> None:
+    """lidarmap: occupancy grids, texture maps and trajectories from drive logs."""
+
+
 serve.register(app)
 
 
