@@ -8,9 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam_engine.drive_log import LidarModel, MotionModelKind, VehicleModel
+from slam_engine.formats.breezyslam import MINES_ROVER, urg_04lx
+from slam_engine.formats.thor import EFFECTIVE_TRACK_M, THOR_VEHICLE, UTM_30LX
 
-# Measured on the real ESE650 sets 20-24 (IMU yaw vs wheel-speed difference): 0.91-0.96 m.
-THOR_EFFECTIVE_TRACK_M = 0.93
 # UCSD ECE276A car calibration (param/Vehicle2Lidar.txt, Vehicle2FOG.txt), vehicle <- sensor.
 CAR_R_VEHICLE_FROM_LIDAR = np.array([[0.00130201, 0.796097, 0.605167],
                                      [0.999999, -0.000419027, -0.00160026],
@@ -71,7 +71,6 @@ def _deg(value: float) -> float:
 
 
 def _rigs() -> dict[str, Rig]:
-    urg_step = _deg(360 / 1024)
     return {
         "robot": Rig(
             "robot", _two_wheels(1024, 0.15, 0.15, 0.40, "lidarmap robot"),
@@ -86,20 +85,13 @@ def _rigs() -> dict[str, Rig]:
             wheel_scale_errors=(0.02, 0.005), slip_noise=0.02, gyro_bias_rad_s=0.0, gyro_noise_rad_s=0.0,
             range_noise_m=0.01, dropout_probability=0.005, t0_s=100.0),
         "mines-rover": Rig(
-            "mines-rover", _two_wheels(4000, 0.154, 0.154, 0.33, "Mines rover"),
-            LidarModel(682, -340.5 * urg_step, urg_step, 0.02, 5.6, transform(t=(0.145, 0.0, 0.25)),
-                       "Hokuyo URG-04LX"),
+            "mines-rover", MINES_ROVER, urg_04lx(),
             scan_hz=10, encoder_hz=None, gyro_hz=None, log_odometry_hz=None, true_track_m=0.33,
             wheel_scale_errors=(0.015, -0.01), slip_noise=0.03, gyro_bias_rad_s=0.0, gyro_noise_rad_s=0.0,
             range_noise_m=0.01, dropout_probability=0.02, encoders_at_scan_times=True, t0_s=212.387282),
         "thor": Rig(
-            "thor", VehicleModel(kind=MotionModelKind.SKID_STEER, ticks_per_revolution=360,
-                                 wheel_diameters_m=(0.254,) * 4,
-                                 wheel_names=("front_right", "front_left", "rear_right", "rear_left"),
-                                 track_width_m=THOR_EFFECTIVE_TRACK_M, gyro_lowpass_hz=10.0, name="THOR"),
-            LidarModel(1081, _deg(-135), _deg(0.25), 0.1, 30.0, transform(t=(0.29833, 0.0, 0.51435)),
-                       "Hokuyo UTM-30LX"),
-            scan_hz=10, encoder_hz=40, gyro_hz=100, log_odometry_hz=None, true_track_m=THOR_EFFECTIVE_TRACK_M,
+            "thor", THOR_VEHICLE, UTM_30LX,
+            scan_hz=10, encoder_hz=40, gyro_hz=100, log_odometry_hz=None, true_track_m=EFFECTIVE_TRACK_M,
             wheel_scale_errors=(0.01, -0.01, 0.02, -0.005), slip_noise=0.08, gyro_bias_rad_s=0.0012,
             gyro_noise_rad_s=0.02, range_noise_m=0.01, dropout_probability=0.01, t0_s=1_298_445_274.54),
         "car": Rig(
