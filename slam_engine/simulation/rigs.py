@@ -99,7 +99,7 @@ def _rigs() -> dict[str, Rig]:
                                 wheel_diameters_m=(0.623479, 0.622806), wheel_names=("left", "right"),
                                 track_width_m=1.52439, T_vehicle_from_gyro=transform(t=CAR_T_VEHICLE_FROM_FOG_M),
                                 name="ECE276A car"),
-            LidarModel(286, _deg(-5), _deg(0.666), 0.1, 80.0,
+            LidarModel(286, _deg(-5), _deg(190 / 285), 0.1, 80.0,
                        transform(CAR_R_VEHICLE_FROM_LIDAR, CAR_T_VEHICLE_FROM_LIDAR_M), "SICK LMS511"),
             scan_hz=10, encoder_hz=100, gyro_hz=100, log_odometry_hz=None, true_track_m=1.52439,
             wheel_scale_errors=(0.004, -0.003), slip_noise=0.01, gyro_bias_rad_s=0.0003, gyro_noise_rad_s=0.002,
