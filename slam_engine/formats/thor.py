@@ -204,8 +204,9 @@ def _encoders(path: Path, warnings: list[str]) -> EncoderStream:
 def _imu(path: Path, warnings: list[str]) -> GyroStream:
     data = _read(path)
     if "vals" in data:
-        warnings.append(f"{path}: ESE650 .mat yaw rates read about {MAT_GYRO_UNDER_READ:.2f}x low against the "
-                        "ECE276A .npz copy of the same IMU data and the wheel odometry; prefer the .npz IMU")
+        if "written_by" not in data:
+            warnings.append(f"{path}: ESE650 .mat yaw rates read about {MAT_GYRO_UNDER_READ:.2f}x low against the "
+                            "ECE276A .npz copy of the same IMU data and the wheel odometry; prefer the .npz IMU")
         vals = data["vals"]
         if vals.ndim != 2 or vals.shape[0] != 6:
             raise LogFormatError(f"vals must have shape (6, N) (acc xyz [g], gyro xyz [rad/s]), got {vals.shape}",
@@ -312,7 +313,8 @@ def write(log: DriveLog, out_dir: Path, variant: str = "mat", set_number: int = 
         acc = np.tile(np.array([[0.0], [0.0], [1.0]]), (1, n))
         t_imu = np.asarray(log.gyro.t_s, dtype=np.float64)
         if variant == "mat":
-            arrays[f"imu{set_number}"] = {"vals": np.vstack([acc, rates]), "ts": t_imu[None, :]}
+            arrays[f"imu{set_number}"] = {"vals": np.vstack([acc, rates]), "ts": t_imu[None, :],
+                                          "written_by": "lidarmap"}
         else:
             arrays[f"Imu{set_number}"] = {"angular_velocity": rates, "linear_acceleration": acc,
                                           "time_stamps": t_imu}
