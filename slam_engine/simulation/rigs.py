@@ -33,7 +33,9 @@ class Rig:
     """A vehicle, its sensors and their error model.
 
     ``vehicle``/``lidar`` are the *declared* calibration written into logs; ``true_track_m`` and
-    ``wheel_scale_errors`` make the real motion differ from it. Rates in Hz; ``None`` = sensor absent.
+    ``wheel_scale_errors`` (per wheel, relative; their left/right difference of 0.1-0.3 % bends the
+    wheel-only heading by roughly 10-30 deg over the office loop) make the real motion differ from it.
+    Rates in Hz; ``None`` = sensor absent.
     ``log_odometry_hz`` logs dead-reckoned odometry poses (CARMEN ODOM, ROS Odometry) instead of
     encoder ticks.
     """
@@ -76,23 +78,23 @@ def _rigs() -> dict[str, Rig]:
             "robot", _two_wheels(1024, 0.15, 0.15, 0.40, "lidarmap robot"),
             LidarModel(541, _deg(-135), _deg(0.5), 0.05, 20.0, transform(t=(0.15, 0.0, 0.30)), "270 deg lidar"),
             scan_hz=5, encoder_hz=50, gyro_hz=100, log_odometry_hz=None, true_track_m=0.40,
-            wheel_scale_errors=(0.012, -0.008), slip_noise=0.02, gyro_bias_rad_s=0.004, gyro_noise_rad_s=0.01,
+            wheel_scale_errors=(0.006, 0.004), slip_noise=0.02, gyro_bias_rad_s=0.004, gyro_noise_rad_s=0.01,
             range_noise_m=0.01, dropout_probability=0.01, t0_s=1_700_000_000.0),
         "carmen-robot": Rig(
             "carmen-robot", VehicleModel(kind=MotionModelKind.ODOMETRY, name="carmen robot"),
             LidarModel(180, _deg(-90), _deg(1.0), 0.0, 50.0, transform(t=(0.12, 0.0, 0.35)), "SICK LMS"),
             scan_hz=5, encoder_hz=None, gyro_hz=None, log_odometry_hz=20, true_track_m=0.45,
-            wheel_scale_errors=(0.02, 0.005), slip_noise=0.02, gyro_bias_rad_s=0.0, gyro_noise_rad_s=0.0,
+            wheel_scale_errors=(0.012, 0.010), slip_noise=0.02, gyro_bias_rad_s=0.0, gyro_noise_rad_s=0.0,
             range_noise_m=0.01, dropout_probability=0.005, t0_s=100.0),
         "mines-rover": Rig(
             "mines-rover", MINES_ROVER, urg_04lx(),
             scan_hz=10, encoder_hz=None, gyro_hz=None, log_odometry_hz=None, true_track_m=0.33,
-            wheel_scale_errors=(0.015, -0.01), slip_noise=0.03, gyro_bias_rad_s=0.0, gyro_noise_rad_s=0.0,
+            wheel_scale_errors=(0.008, 0.005), slip_noise=0.03, gyro_bias_rad_s=0.0, gyro_noise_rad_s=0.0,
             range_noise_m=0.01, dropout_probability=0.02, encoders_at_scan_times=True, t0_s=212.387282),
         "thor": Rig(
             "thor", THOR_VEHICLE, UTM_30LX,
             scan_hz=10, encoder_hz=40, gyro_hz=100, log_odometry_hz=None, true_track_m=EFFECTIVE_TRACK_M,
-            wheel_scale_errors=(0.01, -0.01, 0.02, -0.005), slip_noise=0.08, gyro_bias_rad_s=0.0012,
+            wheel_scale_errors=(0.006, 0.004, 0.007, 0.004), slip_noise=0.08, gyro_bias_rad_s=0.0012,
             gyro_noise_rad_s=0.02, range_noise_m=0.01, dropout_probability=0.01, t0_s=1_298_445_274.54),
         "car": Rig(
             "car", VehicleModel(kind=MotionModelKind.DIFFERENTIAL, ticks_per_revolution=4096,
@@ -102,14 +104,14 @@ def _rigs() -> dict[str, Rig]:
             LidarModel(286, _deg(-5), _deg(190 / 285), 0.1, 80.0,
                        transform(CAR_R_VEHICLE_FROM_LIDAR, CAR_T_VEHICLE_FROM_LIDAR_M), "SICK LMS511"),
             scan_hz=10, encoder_hz=100, gyro_hz=100, log_odometry_hz=None, true_track_m=1.52439,
-            wheel_scale_errors=(0.004, -0.003), slip_noise=0.01, gyro_bias_rad_s=0.0003, gyro_noise_rad_s=0.002,
+            wheel_scale_errors=(0.002, 0.001), slip_noise=0.01, gyro_bias_rad_s=0.0003, gyro_noise_rad_s=0.002,
             range_noise_m=0.03, dropout_probability=0.01, t0_s=1_544_582_648.0, turn_radius_m=8.0,
             lateral_accel_m_s2=2.0, accel_m_s2=1.5, default_scenario="campus"),
         "ros-robot": Rig(
             "ros-robot", VehicleModel(kind=MotionModelKind.ODOMETRY, name="ROS robot"),
             LidarModel(360, _deg(-180), _deg(1.0), 0.15, 12.0, transform(t=(0.05, 0.0, 0.25)), "RPLIDAR"),
             scan_hz=5, encoder_hz=None, gyro_hz=100, log_odometry_hz=20, true_track_m=0.30,
-            wheel_scale_errors=(0.01, -0.01), slip_noise=0.02, gyro_bias_rad_s=0.003, gyro_noise_rad_s=0.01,
+            wheel_scale_errors=(0.006, 0.004), slip_noise=0.02, gyro_bias_rad_s=0.003, gyro_noise_rad_s=0.01,
             range_noise_m=0.01, dropout_probability=0.01, t0_s=1_700_000_000.0),
     }
 
