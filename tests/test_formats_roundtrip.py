@@ -100,5 +100,8 @@ def test_formats_refuse_logs_they_cannot_hold(drives, tmp_path) -> None:
         write_log(drives("ece276a-car").log, "carmen", tmp_path / "b")
     with pytest.raises(LogFormatError, match="682-beam"):
         write_log(drives("drivelog").log, "breezyslam", tmp_path / "c")
-    with pytest.raises(LogFormatError, match="cannot be written as thor"):
+    with pytest.raises(LogFormatError, match="four wheel encoders"):
         write_simulated(drives("drivelog"), "thor", tmp_path / "d")
+    # A differential robot with a gyro goes into CARMEN as dead-reckoned ODOM + ROBOTLASER1 (270 deg).
+    carmen = load_log(write_simulated(drives("drivelog"), "carmen", tmp_path / "e"))
+    assert carmen.lidar.num_beams == 541 and len(carmen.odometry) == len(drives("drivelog").log.encoders)
