@@ -4,7 +4,11 @@ so) and a Kinect-style RGB-D frame (raw disparity in the THOR model + RGB).
 
 Every pixel's ray is intersected with the floor (vectorised NumPy); ``floor_rgb(x_m, y_m)`` gives
 the floor's colour at world points, (N,) arrays -> (N, 3) uint8. Rays that miss the floor (or hit
-it beyond ``max_range_m``) see ``sky_rgb``.
+it beyond ``max_range_m``) see ``sky_rgb``. Poses are planar vehicle poses [x_m, y_m, theta_rad]
+with the vehicle frame's origin on the floor.
+
+    renderer = StereoRenderer(calibration)            # rays computed once
+    left, right = renderer.render(floor_rgb, pose)
 """
 
 from __future__ import annotations
@@ -18,7 +22,6 @@ from slam_engine.drive_log import RgbdCalibration, RgbdStream, StereoCalibration
 from slam_engine.result import Trajectory
 from slam_engine.texture.calibration import homogeneous
 from slam_engine.texture.images import mosaic
-from slam_engine.texture.projection import T_world_from_vehicle
 from slam_engine.texture.rgbd import (
     KINECT_DD_OFFSET,
     KINECT_DD_PER_DISPARITY,
@@ -35,28 +38,17 @@ FloorRgb = Callable[[np.ndarray, np.ndarray], np.ndarray]
 SKY_RGB = (170, 190, 220)
 
 
-def floor_hits(origin_world: np.ndarray, directions_world: np.ndarray,
+def floor_hits(origin: np.ndarray, directions: np.ndarray,
                max_range_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Intersections of rays with the plane z = 0: (N, 3) points [m], (N,) ray parameters s
     (point = origin + s * direction) and an (N,) bool mask of rays that hit within ``max_range_m``."""
-    dz = directions_world[:, 2]
+    dz = directions[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = -origin_world[2] / dz
-    points = origin_world[None, :] + s[:, None] * directions_world
-    distance = s * np.linalg.norm(directions_world, axis=1)
+        s = -origin[2] / dz
+    points = origin[None, :] + s[:, None] * directions
+    distance = s * np.linalg.norm(directions, axis=1)
     hit = (dz < 0) & (s > 0) & (distance <= max_range_m)
     return points, s, hit
-
-
-def _shade(floor_rgb: FloorRgb, origin_world: np.ndarray, directions_world: np.ndarray,
-           max_range_m: float, sky_rgb: tuple[int, int, int]) -> np.ndarray:
-    """(N, 3) float colours seen along the rays."""
-    points, _, hit = floor_hits(origin_world, directions_world, max_range_m)
-    colors = np.empty((len(directions_world), 3), dtype=np.float64)
-    colors[:] = sky_rgb
-    if hit.any():
-        colors[hit] = np.asarray(floor_rgb(points[hit, 0], points[hit, 1]), dtype=np.float64).reshape(-1, 3)
-    return colors
 
 
 def _subpixel_offsets(supersample: int) -> np.ndarray:
@@ -86,27 +78,37 @@ def _distorted_rays(u: np.ndarray, v: np.ndarray, K: np.ndarray, D: np.ndarray) 
 
 
 class _Camera:
-    """One camera's pixel rays in its own frame (computed once), rendered from any pose."""
+    """One camera on a vehicle driving on the floor. The vehicle moves in the plane, so where each
+    pixel's ray meets the floor *in the vehicle frame* never changes: it is computed once, and a
+    pose only moves those points into the world."""
 
     def __init__(self, size_wh: tuple[int, int], rays_camera: list[np.ndarray],
-                 T_vehicle_from_camera: np.ndarray):
+                 T_vehicle_from_camera: np.ndarray, max_range_m: float):
         self.size_wh = (int(size_wh[0]), int(size_wh[1]))
-        self.rays_camera = rays_camera  # one (H*W, 3) array per sub-pixel sample
-        self.T_vehicle_from_camera = T_vehicle_from_camera
+        R, origin = T_vehicle_from_camera[:3, :3], T_vehicle_from_camera[:3, 3]
+        self.samples = []  # per sub-pixel sample: (hit mask (H*W,), hit points' vehicle xy (M, 2))
+        for rays in rays_camera:
+            points, _, hit = floor_hits(origin, rays @ R.T, max_range_m)
+            self.samples.append((hit, points[hit, :2]))
 
-    def render(self, floor_rgb: FloorRgb, T_world_from_vehicle_: np.ndarray, max_range_m: float,
-               sky_rgb: tuple[int, int, int]) -> np.ndarray:
-        """(H, W, 3) uint8 image of the floor."""
-        T = T_world_from_vehicle_ @ self.T_vehicle_from_camera
-        total = 0.0
-        for rays in self.rays_camera:
-            total = total + _shade(floor_rgb, T[:3, 3], rays @ T[:3, :3].T, max_range_m, sky_rgb)
+    def render(self, floor_rgb: FloorRgb, pose: np.ndarray, sky_rgb: tuple[int, int, int]) -> np.ndarray:
+        """(H, W, 3) uint8 image of the floor from the vehicle pose [x_m, y_m, theta_rad]."""
+        x, y, theta = (float(v) for v in pose)
+        c, s = np.cos(theta), np.sin(theta)
+        total = np.zeros((self.size_wh[0] * self.size_wh[1], 3))
+        for hit, xy_vehicle in self.samples:
+            colors = np.empty_like(total)
+            colors[:] = sky_rgb
+            world_x = x + c * xy_vehicle[:, 0] - s * xy_vehicle[:, 1]
+            world_y = y + s * xy_vehicle[:, 0] + c * xy_vehicle[:, 1]
+            colors[hit] = np.asarray(floor_rgb(world_x, world_y), dtype=np.float64).reshape(-1, 3)
+            total += colors
         w, h = self.size_wh
-        return np.clip(np.rint(total / len(self.rays_camera)), 0, 255).astype(np.uint8).reshape(h, w, 3)
+        return np.clip(np.rint(total / len(self.samples)), 0, 255).astype(np.uint8).reshape(h, w, 3)
 
 
 class StereoRenderer:
-    """Renders the raw (left, right) images of a calibrated stereo pair at vehicle poses.
+    """Renders the raw (left, right) images of a calibrated stereo pair at planar vehicle poses.
 
     Pixels are undistorted with K and D; the right camera is placed by the rectification
     (``X_rect_left = X_rect_right + (baseline, 0, 0)``, ``X_rect = R @ X_cam``). Raw Bayer cameras
@@ -114,7 +116,7 @@ class StereoRenderer:
     rays per pixel are averaged (anti-aliasing, like a real lens's blur).
     """
 
-    def __init__(self, calibration: StereoCalibration, supersample: int = 2):
+    def __init__(self, calibration: StereoCalibration, supersample: int = 2, max_range_m: float = 80.0):
         cal = calibration
         self.calibration = cal
         offsets = _subpixel_offsets(supersample)
@@ -123,25 +125,17 @@ class StereoRenderer:
                                         R_left_from_rect @ np.array([cal.baseline_m, 0.0, 0.0]))
         self._cameras = [
             _Camera(cal.image_size_wh, [_distorted_rays(*_pixel_grid(cal.image_size_wh, du, dv), K, D)
-                                        for du, dv in offsets], T)
+                                        for du, dv in offsets], T, max_range_m)
             for K, D, T in ((cal.K_left, cal.D_left, cal.T_vehicle_from_camera),
                             (cal.K_right, cal.D_right, cal.T_vehicle_from_camera @ T_left_from_right))
         ]
 
-    def render(self, floor_rgb: FloorRgb, T_world_from_vehicle_: np.ndarray, max_range_m: float = 80.0,
+    def render(self, floor_rgb: FloorRgb, pose: np.ndarray,
                sky_rgb: tuple[int, int, int] = SKY_RGB) -> tuple[np.ndarray, np.ndarray]:
-        left, right = (camera.render(floor_rgb, T_world_from_vehicle_, max_range_m, sky_rgb)
-                       for camera in self._cameras)
+        """(left, right) raw frames at the vehicle pose [x_m, y_m, theta_rad]."""
+        left, right = (camera.render(floor_rgb, pose, sky_rgb) for camera in self._cameras)
         pattern = self.calibration.bayer_pattern
         return (mosaic(left, pattern), mosaic(right, pattern)) if pattern else (left, right)
-
-
-def render_stereo_pair(floor_rgb: FloorRgb, T_world_from_vehicle_: np.ndarray, calibration: StereoCalibration,
-                       max_range_m: float = 80.0, sky_rgb: tuple[int, int, int] = SKY_RGB,
-                       supersample: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """The raw (left, right) images of a calibrated stereo pair at one vehicle pose (see
-    :class:`StereoRenderer`; use it directly for many poses)."""
-    return StereoRenderer(calibration, supersample).render(floor_rgb, T_world_from_vehicle_, max_range_m, sky_rgb)
 
 
 def kinect_rgb_pinhole(calibration: RgbdCalibration) -> tuple[float, float, float, float, float]:
@@ -155,58 +149,51 @@ def kinect_rgb_pinhole(calibration: RgbdCalibration) -> tuple[float, float, floa
 
 
 class KinectRenderer:
-    """Renders THOR-model Kinect frames: (raw disparity (H, W) uint16, RGB (H, W, 3) uint8).
+    """Renders THOR-model Kinect frames at planar vehicle poses: (raw disparity (H, W) uint16,
+    RGB (H, W, 3) uint8).
 
     Disparity inverts ``depth = 1.03 / (-0.00304 d + 3.31)`` and is rounded to integers like the
-    sensor's; pixels that see no floor get 2047 (no reading). The RGB image comes from the pinhole
-    camera that the registration formulas imply (:func:`kinect_rgb_pinhole`).
+    sensor's; pixels that see no floor within ``max_range_m`` get 2047 (no reading). The RGB image
+    comes from the pinhole camera that the registration formulas imply (:func:`kinect_rgb_pinhole`).
     """
 
     def __init__(self, calibration: RgbdCalibration, rgb_size_wh: tuple[int, int] | None = None,
-                 supersample: int = 2):
+                 supersample: int = 2, max_range_m: float = 10.0):
         cal = calibration
-        self.calibration = cal
-        self._depth_rays = _pinhole_rays(*_pixel_grid(cal.image_size_wh, 0.0, 0.0), cal.fx, cal.fy, cal.cx, cal.cy)
+        T = cal.T_vehicle_from_camera
+        w, h = cal.image_size_wh
+        depth_rays = _pinhole_rays(*_pixel_grid(cal.image_size_wh, 0.0, 0.0), cal.fx, cal.fy, cal.cx, cal.cy)
+        _, depth_m, hit = floor_hits(T[:3, 3], depth_rays @ T[:3, :3].T, max_range_m)  # z = s: rays have z = 1
+        disparity = np.full(len(depth_m), KINECT_INVALID_DISPARITY, dtype=np.float64)
+        disparity[hit] = (KINECT_DEPTH_SCALE / depth_m[hit] - KINECT_DD_OFFSET) / KINECT_DD_PER_DISPARITY
+        # On a flat floor the depth image is the same from every planar pose.
+        self.disparity = np.clip(np.rint(disparity), 0, KINECT_INVALID_DISPARITY).astype(np.uint16).reshape(h, w)
         fx, fy, cx, cy, offset_m = kinect_rgb_pinhole(cal)
         size = rgb_size_wh or cal.image_size_wh
         self._rgb = _Camera(size, [_pinhole_rays(*_pixel_grid(size, du, dv), fx, fy, cx, cy)
                                    for du, dv in _subpixel_offsets(supersample)],
-                            cal.T_vehicle_from_camera @ homogeneous(np.eye(3), (offset_m, 0.0, 0.0)))
+                            T @ homogeneous(np.eye(3), (offset_m, 0.0, 0.0)), max_range_m)
 
-    def render(self, floor_rgb: FloorRgb, T_world_from_vehicle_: np.ndarray, max_range_m: float = 10.0,
+    def render(self, floor_rgb: FloorRgb, pose: np.ndarray,
                sky_rgb: tuple[int, int, int] = SKY_RGB) -> tuple[np.ndarray, np.ndarray]:
-        cal = self.calibration
-        T = T_world_from_vehicle_ @ cal.T_vehicle_from_camera
-        _, depth_m, hit = floor_hits(T[:3, 3], self._depth_rays @ T[:3, :3].T, max_range_m)  # z = s: rays have z = 1
-        disparity = np.full(len(depth_m), KINECT_INVALID_DISPARITY, dtype=np.float64)
-        disparity[hit] = (KINECT_DEPTH_SCALE / depth_m[hit] - KINECT_DD_OFFSET) / KINECT_DD_PER_DISPARITY
-        w, h = cal.image_size_wh
-        disparity = np.clip(np.rint(disparity), 0, KINECT_INVALID_DISPARITY).astype(np.uint16).reshape(h, w)
-        return disparity, self._rgb.render(floor_rgb, T_world_from_vehicle_, max_range_m, sky_rgb)
-
-
-def render_kinect_frame(floor_rgb: FloorRgb, T_world_from_vehicle_: np.ndarray, calibration: RgbdCalibration,
-                        rgb_size_wh: tuple[int, int] | None = None, max_range_m: float = 10.0,
-                        sky_rgb: tuple[int, int, int] = SKY_RGB, supersample: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """A THOR-model Kinect frame at one vehicle pose (see :class:`KinectRenderer`)."""
-    return KinectRenderer(calibration, rgb_size_wh, supersample).render(floor_rgb, T_world_from_vehicle_,
-                                                                         max_range_m, sky_rgb)
+        """(disparity, rgb) at the vehicle pose [x_m, y_m, theta_rad]."""
+        return self.disparity.copy(), self._rgb.render(floor_rgb, pose, sky_rgb)
 
 
 def render_stereo_stream(floor_rgb: FloorRgb, trajectory: Trajectory, calibration: StereoCalibration,
-                         supersample: int = 2, **render_options) -> StereoStream:
+                         supersample: int = 2, max_range_m: float = 80.0) -> StereoStream:
     """A :class:`StereoStream` with one rendered pair per pose of ``trajectory`` (images in memory)."""
-    renderer = StereoRenderer(calibration, supersample)
-    pairs = [renderer.render(floor_rgb, T_world_from_vehicle(pose), **render_options) for pose in trajectory.poses]
+    renderer = StereoRenderer(calibration, supersample, max_range_m)
+    pairs = [renderer.render(floor_rgb, pose) for pose in trajectory.poses]
     return StereoStream(t_s=np.asarray(trajectory.t_s, dtype=np.float64), left_images=[p[0] for p in pairs],
                         right_images=[p[1] for p in pairs], calibration=calibration)
 
 
 def render_rgbd_stream(floor_rgb: FloorRgb, trajectory: Trajectory, calibration: RgbdCalibration,
-                       supersample: int = 2, **render_options) -> RgbdStream:
+                       supersample: int = 2, max_range_m: float = 10.0) -> RgbdStream:
     """An :class:`RgbdStream` with one rendered disparity + RGB frame per pose (same timestamps)."""
-    renderer = KinectRenderer(calibration, supersample=supersample)
-    frames = [renderer.render(floor_rgb, T_world_from_vehicle(pose), **render_options) for pose in trajectory.poses]
+    renderer = KinectRenderer(calibration, supersample=supersample, max_range_m=max_range_m)
+    frames = [renderer.render(floor_rgb, pose) for pose in trajectory.poses]
     t_s = np.asarray(trajectory.t_s, dtype=np.float64)
     return RgbdStream(depth_t_s=t_s, depth_images=[f[0] for f in frames], rgb_t_s=t_s.copy(),
                       rgb_images=[f[1] for f in frames], calibration=calibration)
