@@ -3,7 +3,9 @@ result. Bounds on every field keep a run's cost finite."""
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 
 class _Section(BaseModel):
@@ -59,6 +61,43 @@ class LidarFilterConfig(_Section):
     ceiling_z_m: float = Field(3.0, ge=-5.0, le=50.0, description="Points above this height are dropped [m].")
 
 
+class TextureConfig(_Section):
+    """Ground texture map from stereo or RGB-D cameras, built after the trajectory is known."""
+
+    enabled: bool = Field(True, description="Build a texture map when the log has camera data.")
+    ground_z_m: float | None = Field(None, ge=-5.0, le=5.0, description="Height of the ground in the "
+                                     "vehicle/world frame [m]; None = estimate it (RANSAC plane fit).")
+    ground_band_m: float = Field(0.15, gt=0.0, le=2.0, description="Points within this distance of "
+                                 "the ground height are ground [m].")
+    cell_mode: Literal["mean", "latest"] = Field("mean", description="Per cell: running mean of all "
+                                                 "observations, or the latest frame's colour.")
+    min_depth_m: float = Field(0.3, ge=0.0, le=50.0, description="Nearer points are dropped [m].")
+    max_depth_m: float = Field(10.0, gt=0.1, le=200.0, description="Farther points are dropped [m] "
+                               "(stereo depth error grows with the square of the depth).")
+    rgbd_max_depth_m: float = Field(4.0, gt=0.1, le=20.0, description="Farther RGB-D points are dropped "
+                                    "[m] (Kinect v1 depth steps reach ~0.05 m at 3 m, ~0.1 m at 4 m).")
+    frame_stride: int = Field(1, ge=1, le=1000, description="Use every n-th camera frame.")
+    max_frames: int = Field(3000, ge=1, le=100000, description="At most this many frames, spread "
+                            "evenly over the drive.")
+    max_time_gap_s: float = Field(0.1, ge=0.0, le=5.0, description="A frame is used only within this "
+                                  "time of the trajectory's span, and RGB is paired with depth "
+                                  "frames at most this far apart [s].")
+    sgbm_num_disparities: int = Field(128, ge=16, le=512, multiple_of=16, description="StereoSGBM "
+                                      "disparity search range [px].")
+    sgbm_block_size: int = Field(5, ge=1, le=31, description="StereoSGBM block size [px], odd.")
+    sgbm_uniqueness_ratio: int = Field(10, ge=0, le=100, description="StereoSGBM uniqueness margin [%].")
+    sgbm_speckle_window: int = Field(100, ge=0, le=1000, description="StereoSGBM speckle filter "
+                                     "window [px]; 0 = off.")
+    sgbm_speckle_range: int = Field(2, ge=0, le=64, description="StereoSGBM speckle disparity range [px].")
+
+    @field_validator("sgbm_block_size")
+    @classmethod
+    def _odd_block(cls, value: int) -> int:
+        if value % 2 == 0:
+            raise ValueError("sgbm_block_size must be odd")
+        return value
+
+
 class SlamConfig(_Section):
     """Everything a run needs besides the log and the random generator."""
 
@@ -70,5 +109,6 @@ class SlamConfig(_Section):
     matcher: MatcherConfig = MatcherConfig()
     scheduling: SchedulingConfig = SchedulingConfig()
     lidar_filter: LidarFilterConfig = LidarFilterConfig()
+    texture: TextureConfig = TextureConfig()
     snapshot_every_scans: int = Field(0, ge=0, le=100000, description="Keep a map snapshot every n "
                                       "processed scans (0 = none); used for animations.")

@@ -129,6 +129,8 @@ class StereoCalibration:
     """Rectification and placement of a stereo pair (OpenCV conventions, pixels and metres).
 
     ``T_vehicle_from_camera`` places the *left camera's optical frame* (z forward, x right, y down).
+    ``bayer_pattern`` names the colour filter of raw single-channel images in OpenCV's
+    ``COLOR_BAYER_<pattern>2RGB`` spelling ("BG", "GB", "RG", "GR"); None = already grayscale/colour.
     """
 
     image_size_wh: tuple[int, int]
@@ -142,6 +144,7 @@ class StereoCalibration:
     P_right: np.ndarray
     baseline_m: float
     T_vehicle_from_camera: np.ndarray
+    bayer_pattern: str | None = None
 
 
 @dataclass(frozen=True)

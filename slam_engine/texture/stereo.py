@@ -1,0 +1,113 @@
+"""Stereo depth: rectify with the calibration, disparity with OpenCV's StereoSGBM, depth
+``z = f * b / d`` and back-projection into the *rectified* left optical frame.
+
+The rectified left optical frame differs from the left camera's optical frame by the rectification
+rotation ``R_left`` (``X_rect = R_left @ X_cam``); :attr:`StereoRectifier.T_vehicle_from_rectified`
+places it in the vehicle frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from slam_engine.config import TextureConfig
+from slam_engine.drive_log import StereoCalibration
+from slam_engine.errors import LogFormatError
+from slam_engine.texture.calibration import homogeneous
+from slam_engine.texture.images import demosaic, to_uint8
+
+
+@dataclass(frozen=True)
+class FramePoints:
+    """Points seen in one camera frame: ``points_camera`` (N, 3) [m] in the frame that
+    ``T_vehicle_from_camera`` places, with their ``colors`` (N, 3) RGB or (N,) gray uint8."""
+
+    points_camera: np.ndarray
+    colors: np.ndarray
+    T_vehicle_from_camera: np.ndarray
+
+
+class StereoRectifier:
+    """Undistortion + rectification maps of one calibrated stereo pair (computed once)."""
+
+    def __init__(self, calibration: StereoCalibration):
+        self.calibration = calibration
+        size = tuple(int(v) for v in calibration.image_size_wh)
+        self._maps = [
+            cv2.initUndistortRectifyMap(K, D, R, P[:, :3], size, cv2.CV_32FC1)
+            for K, D, R, P in ((calibration.K_left, calibration.D_left, calibration.R_left, calibration.P_left),
+                               (calibration.K_right, calibration.D_right, calibration.R_right, calibration.P_right))
+        ]
+        P = calibration.P_left
+        self.fx_px, self.fy_px, self.cx_px, self.cy_px = float(P[0, 0]), float(P[1, 1]), float(P[0, 2]), float(P[1, 2])
+        self.T_vehicle_from_rectified = calibration.T_vehicle_from_camera @ homogeneous(calibration.R_left.T, (0, 0, 0))
+
+    def rectify(self, left: np.ndarray, right: np.ndarray, what: str = "stereo frame") -> tuple[np.ndarray, np.ndarray]:
+        """Rectified (left, right) images, demosaiced to RGB first for raw Bayer cameras."""
+        w, h = self.calibration.image_size_wh
+        out = []
+        for side, image, (map_x, map_y) in (("left", left, self._maps[0]), ("right", right, self._maps[1])):
+            if image.shape[:2] != (h, w):
+                raise LogFormatError(f"{side} image is {image.shape[1]}x{image.shape[0]}, the calibration "
+                                     f"says {w}x{h}", None, what)
+            image = demosaic(to_uint8(image), self.calibration.bayer_pattern)
+            out.append(cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT))
+        return out[0], out[1]
+
+
+def compute_disparity(left_rect: np.ndarray, right_rect: np.ndarray, config: TextureConfig) -> np.ndarray:
+    """(H, W) float32 disparity [px] of rectified images with StereoSGBM; NaN where invalid."""
+    left_gray = _gray(left_rect)
+    right_gray = _gray(right_rect)
+    block = config.sgbm_block_size
+    matcher = cv2.StereoSGBM_create(
+        minDisparity=0,
+        numDisparities=config.sgbm_num_disparities,
+        blockSize=block,
+        P1=8 * block * block,
+        P2=32 * block * block,
+        disp12MaxDiff=1,
+        uniquenessRatio=config.sgbm_uniqueness_ratio,
+        speckleWindowSize=config.sgbm_speckle_window,
+        speckleRange=config.sgbm_speckle_range,
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
+    raw = matcher.compute(left_gray, right_gray)  # int16, disparity * 16
+    disparity = raw.astype(np.float32) / 16.0
+    disparity[raw <= 0] = np.nan
+    return disparity
+
+
+def depth_from_disparity(disparity_px: np.ndarray, focal_px: float, baseline_m: float) -> np.ndarray:
+    """Depth along the optical axis ``z = f * b / d`` [m]; NaN where the disparity is invalid."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = (focal_px * baseline_m) / disparity_px
+    depth[~(disparity_px > 0)] = np.nan
+    return depth
+
+
+def back_project(depth_m: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """(H, W, 3) points [m] in the optical frame of a pinhole camera from a depth image."""
+    h, w = depth_m.shape
+    v, u = np.mgrid[0:h, 0:w]
+    return np.stack(((u - cx) * depth_m / fx, (v - cy) * depth_m / fy, depth_m), axis=-1)
+
+
+def stereo_frame_points(left: np.ndarray, right: np.ndarray, rectifier: StereoRectifier, config: TextureConfig,
+                        what: str = "stereo frame") -> FramePoints:
+    """Coloured 3-D points of one stereo pair within the configured depth range, in the rectified
+    left optical frame; colours come from the rectified left image (gray for gray cameras)."""
+    left_rect, right_rect = rectifier.rectify(left, right, what)
+    disparity = compute_disparity(left_rect, right_rect, config)
+    depth = depth_from_disparity(disparity, rectifier.fx_px, rectifier.calibration.baseline_m)
+    keep = (depth >= config.min_depth_m) & (depth <= config.max_depth_m)
+    points = back_project(depth, rectifier.fx_px, rectifier.fy_px, rectifier.cx_px, rectifier.cy_px)
+    return FramePoints(points_camera=points[keep], colors=left_rect[keep],
+                       T_vehicle_from_camera=rectifier.T_vehicle_from_rectified)
+
+
+def _gray(image: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
