@@ -35,13 +35,13 @@ from slam_engine.drive_log import (
     GyroStream,
     LidarModel,
     MotionModelKind,
-    RgbdCalibration,
     RgbdStream,
     ScanStream,
     VehicleModel,
 )
 from slam_engine.errors import LogFormatError
 from slam_engine.formats._checks import clean_ranges, time_order
+from slam_engine.texture.calibration import thor_kinect_calibration
 
 # Effective track width [m] (skid included). Fitting the wheel-distance difference to the ECE276A .npz
 # IMU yaw gives 0.75 m on sets 20 and 21, and wheel-only dead reckoning with 0.75 m brings all five
@@ -60,19 +60,6 @@ UTM_30LX = LidarModel(num_beams=1081, angle_min_rad=float(np.radians(-135.0)),
                       angle_increment_rad=float(np.radians(0.25)), range_min_m=0.1, range_max_m=30.0,
                       T_vehicle_from_lidar=T_VEHICLE_FROM_LIDAR, name="Hokuyo UTM-30LX")
 _SET_FILE = re.compile(r"^(encoders|imu|hokuyo|kinect)(\d+)\.(mat|npz)$", re.IGNORECASE)
-
-
-def _kinect_calibration() -> RgbdCalibration:
-    """Kinect v1 on THOR (ECE276A spec): 0.18 m ahead, 0.36 m up, pitched 0.36 rad down, yaw 0.021."""
-    pitch, yaw = 0.36, 0.021
-    cp, sp, cy, sy = np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    R_body = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    R_body_from_optical = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-    T = np.eye(4)
-    T[:3, :3] = R_body @ R_body_from_optical
-    T[:3, 3] = (0.18, 0.005, 0.36)
-    return RgbdCalibration(image_size_wh=(640, 480), fx=585.05108211, fy=585.05108211, cx=242.94140713,
-                           cy=315.83800193, T_vehicle_from_camera=T, model="kinect_v1_thor")
 
 
 def _set_files(folder: Path) -> dict[int, dict[str, Path]]:
@@ -282,7 +269,7 @@ def _kinect(path: Path, folder: Path, set_number: int, warnings: list[str]) -> R
     rgb_order = time_order(rgb_t, path, "rgb", warnings)
     return RgbdStream(depth_t_s=depth_t[depth_order], depth_images=[depth[i] for i in depth_order],
                       rgb_t_s=rgb_t[rgb_order], rgb_images=[rgb[i] for i in rgb_order],
-                      calibration=_kinect_calibration())
+                      calibration=thor_kinect_calibration())
 
 
 # ---------------------------------------------------------------------------------------------- writing
