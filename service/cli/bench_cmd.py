@@ -1,0 +1,11 @@
+"""``lidarmap bench``: the accuracy and speed benchmark (see ``bench/``)."""
+
+from __future__ import annotations
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    from bench.cli import accuracy
+
+    app.command(name="bench")(accuracy)
