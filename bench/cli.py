@@ -24,6 +24,24 @@ def parse_seeds(text: str) -> list[int]:
     return seeds
 
 
+def readable_cases(cases: list, loader: str, console) -> list:
+    """The cases whose log format the default loader recognises; the others are named and skipped."""
+    if loader != "slam_engine.formats:load_log":
+        return cases
+    from slam_engine.errors import LogFormatError
+    from slam_engine.formats import detect_format
+
+    kept = []
+    for case in cases:
+        try:
+            detect_format(case.log_path)
+        except LogFormatError as error:
+            console.print(f"[yellow]skipped {case.name}:[/yellow] {error}", highlight=False)
+            continue
+        kept.append(case)
+    return kept
+
+
 def accuracy(
     paths: list[Path] = typer.Argument(None, help="More logs or folders to run (NAME.relations and "
                                        "NAME.gt.txt / ground_truth.txt beside a log are used when present)."),
@@ -49,6 +67,7 @@ def accuracy(
     from bench.cases import cases_for_path, datasets_root, default_cases
     from bench.harness import BenchOptions, run_benchmark
     from bench.report import fmt, print_report
+    from bench.worker import resolve
 
     seed_list = parse_seeds(seeds)[:1] if quick else parse_seeds(seeds)
     cases = default_cases(map_only=not quick) if datasets else []
@@ -61,6 +80,14 @@ def accuracy(
         raise typer.BadParameter(f"nothing to run: no logs under {datasets_root()} and none given")
     overrides = yaml.safe_load(config.read_text()) if config is not None else {}
     console = Console()
+    if not console.is_terminal:  # files and pipes get the whole table, not an 80-column squeeze
+        console = Console(width=200)
+    for dotted in (runner, loader):
+        try:
+            resolve(dotted)
+        except (ImportError, AttributeError, ValueError) as error:
+            raise typer.BadParameter(f"cannot use {dotted!r}: {error}") from None
+    cases = readable_cases(cases, loader, console)
     console.print(f"{len(cases)} logs × {len(seed_list)} seeds, {particles or 'default'} particles, "
                   "one process at a time")
 

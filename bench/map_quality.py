@@ -22,6 +22,9 @@ from slam_engine.drive_log import DriveLog
 from slam_engine.result import OccupancyGrid, Trajectory
 
 OCCUPIED_PROBABILITY = 0.65
+# The half agreement uses its own fixed cells so that runs with different grids compare.
+AGREEMENT_RESOLUTION_M = 0.05
+AGREEMENT_WINDOW_M = 0.5
 
 
 def scan_endpoints_world(log: DriveLog, trajectory: Trajectory, max_range_m: float) -> np.ndarray:
@@ -81,8 +84,8 @@ def _hit_cells(points: np.ndarray, origin: np.ndarray, shape: tuple[int, int], r
     return counts >= min_hits
 
 
-def half_agreement(endpoints: np.ndarray, resolution_m: float, window_m: float = 0.5,
-                   min_hits: int = 2) -> dict:
+def half_agreement(endpoints: np.ndarray, resolution_m: float = AGREEMENT_RESOLUTION_M,
+                   window_m: float = AGREEMENT_WINDOW_M, min_hits: int = 2) -> dict:
     """Agreement of the walls seen in the first and the second half of the scans (module docstring).
 
     ``endpoints`` (N_scans, N_beams, 2) as from :func:`scan_endpoints_world`."""
@@ -117,7 +120,7 @@ def map_quality(grid: OccupancyGrid, log: DriveLog | None = None, trajectory: Tr
                "occupied_cells": int(_occupied(grid).sum())}
     if log is not None and trajectory is not None and log.scans is not None and log.lidar is not None \
             and len(log.scans) and len(trajectory):
-        numbers.update(half_agreement(scan_endpoints_world(log, trajectory, max_range_m), grid.resolution_m))
+        numbers.update(half_agreement(scan_endpoints_world(log, trajectory, max_range_m)))
     return numbers
 
 

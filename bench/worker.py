@@ -63,7 +63,7 @@ def dead_reckoning_agreement(log, dead_reckoning, config) -> dict | None:
     if log.scans is None or log.lidar is None or not len(log.scans) or not len(dead_reckoning):
         return None
     endpoints = scan_endpoints_world(log, dead_reckoning, config.grid.max_range_m)
-    return half_agreement(endpoints, config.grid.resolution_m)
+    return half_agreement(endpoints)
 
 
 def run_job(job: dict) -> dict:
