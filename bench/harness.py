@@ -120,7 +120,7 @@ def summarise(case: BenchCase, records: list[dict]) -> dict:
         "case": case.name, "log_path": case.log_path, "scored": case.scored,
         "seeds": [r["seed"] for r in records], "seeds_ok": len(ok),
         "errors": {str(r["seed"]): r.get("error") for r in records if r.get("status") != "ok"},
-        "particles": records[0]["particles"] if records else None,
+        "particles": (first or (records[0] if records else {})).get("particles"),
         "scans": first.get("scans"), "duration_s": first.get("duration_s"),
         "wall_s": _spread([r.get("wall_s") for r in ok], True)["median"],
         "scans_per_s": _spread([r.get("scans_per_s") for r in ok], False)["median"],
