@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 import json
 import math
+import resource
 import sys
 import time
 from pathlib import Path
@@ -85,6 +86,7 @@ def run_job(job: dict) -> dict:
     ground_truth = read_ground_truth(case["ground_truth_path"]) if case.get("ground_truth_path") else None
 
     run_slam = resolve(job.get("runner") or DEFAULT_RUNNER)
+    peak_before_slam_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
     started = time.perf_counter()
     result = run_slam(log, config, rng=np.random.default_rng(seed))
     wall_s = time.perf_counter() - started
@@ -111,7 +113,7 @@ def run_job(job: dict) -> dict:
         "case": case["name"], "log_path": case["log_path"], "scored": bool(case.get("relations_path")),
         "seed": seed, "particles": config.particles, "status": "ok",
         "scans": scans, "scans_processed": processed, "duration_s": duration_s,
-        "load_s": load_s, "wall_s": wall_s,
+        "load_s": load_s, "wall_s": wall_s, "peak_before_slam_mb": peak_before_slam_mb,
         "scans_per_s": scans / wall_s if wall_s > 0 else None,
         "realtime_factor": duration_s / wall_s if wall_s > 0 else None,
         "slam": score(result.trajectory, relations, ground_truth),
