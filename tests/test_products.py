@@ -456,3 +456,21 @@ def test_occupancy_gray_is_the_png_shading() -> None:
     probability, known = occupancy_north_up(make_grid())
     gray = occupancy_gray(probability, known)
     assert gray.min() == 2 and gray.max() == 253 and set(np.unique(gray)) == {2, 69, 205, 253}
+
+
+def test_run_json_accuracy_from_relations_and_ground_truth(tmp_path: Path) -> None:
+    from slam_engine.evaluation import Relations
+
+    result = make_result(texture=False, snapshots=0)
+    traj = result.trajectory
+    # Ground truth says pose 0 -> pose 20 is 2.5 m straight ahead; the trajectory has it 2.0 m ahead,
+    # and pose 0 -> 10 at its true 1.0 m.
+    relations = Relations(t1_s=traj.t_s[[0, 0]], t2_s=traj.t_s[[10, 20]],
+                          motion=np.array([[1.0, 0.0, traj.poses[10, 2]], [2.5, 0.0, traj.poses[20, 2]]]))
+    shifted = Trajectory(traj.t_s, traj.poses + [1.0, 0.0, 0.0])
+    written = write_products(result, tmp_path, relations=relations, ground_truth=shifted)
+    accuracy = json.loads(written["run.json"].read_text())["accuracy"]
+    assert accuracy["relations"]["all"]["n_relations"] == 2
+    assert accuracy["relations"]["all"]["trans_mean_m"] == pytest.approx(0.25)
+    assert accuracy["relations"]["all"]["rot_mean_deg"] == pytest.approx(0.0)
+    assert accuracy["ate_m"] == pytest.approx(0.0, abs=1e-9)  # a pure shift vanishes after alignment

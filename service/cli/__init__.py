@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import typer
 
-from service.cli import bench_cmd, serve
+from service.cli import bench_cmd, evaluate_cmd, run_cmd, serve
 
 app = typer.Typer(name="lidarmap", help="Maps from drive logs with particle-filter SLAM.",
                   no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False)
 serve.register(app)
 bench_cmd.register(app)
+run_cmd.register(app)
+evaluate_cmd.register(app)
 
 
 def main() -> None:

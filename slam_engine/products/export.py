@@ -51,11 +51,14 @@ def accuracy_figures(trajectory: Trajectory, relations=None, ground_truth=None) 
     if relations is not None:
         if isinstance(relations, str | Path):
             relations = evaluation.read_relations(relations)
-        figures["relations"] = to_jsonable(evaluation.relation_errors(trajectory, relations))
+        figures["relations"] = to_jsonable(evaluation.relation_errors(trajectory, relations).as_dict())
     if ground_truth is not None:
         if isinstance(ground_truth, str | Path):
             ground_truth = evaluation.read_ground_truth(ground_truth)
-        figures["ate_m"] = to_jsonable(evaluation.absolute_trajectory_error(trajectory, ground_truth))
+        try:
+            figures["ate_m"] = evaluation.absolute_trajectory_error(trajectory, ground_truth)
+        except ValueError as exc:  # too few poses matched in time: say so instead of failing the run
+            figures["ate_m"], figures["ate_error"] = None, str(exc)
     return figures
 
 
