@@ -82,23 +82,24 @@ def _pad_to_blocks(array: np.ndarray, factor: int, fill) -> np.ndarray:
     return np.pad(array, widths, constant_values=fill)
 
 
-def _blocks(array: np.ndarray, factor: int) -> np.ndarray:
-    """View (H, W, ...) as (H/f, W/f, f*f, ...) blocks (H, W multiples of f)."""
+def _block_reduce(array: np.ndarray, factor: int, reducer: np.ufunc) -> np.ndarray:
+    """Reduce (H, W, ...) over f x f blocks (H, W multiples of f): columns first, then rows."""
     h, w = array.shape[:2]
     rest = array.shape[2:]
-    b = array.reshape(h // factor, factor, w // factor, factor, *rest).swapaxes(1, 2)
-    return b.reshape(h // factor, w // factor, factor * factor, *rest)
+    by_columns = reducer.reduce(array.reshape(h, w // factor, factor, *rest), axis=2)
+    return reducer.reduce(by_columns.reshape(h // factor, factor, w // factor, *rest), axis=1)
 
 
-def pool_occupancy(probability: np.ndarray, known: np.ndarray, inside: np.ndarray,
+def pool_occupancy(values: np.ndarray, known: np.ndarray, inside: np.ndarray,
                    factor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Reduce f x f blocks to one pixel, keeping obstacles visible: the block's probability is the
-    largest among its known cells; known / inside = any cell known / inside the map."""
+    """Reduce f x f blocks to one pixel, keeping obstacles visible: the block's value (log-odds or
+    probability: any increasing function of occupancy) is the largest among its known cells;
+    known / inside = any cell known / inside the map."""
     if factor == 1:
-        return probability, known, inside
-    p = _blocks(_pad_to_blocks(np.where(known, probability, -1.0), factor, -1.0), factor).max(axis=2)
-    k = _blocks(_pad_to_blocks(known, factor, False), factor).any(axis=2)
-    i = _blocks(_pad_to_blocks(inside, factor, False), factor).any(axis=2)
+        return values, known, inside
+    p = _block_reduce(_pad_to_blocks(np.where(known, values, -np.inf), factor, -np.inf), factor, np.maximum)
+    k = _block_reduce(_pad_to_blocks(known, factor, False), factor, np.logical_or)
+    i = _block_reduce(_pad_to_blocks(inside, factor, False), factor, np.logical_or)
     return p, k, i
 
 
@@ -106,8 +107,9 @@ def pool_texture(colors: np.ndarray, seen: np.ndarray, factor: int) -> tuple[np.
     """Reduce f x f blocks to the mean colour of their seen cells; seen = any seen."""
     if factor == 1:
         return colors, seen
-    s = _blocks(_pad_to_blocks(seen, factor, False), factor)
-    c = _blocks(_pad_to_blocks(colors, factor, 0), factor).astype(np.float64)
-    n = s.sum(axis=2)
-    mean = (c * s[..., None]).sum(axis=2) / np.maximum(n, 1)[..., None]
+    s = _pad_to_blocks(seen, factor, False)
+    c = _pad_to_blocks(colors, factor, 0) * s[..., None]
+    n = _block_reduce(s.astype(np.int64), factor, np.add)
+    total = _block_reduce(c.astype(np.int64), factor, np.add)
+    mean = total / np.maximum(n, 1)[..., None]
     return np.rint(mean).astype(np.uint8), n > 0

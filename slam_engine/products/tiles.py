@@ -231,15 +231,15 @@ def _shape(source: MapSource) -> tuple[int, int]:
 
 def _window(source: MapSource, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, ...]:
     """North-up window rows [r0, r1), cols [c0, c1) of the map (may reach outside it): for a grid
-    (probability, known, inside), for a texture (colors, seen, inside); outside cells padded."""
+    (log_odds, known, inside), for a texture (colors, seen, inside); outside cells padded."""
     h, w = _shape(source)
     rr0, rr1, cc0, cc1 = max(r0, 0), min(max(r1, 0), h), max(c0, 0), min(max(c1, 0), w)
     rr1, cc1 = max(rr1, rr0), max(cc1, cc0)
     iy0, iy1 = h - rr1, h - rr0  # grid rows of the window, bottom-up
     if isinstance(source, OccupancyGrid):
         log_odds = np.flipud(source.log_odds[iy0:iy1, cc0:cc1])
-        parts = [1.0 / (1.0 + np.exp(-log_odds.astype(np.float64))), log_odds != 0.0]
-        fills = [0.5, False]
+        parts = [log_odds, log_odds != 0.0]
+        fills = [0.0, False]
     else:
         colors = np.asarray(source.colors)[iy0:iy1, cc0:cc1]
         if colors.ndim == 2:
@@ -248,9 +248,14 @@ def _window(source: MapSource, r0: int, r1: int, c0: int, c1: int) -> tuple[np.n
         fills = [0, False]
     parts.append(np.ones(parts[1].shape, dtype=bool))
     fills.append(False)
-    pad = [(rr0 - r0, r1 - r0 - (rr0 - r0) - (rr1 - rr0)), (cc0 - c0, c1 - c0 - (cc0 - c0) - (cc1 - cc0))]
-    return tuple(np.pad(p, pad + [(0, 0)] * (p.ndim - 2), constant_values=f) for p, f in zip(parts, fills,
-                                                                                            strict=True))
+    if (rr0, rr1, cc0, cc1) == (r0, r1, c0, c1):
+        return tuple(parts)
+    embedded = []
+    for part, fill in zip(parts, fills, strict=True):
+        full = np.full((r1 - r0, c1 - c0, *part.shape[2:]), fill, dtype=part.dtype)
+        full[rr0 - r0:rr1 - r0, cc0 - c0:cc1 - c0] = part
+        embedded.append(full)
+    return tuple(embedded)
 
 
 def _pool(source: MapSource, window: tuple[np.ndarray, ...], factor: int) -> tuple[np.ndarray, ...]:
@@ -265,7 +270,9 @@ def _pool(source: MapSource, window: tuple[np.ndarray, ...], factor: int) -> tup
 def _shade(source: MapSource, pooled: tuple[np.ndarray, ...]) -> np.ndarray:
     """RGBA uint8 pixels of pooled values."""
     if isinstance(source, OccupancyGrid):
-        probability, known, inside = pooled
+        log_odds, known, inside = pooled
+        with np.errstate(over="ignore"):  # unknown blocks hold -inf
+            probability = 1.0 / (1.0 + np.exp(-log_odds.astype(np.float64)))
         gray = occupancy_gray(probability, known)
         rgb = np.repeat(gray[:, :, None], 3, axis=2)
         alpha = inside
