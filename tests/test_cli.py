@@ -166,11 +166,11 @@ def test_run_wires_log_config_progress_relations_and_products(tmp_path: Path, da
 def test_run_on_intel_writes_every_product(tmp_path: Path, dataset) -> None:
     pytest.importorskip("slam_engine.pipeline", reason="the engine (slam_engine.pipeline) is not merged yet")
     out = tmp_path / "intel"
-    result = invoke("run", dataset(INTEL), "--out", out, "--particles", "10", "--seed", "1")
+    result = invoke("run", dataset(INTEL), "--out", out, "--particles", "5", "--seed", "1", "--resolution", "0.1")
     assert result.exit_code == 0, result.output
     assert {p.name for p in out.iterdir()} >= ALL_PRODUCTS
     run = json.loads((out / "run.json").read_text())
-    assert run["timings"]["scans"] == 910 and run["config"]["particles"] == 10
+    assert run["timings"]["scans"] == 910 and run["config"]["particles"] == 5
     relations = run["accuracy"]["relations"]["all"]
     assert relations["n_relations"] == 1818 and relations["n_failed"] == 0
     assert np.isfinite(relations["trans_mean_m"]) and np.isfinite(run["accuracy"]["ate_m"])
