@@ -1,0 +1,188 @@
+"""``lidarmap run LOG --out DIR``: SLAM on a drive log, every map product into DIR.
+
+A relations file beside the log (``NAME.relations``, or the one ``*.relations`` in a log folder) and a
+ground-truth file (``NAME.gt.txt`` / ``ground_truth.txt``) are used automatically for run.json's
+accuracy figures.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from service.cli.errors import bad_input_exits
+from slam_engine.errors import ConfigError
+
+SNAPSHOT_FRAMES = 40  # animation frames aimed at when the config sets no snapshot interval
+
+
+def load_config(path: Path | None, particles: int | None = None, seed: int | None = None,
+                resolution_m: float | None = None, snapshot_every: int | None = None):
+    """SlamConfig from a YAML/JSON file (or defaults), then the command-line overrides; validated."""
+    import yaml
+    from pydantic import ValidationError
+
+    from slam_engine.config import SlamConfig
+
+    data: dict = {}
+    if path is not None:
+        try:
+            loaded = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+        except yaml.YAMLError as error:
+            mark = getattr(error, "problem_mark", None)
+            where = f", line {mark.line + 1}" if mark is not None else ""
+            problem = getattr(error, "problem", None) or str(error)
+            raise ConfigError(f"{path}{where}: not valid YAML or JSON: {problem}") from None
+        if loaded is not None and not isinstance(loaded, dict):
+            raise ConfigError(f"{path}: a config file holds a mapping of settings, not {type(loaded).__name__}")
+        data = loaded or {}
+    overrides = {"particles": particles, "seed": seed, "snapshot_every_scans": snapshot_every}
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    if resolution_m is not None:
+        data["grid"] = {**(data.get("grid") or {}), "resolution_m": resolution_m}
+    try:
+        return SlamConfig.model_validate(data)
+    except ValidationError as error:
+        where = f"{path}" if path is not None else "command line"
+        details = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in error.errors())
+        raise ConfigError(f"{where}: bad config: {details}") from None
+
+
+def file_beside(log: Path, suffixes: tuple[str, ...], folder_names: tuple[str, ...]) -> Path | None:
+    """``NAME<suffix>`` next to a log file, or inside a log folder one of ``folder_names`` or the only
+    file ending in the first suffix."""
+    if log.is_dir():
+        for name in folder_names:
+            if (log / name).is_file():
+                return log / name
+        matches = sorted(log.glob(f"*{suffixes[0]}"))
+        return matches[0] if len(matches) == 1 else None
+    stem = log.name.split(".")[0]
+    for suffix in suffixes:
+        candidate = log.with_name(stem + suffix)
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def geo_origin(lat: float | None, lon: float | None, heading: float | None):
+    """GeoOrigin from --lat --lon --heading (all three or none)."""
+    from slam_engine.products import GeoOrigin
+
+    given = [v is not None for v in (lat, lon, heading)]
+    if not any(given):
+        return None
+    if not all(given):
+        raise ConfigError("--lat, --lon and --heading go together: give all three (heading in degrees "
+                          "clockwise from north) or none")
+    return GeoOrigin(latitude_deg=lat, longitude_deg=lon, heading_deg=heading)
+
+
+def run_with_progress(drive_log, config):
+    """run_slam with a rich progress bar (scans, scans/s, ETA) on stderr."""
+    import numpy as np
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        ProgressColumn,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+    from rich.text import Text
+    from slam_engine.pipeline import run_slam
+
+    class ScanRateColumn(ProgressColumn):
+        def render(self, task) -> Text:
+            return Text("" if task.speed is None else f"{task.speed:.1f} scans/s", style="progress.data.speed")
+
+    columns = (TextColumn("SLAM"), BarColumn(), MofNCompleteColumn(), TextColumn("scans"), ScanRateColumn(),
+               TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn())
+    with Progress(*columns, console=Console(stderr=True), transient=False) as bar:
+        task = bar.add_task("slam", total=None)
+
+        def on_progress(p) -> None:
+            bar.update(task, completed=p.scans_done, total=p.scans_total)
+
+        return run_slam(drive_log, config, rng=np.random.default_rng(config.seed), progress=on_progress)
+
+
+def print_summary(result, written: dict[str, Path], out: Path) -> None:
+    """Products written, speed, and accuracy when known (stdout)."""
+    import json
+
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    table = Table("product", "bytes", title=f"products in {out}")
+    for name, path in sorted(written.items()):
+        table.add_row(name, f"{path.stat().st_size:,}")
+    console.print(table)
+    run = json.loads(written["run.json"].read_text())
+    timings = run["timings"]
+    rate = timings["scans_per_s"]
+    console.print(f"{timings['scans']} scans in {timings['wall_time_s']:.1f} s"
+                  + (f" ({rate:.1f} scans/s)" if rate else "")
+                  + f"; map {run['map']['width_cells']} x {run['map']['height_cells']} cells of "
+                  f"{run['map']['resolution_m']} m")
+    accuracy = run.get("accuracy") or {}
+    if "relations" in accuracy:
+        stats = accuracy["relations"]["all"]
+        console.print(f"relation error: {_fmt(stats['trans_mean_m'], '.3f')} +- {_fmt(stats['trans_std_m'], '.3f')}"
+                      f" m, {_fmt(stats['rot_mean_deg'], '.2f')} +- {_fmt(stats['rot_std_deg'], '.2f')} deg "
+                      f"({stats['n_relations']} relations, {stats['n_failed']} failed)")
+    if accuracy.get("ate_m") is not None:
+        console.print(f"absolute trajectory error: {accuracy['ate_m']:.3f} m")
+
+
+def _fmt(value: float | None, spec: str) -> str:
+    return "n/a" if value is None else format(value, spec)
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def run(
+        log: Path = typer.Argument(..., help="Drive log: a file or a folder (see lidarmap formats)."),
+        out: Path = typer.Option(..., "--out", "-o", help="Folder for the products (created)."),
+        format: str = typer.Option("auto", "--format", "-f", help="Log format, or auto to detect it."),
+        particles: int | None = typer.Option(None, help="Number of particles (overrides the config)."),
+        seed: int | None = typer.Option(None, help="Random seed (overrides the config)."),
+        resolution: float | None = typer.Option(None, help="Grid cell size [m] (overrides the config)."),
+        config: Path | None = typer.Option(None, "--config", "-c", help="SlamConfig as YAML or JSON."),
+        relations: Path | None = typer.Option(None, help="Relations file for accuracy figures "
+                                              "(default: NAME.relations beside the log)."),
+        ground_truth: Path | None = typer.Option(None, "--ground-truth", help="Ground truth 't x y theta' "
+                                                 "(default: NAME.gt.txt or ground_truth.txt beside the log)."),
+        lat: float | None = typer.Option(None, help="Start latitude [deg, WGS 84]: GeoTIFFs in UTM."),
+        lon: float | None = typer.Option(None, help="Start longitude [deg, WGS 84]."),
+        heading: float | None = typer.Option(None, help="Start heading [deg clockwise from north]."),
+        snapshot_every: int | None = typer.Option(None, help="Animation frame every N processed scans "
+                                                  f"(default: about {SNAPSHOT_FRAMES} frames; 0 = none)."),
+        verbose: bool = typer.Option(False, "--verbose", "-v", help="Show tracebacks."),
+    ) -> None:
+        """Build the map of a drive log and write every product (PNG, GeoTIFF, ROS map, trajectories,
+        animation, run.json) into --out."""
+        from slam_engine import evaluation
+        from slam_engine.formats import load_log
+        from slam_engine.products import write_products
+
+        with bad_input_exits(verbose):
+            geo = geo_origin(lat, lon, heading)
+            slam_config = load_config(config, particles, seed, resolution, snapshot_every)
+            relations = relations or file_beside(log, (".relations",), ())
+            ground_truth = ground_truth or file_beside(log, (".gt.txt",), ("ground_truth.txt",))
+            # Read the side files before the long run, so a bad one fails in seconds.
+            relation_table = None if relations is None else evaluation.read_relations(relations)
+            truth = None if ground_truth is None else evaluation.read_ground_truth(ground_truth)
+            drive_log = load_log(log, format)
+            if snapshot_every is None and slam_config.snapshot_every_scans == 0 and drive_log.scans is not None:
+                every = max(1, len(drive_log.scans) // SNAPSHOT_FRAMES)
+                slam_config = slam_config.model_copy(update={"snapshot_every_scans": every})
+            result = run_with_progress(drive_log, slam_config)
+            written = write_products(result, out, geo=geo, relations=relation_table, ground_truth=truth,
+                                     log=drive_log)
+            print_summary(result, written, out)
