@@ -105,7 +105,7 @@ def grid_png(grid: OccupancyGrid) -> bytes:
 def run_mapping_job(ctx: JobContext) -> None:
     """Job function for the worker: input -> run_slam -> products (names as the API serves them)."""
     from slam_engine.pipeline import run_slam
-    from slam_engine.products import write_products
+    from slam_engine.products import GeoOrigin, write_products, write_trajectory_tum
 
     log, description = load_input(ctx)
     ctx.store.set_input(ctx.job_id, description)
@@ -120,7 +120,12 @@ def run_mapping_job(ctx: JobContext) -> None:
     ctx.check_cancel()
     out_dir = ctx.out_dir
     session = _session_row(ctx)
-    files = write_products(result, out_dir / "products", geo=session["geo"], log=log)
+    geo = None if session["geo"] is None else GeoOrigin(
+        latitude_deg=session["geo"]["lat_deg"], longitude_deg=session["geo"]["lon_deg"],
+        heading_deg=session["geo"]["heading_deg"])
+    files = write_products(result, out_dir / "products", geo=geo, log=log)
+    files["dead_reckoning.tum"] = write_trajectory_tum(result.dead_reckoning,
+                                                       out_dir / "products" / "dead_reckoning.tum")
     save_grid(result.grid, out_dir / GRID_FILE)
     if result.texture is not None:
         save_texture(result.texture, out_dir / TEXTURE_FILE)
