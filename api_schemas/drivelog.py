@@ -129,7 +129,7 @@ class DriveLogManifest(BaseModel):
 class EncoderMessageModel(BaseModel):
     type: Literal["encoder"] = "encoder"
     t_s: float = Field(allow_inf_nan=False)
-    ticks: list[int] = Field(min_length=1, description="cumulative ticks, vehicle wheel_names order")
+    ticks: list[int] = Field(min_length=1, max_length=8, description="cumulative ticks, vehicle wheel_names order")
 
 
 class GyroMessageModel(BaseModel):
@@ -150,7 +150,7 @@ class ScanMessageModel(BaseModel):
     type: Literal["scan"] = "scan"
     t_s: float = Field(allow_inf_nan=False)
     ranges_m: list[Annotated[float, Field(ge=0, allow_inf_nan=False)] | None] = Field(
-        min_length=1, description="metres in beam order; null = no return")
+        min_length=1, max_length=100_000, description="metres in beam order; null = no return")
 
 
 DriveLogMessage = Annotated[EncoderMessageModel | GyroMessageModel | OdometryMessageModel | ScanMessageModel,

@@ -93,6 +93,7 @@ def run_with_progress(drive_log, config):
         TimeRemainingColumn,
     )
     from rich.text import Text
+
     from slam_engine.pipeline import run_slam
 
     class ScanRateColumn(ProgressColumn):
