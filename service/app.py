@@ -1,24 +1,71 @@
-"""FastAPI application factory: assembles routers, error handlers and the job runner."""
+"""FastAPI application factory: assembles routers, error handlers, the store and the job runner."""
 
 from __future__ import annotations
 
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
 from fastapi import FastAPI
 
+from service.errors import install_error_handlers
+from service.inspection import LogInspector
+from service.limits import BodyLimitMiddleware
+from service.routers import chunks, formats, health, jobs, logs, products, sessions
+from service.runner import create_runner
 from service.settings import Settings, get_settings
+from service.storage import DataDir
+from service.store import JobStore
+from service.uploads import MULTIPART_OVERHEAD_BYTES
 from slam_engine import __version__
 
+logger = logging.getLogger("lidarmap.service")
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    """A ready-to-serve app for ``settings`` (read from the environment when omitted)."""
+
+def create_app(settings: Settings | None = None, job_function: str | None = None) -> FastAPI:
+    """A ready-to-serve app for ``settings`` (read from the environment when omitted).
+
+    ``job_function`` ("module:function") replaces the mapping job, for tests of the job lifecycle.
+    The store, the data folder and the worker processes start with the app's lifespan.
+    """
     settings = settings or get_settings()
-    app = FastAPI(title="lidarmap", version=__version__,
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        data = DataDir(settings.data_dir)
+        data.create()
+        store = JobStore(data.database)
+        store.initialise()
+        interrupted = store.fail_interrupted()
+        if interrupted:
+            logger.warning("%d job(s) were running when the service stopped: marked failed", len(interrupted))
+        runner = create_runner(settings, data, store, job_function)
+        for job_id in store.jobs_with_status("queued"):
+            runner.submit(job_id)
+        app.state.data, app.state.store, app.state.runner = data, store, runner
+        app.state.inspector = LogInspector()
+        try:
+            yield
+        finally:
+            runner.shutdown()
+            app.state.inspector.shutdown()
+
+    app = FastAPI(title="lidarmap", version=__version__, lifespan=lifespan,
                   description="Occupancy grid, texture map and trajectory from drive logs, by "
-                              "particle-filter SLAM.")
+                              "particle-filter SLAM. Upload a log (or stream chunks) into a session, "
+                              "start a job, poll it, fetch the products.")
     app.state.settings = settings
+    install_error_handlers(app)
 
-    @app.get("/healthz", tags=["health"])
-    def healthz() -> dict[str, str]:
-        """Liveness: the process answers."""
-        return {"status": "ok", "version": __version__}
+    def body_limit(path: str) -> int:
+        if path.endswith("/logs"):
+            return settings.max_upload_bytes + MULTIPART_OVERHEAD_BYTES
+        return settings.max_chunk_bytes
 
+    app.add_middleware(BodyLimitMiddleware, limit_for=body_limit)
+    app.include_router(health.router)
+    for module in (sessions, logs, chunks, formats, products):
+        app.include_router(module.router)
+    app.include_router(jobs.session_jobs)
+    app.include_router(jobs.router)
     return app

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -16,8 +17,20 @@ class Settings(BaseSettings):
     data_dir: Path = Field(Path("lidarmap-data"), description="Where the job store, uploads and "
                            "artifacts live.")
     workers: int = Field(2, ge=1, le=64, description="Local SLAM worker processes.")
+    runner: Literal["local"] = Field("local", description="Job runner: 'local' worker processes "
+                                     "('celery' is planned).")
     max_upload_bytes: int = Field(2 * 1024**3, ge=1024, le=1024**4, description="Largest accepted upload.")
+    max_zip_entries: int = Field(100_000, ge=1, le=10_000_000, description="Most files in an uploaded zip.")
+    max_extracted_bytes: int = Field(8 * 1024**3, ge=1024, le=4 * 1024**4,
+                                     description="Largest total size of an uploaded zip once extracted.")
+    max_chunk_bytes: int = Field(64 * 1024**2, ge=1024, le=1024**3, description="Largest streamed chunk body.")
+    cancel_grace_s: float = Field(5.0, ge=0.1, le=600.0, description="A running job that ignores a cancel "
+                                  "this long has its worker process terminated.")
     api_keys: str = Field("", description="Comma-separated API keys; empty = no authentication.")
+
+    def api_key_list(self) -> list[str]:
+        """The configured keys (blank entries dropped)."""
+        return [key.strip() for key in self.api_keys.split(",") if key.strip()]
 
 
 def get_settings() -> Settings:

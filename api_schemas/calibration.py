@@ -1,0 +1,44 @@
+"""Vehicle and LiDAR calibration as JSON: what a streaming session needs, since streamed messages
+carry none. Mirrors slam_engine.drive_log.VehicleModel and LidarModel (metres, radians)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Matrix4 = list[list[float]]
+
+
+class VehicleCalibration(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["differential", "skid_steer", "odometry"]
+    ticks_per_revolution: float | None = Field(None, gt=0)
+    wheel_diameters_m: list[float] | None = Field(None, min_length=1, max_length=8)
+    wheel_names: list[str] = Field(default_factory=list, max_length=8)
+    track_width_m: float | None = Field(None, gt=0, le=20)
+    gyro_lowpass_hz: float | None = Field(None, gt=0)
+    T_vehicle_from_gyro: Matrix4 | None = None
+    name: str = Field("vehicle", max_length=100)
+
+
+class LidarCalibration(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    num_beams: int = Field(ge=1, le=100_000)
+    angle_min_rad: float = Field(ge=-7.0, le=7.0)
+    angle_increment_rad: float = Field(gt=-1.0, lt=1.0)
+    range_min_m: float = Field(ge=0.0)
+    range_max_m: float = Field(gt=0.0, le=1000.0)
+    T_vehicle_from_lidar: Matrix4 | None = None
+    name: str = Field("lidar", max_length=100)
+
+
+class Calibration(BaseModel):
+    """Everything the engine needs besides the messages."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    vehicle: VehicleCalibration
+    lidar: LidarCalibration | None = None

@@ -1,0 +1,45 @@
+"""Store rows -> public schemas (times as UTC datetimes, ETA from progress)."""
+
+from __future__ import annotations
+
+import time
+from datetime import UTC, datetime
+from typing import Any
+
+from api_schemas.jobs import JobPublic
+from api_schemas.logs import LogPublic
+from api_schemas.sessions import SessionPublic
+
+
+def utc(ts: float | None) -> datetime | None:
+    return None if ts is None else datetime.fromtimestamp(ts, tz=UTC)
+
+
+def session_public(row: dict[str, Any]) -> SessionPublic:
+    return SessionPublic(id=row["id"], name=row["name"], vehicle_preset=row["vehicle_preset"],
+                         calibration=row["calibration"], geo=row["geo"], created_at=utc(row["created_at"]),
+                         logs=row["logs"], chunks=row["chunks"], jobs=row["jobs"])
+
+
+def log_public(row: dict[str, Any]) -> LogPublic:
+    return LogPublic(id=row["id"], session_id=row["session_id"], filename=row["filename"],
+                     size_bytes=row["size_bytes"], sha256=row["sha256"], archive=row["archive"],
+                     summary=row["summary"], created_at=utc(row["created_at"]))
+
+
+def eta_s(row: dict[str, Any], now: float | None = None) -> float | None:
+    """Seconds left, extrapolating the run's rate so far; None when unknown."""
+    if row["status"] != "running" or not row["started_at"] or not row["scans_total"] or row["scans_done"] <= 0:
+        return None
+    elapsed = (now or time.time()) - row["started_at"]
+    return max(0.0, elapsed * (row["scans_total"] - row["scans_done"]) / row["scans_done"])
+
+
+def job_public(row: dict[str, Any], live_products: list[str] | None = None) -> JobPublic:
+    products = sorted(set(row["products"]) | set(live_products or []))
+    return JobPublic(id=row["id"], session_id=row["session_id"], source=row["source"], log_id=row["log_id"],
+                     status=row["status"], progress=row["progress"], scans_done=row["scans_done"],
+                     scans_total=row["scans_total"], eta_s=eta_s(row), error=row["error"],
+                     cancel_requested=row["cancel_requested"], config=row["config"], input=row["input"],
+                     products=products, created_at=utc(row["created_at"]), started_at=utc(row["started_at"]),
+                     finished_at=utc(row["finished_at"]))

@@ -1,0 +1,77 @@
+"""Jobs: create (on a session), list, read, cancel."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query
+
+from api_schemas.errors import ErrorResponse
+from api_schemas.jobs import JobCreate, JobPublic, JobSource, JobsPublic, JobStatus
+from service.deps import DataDep, JobRow, OwnerDep, RunnerDep, SessionRow, StoreDep
+from service.errors import Conflict, NotFound
+from service.products import live_product_names
+from service.routers.convert import job_public
+
+ERRORS = {401: {"model": ErrorResponse}, 404: {"model": ErrorResponse}, 422: {"model": ErrorResponse}}
+
+session_jobs = APIRouter(prefix="/v1/sessions/{session_id}/jobs", tags=["jobs"], responses=ERRORS)
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=ERRORS)
+
+
+@session_jobs.post("", response_model=JobPublic, status_code=202, responses={409: {"model": ErrorResponse}})
+def create_job(body: JobCreate, session: SessionRow, store: StoreDep, runner: RunnerDep) -> JobPublic:
+    """Queue a mapping run over the session's newest (or the given) upload, or over its streamed
+    chunks 0..k as they stand when the job starts. Poll GET /v1/jobs/{id}."""
+    source = body.source or (JobSource.LOG if session["logs"] else JobSource.STREAM)
+    log_id = None
+    if source is JobSource.LOG:
+        logs = store.list_logs(session["id"])
+        if body.log_id is not None:
+            if store.get_log(body.log_id, session["id"]) is None:
+                raise NotFound(f"no log {body.log_id!r} in this session", {"field": "log_id"})
+            log_id = body.log_id
+        elif logs:
+            log_id = logs[0]["id"]
+        else:
+            raise Conflict("the session has no uploaded log: POST one to /v1/sessions/{id}/logs first",
+                           {"session_id": session["id"]})
+    else:
+        if not session["chunks"]:
+            raise Conflict("the session has no streamed chunks: POST some to /v1/sessions/{id}/chunks first",
+                           {"session_id": session["id"]})
+        if session["calibration"] is None:
+            raise Conflict("streamed chunks need the vehicle's calibration: create the session with "
+                           "'calibration'", {"session_id": session["id"]})
+    config = body.model_dump(exclude={"source", "log_id"})
+    row = store.create_job(session["id"], session["owner"], source.value, log_id, config)
+    runner.submit(row["id"])
+    return job_public(row)
+
+
+@router.get("", response_model=JobsPublic)
+def list_jobs(store: StoreDep, owner: OwnerDep, data: DataDep,
+              session: Annotated[str | None, Query(max_length=64, description="Only this session's jobs.")] = None,
+              status: Annotated[JobStatus | None, Query(description="Only jobs in this state.")] = None,
+              limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+              offset: Annotated[int, Query(ge=0)] = 0) -> JobsPublic:
+    rows, count = store.list_jobs(owner, session, None if status is None else status.value, limit, offset)
+    return JobsPublic(data=[job_public(r, live_product_names(data, r)) for r in rows], count=count)
+
+
+@router.get("/{job_id}", response_model=JobPublic)
+def get_job(job: JobRow, data: DataDep) -> JobPublic:
+    """Status, progress (0..1, scans done/total), ETA, the error reason, and the products available."""
+    return job_public(job, live_product_names(data, job))
+
+
+@router.delete("/{job_id}", response_model=JobPublic, status_code=202, responses={409: {"model": ErrorResponse}})
+def cancel_job(job: JobRow, store: StoreDep, runner: RunnerDep, data: DataDep) -> JobPublic:
+    """Cancel: a queued job at once, a running one within about a second (its worker checks the
+    flag at every progress report; one that does not stop is terminated after a grace period)."""
+    if job["status"] not in ("queued", "running"):
+        raise Conflict(f"job already {job['status']}", {"status": job["status"]})
+    store.request_cancel(job["id"])
+    runner.cancel(job["id"])
+    row = store.get_job(job["id"])
+    return job_public(row, live_product_names(data, row))

@@ -1,0 +1,73 @@
+"""/v1/sessions/{id}/logs: upload a drive log (validated on arrival) and list the uploads."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Query, Request
+
+from api_schemas.errors import ErrorResponse
+from api_schemas.logs import LogPublic, LogsPublic
+from service.deps import DataDep, SessionRow, SettingsDep, StoreDep
+from service.errors import InvalidInput
+from service.inspection import LogInspector
+from service.routers.convert import log_public
+from service.store import new_id
+from service.uploads import UPLOAD_OPENAPI, extract_zip, is_zip_upload, move_into, receive_upload, safe_suffix
+
+router = APIRouter(prefix="/v1/sessions/{session_id}/logs", tags=["logs"],
+                   responses={401: {"model": ErrorResponse}, 404: {"model": ErrorResponse}})
+
+
+def get_inspector(request: Request) -> LogInspector:
+    return request.app.state.inspector
+
+
+InspectorDep = Annotated[LogInspector, Depends(get_inspector)]
+
+
+def known_format_names() -> list[str]:
+    from slam_engine.formats import list_formats
+
+    return [info.name for info in list_formats()]
+
+
+@router.post("", response_model=LogPublic, status_code=201, openapi_extra=UPLOAD_OPENAPI,
+             responses={400: {"model": ErrorResponse}, 413: {"model": ErrorResponse},
+                        415: {"model": ErrorResponse}, 422: {"model": ErrorResponse}})
+async def upload_log(request: Request, session: SessionRow, store: StoreDep, data: DataDep,
+                     settings: SettingsDep, inspector: InspectorDep,
+                     format: Annotated[str | None, Query(max_length=32, description="Format name; "
+                                                         "default auto-detect.")] = None) -> LogPublic:
+    """Upload a drive log in any supported format (a folder format as a .zip). The body is
+    streamed to disk and hashed; the loader then checks it: 415 when no format matches, 422 with
+    the loader's message when it is corrupt, 413 when too big."""
+    received = await receive_upload(request, data.tmp, settings.max_upload_bytes)
+    log_id = new_id()
+    upload_dir = data.upload_dir(log_id)
+    try:
+        format_name = (format or received.fields.get("format") or "auto").strip()
+        if format_name != "auto" and format_name not in known_format_names():
+            raise InvalidInput(f"unknown format {format_name!r}; known: {', '.join(known_format_names())}",
+                               {"field": "format"})
+        if is_zip_upload(received):
+            log_path = extract_zip(received.path, upload_dir / "tree", settings.max_zip_entries,
+                                   settings.max_extracted_bytes)
+            received.path.unlink(missing_ok=True)
+        else:
+            log_path = upload_dir / f"log{safe_suffix(received.filename)}"
+            move_into(received.path, log_path)
+        summary = await inspector.summary(log_path, format_name)
+    except BaseException:
+        received.path.unlink(missing_ok=True)
+        data.remove(upload_dir)
+        raise
+    row = store.add_log(log_id, session["id"], received.filename, received.size_bytes, received.sha256,
+                        is_zip_upload(received), summary, data.relative(log_path))
+    return log_public(row)
+
+
+@router.get("", response_model=LogsPublic)
+def list_logs(session: SessionRow, store: StoreDep) -> LogsPublic:
+    rows = store.list_logs(session["id"])
+    return LogsPublic(data=[log_public(r) for r in rows], count=len(rows))

@@ -1,0 +1,110 @@
+"""/v1/jobs/{id}/...: a job's products (maps, trajectories, tiles, animation, run record)."""
+
+from __future__ import annotations
+
+import json
+from enum import StrEnum
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Path, Query
+from fastapi.responses import FileResponse, Response
+from starlette.concurrency import run_in_threadpool
+
+from api_schemas.errors import ErrorResponse
+from api_schemas.products import Pose, TrajectoryPublic
+from service.deps import DataDep, JobRow
+from service.errors import InvalidInput
+from service.products import MEDIA_TYPES, product_path, tile_source
+
+MAX_TILE_ZOOM = 24
+
+router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["products"],
+                   responses={401: {"model": ErrorResponse}, 404: {"model": ErrorResponse},
+                              409: {"model": ErrorResponse, "description": "Not available (yet)."}})
+
+
+class TrajectoryFormat(StrEnum):
+    JSON = "json"
+    TUM = "tum"
+
+
+class TileLayer(StrEnum):
+    OCCUPANCY = "occupancy"
+    TEXTURE = "texture"
+
+
+def _file(data: DataDep, job: dict[str, Any], name: str) -> FileResponse:
+    path = product_path(data, job, name)
+    headers = {"Cache-Control": "no-store"} if job["status"] == "running" else None
+    return FileResponse(path, media_type=MEDIA_TYPES[name], headers=headers)
+
+
+def _trajectory(data: DataDep, job: dict[str, Any], stem: str, kind: str, fmt: TrajectoryFormat):
+    from slam_engine.products import read_trajectory
+
+    if fmt is TrajectoryFormat.TUM:
+        return _file(data, job, f"{stem}.tum")
+    traj = read_trajectory(product_path(data, job, f"{stem}.json"))
+    poses = [Pose(t_s=float(t), x_m=float(p[0]), y_m=float(p[1]), theta_rad=float(p[2]))
+             for t, p in zip(traj.t_s, traj.poses, strict=True)]
+    return TrajectoryPublic(job_id=job["id"], kind=kind, count=len(poses), poses=poses)
+
+
+TrajectoryFormatQuery = Annotated[TrajectoryFormat, Query(alias="format", description="json or tum (text)")]
+TEXT = {200: {"content": {"text/plain": {}}, "description": "JSON, or TUM text with ?format=tum."}}
+
+
+@router.get("/trajectory", response_model=TrajectoryPublic, responses=TEXT)
+def trajectory(job: JobRow, data: DataDep, fmt: TrajectoryFormatQuery = TrajectoryFormat.JSON):
+    """The SLAM trajectory: JSON poses, or TUM (``t x y z qx qy qz qw``) with ?format=tum."""
+    return _trajectory(data, job, "trajectory", "slam", fmt)
+
+
+@router.get("/dead-reckoning", response_model=TrajectoryPublic, responses=TEXT)
+def dead_reckoning(job: JobRow, data: DataDep, fmt: TrajectoryFormatQuery = TrajectoryFormat.JSON):
+    """Odometry alone, for comparison."""
+    return _trajectory(data, job, "dead-reckoning", "dead_reckoning", fmt)
+
+
+def _file_route(name: str, summary: str) -> None:
+    media = MEDIA_TYPES[name]
+
+    def route(job: JobRow, data: DataDep) -> FileResponse:
+        return _file(data, job, name)
+
+    route.__doc__ = summary
+    router.add_api_route(f"/{name}", route, methods=["GET"], response_class=FileResponse, name=name,
+                         summary=summary, responses={200: {"content": {media: {}}}})
+
+
+_file_route("occupancy.png", "Occupancy grid as PNG (north up). While the job runs: the map so far.")
+_file_route("occupancy.tif", "Occupancy probability as a georeferenced GeoTIFF.")
+_file_route("map.yaml", "ROS map_server metadata (with map.pgm).")
+_file_route("map.pgm", "ROS map_server image.")
+_file_route("texture.png", "Ground texture map as PNG (when the log has a camera).")
+_file_route("texture.tif", "Ground texture map as GeoTIFF.")
+_file_route("animation.gif", "The map growing over the run.")
+
+
+@router.get("/run", response_model=dict[str, Any])
+def run_record(job: JobRow, data: DataDep) -> dict[str, Any]:
+    """The run record: configuration used, timings, scan statistics, input summary."""
+    return json.loads(product_path(data, job, "run.json").read_text())
+
+
+@router.get("/tiles/{layer}/{z}/{x}/{y}.png", response_class=Response,
+            responses={200: {"content": {"image/png": {}}}, 422: {"model": ErrorResponse}})
+async def tile(job: JobRow, data: DataDep, layer: TileLayer,
+               z: Annotated[int, Path(ge=0, le=MAX_TILE_ZOOM)], x: Annotated[int, Path(ge=0)],
+               y: Annotated[int, Path(ge=0)]) -> Response:
+    """A 256x256 PNG tile of the map (z=0: the whole map; x, y in 0..2^z-1). While the job runs:
+    tiles of the map so far."""
+    if x >= 2**z or y >= 2**z:
+        raise InvalidInput(f"tile ({x}, {y}) does not exist at zoom {z}: x and y must be below {2**z}",
+                           {"z": z, "x": x, "y": y})
+    from slam_engine.products import render_tile
+
+    source = await run_in_threadpool(tile_source, data, job, layer.value)
+    png = await run_in_threadpool(render_tile, source, z, x, y)
+    headers = {"Cache-Control": "no-store"} if job["status"] == "running" else None
+    return Response(png, media_type="image/png", headers=headers)

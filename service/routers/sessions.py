@@ -1,0 +1,57 @@
+"""/v1/sessions: create, list, read, delete."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query
+
+from api_schemas.errors import ErrorResponse
+from api_schemas.sessions import SessionCreate, SessionDeleted, SessionPublic, SessionsPublic
+from service.deps import DataDep, OwnerDep, RunnerDep, SessionRow, StoreDep
+from service.routers.convert import session_public
+
+router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
+                   responses={401: {"model": ErrorResponse}, 404: {"model": ErrorResponse},
+                              422: {"model": ErrorResponse}})
+
+
+@router.post("", response_model=SessionPublic, status_code=201)
+def create_session(body: SessionCreate, store: StoreDep, owner: OwnerDep) -> SessionPublic:
+    """Start a session; streamed chunks need its calibration (or preset), uploads carry their own."""
+    row = store.create_session(owner, body.name, body.vehicle_preset,
+                               None if body.calibration is None else body.calibration.model_dump(),
+                               None if body.geo is None else body.geo.model_dump())
+    return session_public(row)
+
+
+@router.get("", response_model=SessionsPublic)
+def list_sessions(store: StoreDep, owner: OwnerDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+                  offset: Annotated[int, Query(ge=0)] = 0) -> SessionsPublic:
+    rows, count = store.list_sessions(owner, limit, offset)
+    return SessionsPublic(data=[session_public(r) for r in rows], count=count)
+
+
+@router.get("/{session_id}", response_model=SessionPublic)
+def get_session(session: SessionRow) -> SessionPublic:
+    return session_public(session)
+
+
+@router.delete("/{session_id}", response_model=SessionDeleted)
+def delete_session(session: SessionRow, store: StoreDep, runner: RunnerDep, data: DataDep) -> SessionDeleted:
+    """Cancel the session's active jobs, then delete it with its logs, chunks, jobs and files."""
+    cancelled = 0
+    jobs, _ = store.list_jobs(session["owner"], session["id"], None, 1_000_000, 0)
+    for job in jobs:
+        if job["status"] in ("queued", "running"):
+            store.request_cancel(job["id"])
+            runner.cancel(job["id"])
+            cancelled += 1
+    logs = store.list_logs(session["id"])
+    job_ids = store.delete_session(session["id"])
+    for log in logs:
+        data.remove(data.upload_dir(log["id"]))
+    for job_id in job_ids:
+        data.remove(data.job_dir(job_id))
+    data.remove(data.chunk_dir(session["id"]))
+    return SessionDeleted(id=session["id"], jobs_cancelled=cancelled)

@@ -1,0 +1,134 @@
+"""Streamed chunks -> a DriveLog: the session's calibration plus the messages of chunks 0..k.
+
+Message JSON follows api_schemas.drivelog (``type`` discriminator); a ``null`` range is a beam
+with no return (``inf`` in the engine).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+import numpy as np
+
+from slam_engine.drive_log import (
+    DriveLog,
+    EncoderStream,
+    GyroStream,
+    LidarModel,
+    MotionModelKind,
+    OdometryStream,
+    ScanStream,
+    VehicleModel,
+)
+from slam_engine.errors import LogFormatError
+
+
+def vehicle_from_calibration(vehicle: dict[str, Any]) -> VehicleModel:
+    return VehicleModel(
+        kind=MotionModelKind(vehicle["kind"]),
+        ticks_per_revolution=vehicle.get("ticks_per_revolution"),
+        wheel_diameters_m=None if vehicle.get("wheel_diameters_m") is None else tuple(vehicle["wheel_diameters_m"]),
+        wheel_names=tuple(vehicle.get("wheel_names") or ()),
+        track_width_m=vehicle.get("track_width_m"),
+        gyro_lowpass_hz=vehicle.get("gyro_lowpass_hz"),
+        T_vehicle_from_gyro=_matrix(vehicle.get("T_vehicle_from_gyro")),
+        name=vehicle.get("name", "vehicle"),
+    )
+
+
+def lidar_from_calibration(lidar: dict[str, Any] | None) -> LidarModel | None:
+    if lidar is None:
+        return None
+    return LidarModel(num_beams=lidar["num_beams"], angle_min_rad=lidar["angle_min_rad"],
+                      angle_increment_rad=lidar["angle_increment_rad"], range_min_m=lidar["range_min_m"],
+                      range_max_m=lidar["range_max_m"], T_vehicle_from_lidar=_matrix(lidar.get("T_vehicle_from_lidar")),
+                      name=lidar.get("name", "lidar"))
+
+
+def calibration_from_log(log: DriveLog) -> dict[str, Any]:
+    """The calibration JSON of a DriveLog (what a client sends when it streams that log)."""
+    v, lidar = log.vehicle, log.lidar
+    out: dict[str, Any] = {"vehicle": {
+        "kind": v.kind.value, "ticks_per_revolution": v.ticks_per_revolution,
+        "wheel_diameters_m": None if v.wheel_diameters_m is None else list(v.wheel_diameters_m),
+        "wheel_names": list(v.wheel_names), "track_width_m": v.track_width_m, "gyro_lowpass_hz": v.gyro_lowpass_hz,
+        "T_vehicle_from_gyro": np.asarray(v.T_vehicle_from_gyro, dtype=float).tolist(), "name": v.name}}
+    if lidar is not None:
+        out["lidar"] = {"num_beams": lidar.num_beams, "angle_min_rad": lidar.angle_min_rad,
+                        "angle_increment_rad": lidar.angle_increment_rad, "range_min_m": lidar.range_min_m,
+                        "range_max_m": lidar.range_max_m,
+                        "T_vehicle_from_lidar": np.asarray(lidar.T_vehicle_from_lidar, dtype=float).tolist(),
+                        "name": lidar.name}
+    return out
+
+
+def drive_log_from_messages(calibration: dict[str, Any], messages: Iterable[dict[str, Any]],
+                            source: str = "stream") -> DriveLog:
+    """Columnar DriveLog from time-ordered message dicts. Raises LogFormatError naming the message
+    when one does not fit the calibration (wrong beam count, wrong wheel count)."""
+    lidar = lidar_from_calibration(calibration.get("lidar"))
+    vehicle = vehicle_from_calibration(calibration["vehicle"])
+    cols: dict[str, list] = {k: [] for k in ("scan_t", "scan_r", "enc_t", "enc", "gyro_t", "gyro", "odo_t", "odo")}
+    for i, m in enumerate(messages):
+        kind = m.get("type")
+        if kind == "scan":
+            if lidar is None:
+                raise LogFormatError("scan message but the session's calibration has no lidar", location=f"message {i}")
+            if len(m["ranges_m"]) != lidar.num_beams:
+                raise LogFormatError(f"scan has {len(m['ranges_m'])} ranges, the lidar has {lidar.num_beams} beams",
+                                     location=f"message {i}")
+            cols["scan_t"].append(m["t_s"])
+            cols["scan_r"].append([np.inf if r is None else r for r in m["ranges_m"]])
+        elif kind == "encoder":
+            cols["enc_t"].append(m["t_s"])
+            cols["enc"].append(m["ticks"])
+        elif kind == "gyro":
+            cols["gyro_t"].append(m["t_s"])
+            cols["gyro"].append(m["yaw_rate_rad_s"])
+        elif kind == "odometry":
+            cols["odo_t"].append(m["t_s"])
+            cols["odo"].append([m["x_m"], m["y_m"], m["theta_rad"]])
+        else:
+            raise LogFormatError(f"message type {kind!r} cannot be mapped from a stream", location=f"message {i}")
+    if cols["enc"] and len({len(t) for t in cols["enc"]}) > 1:
+        raise LogFormatError("encoder messages carry different numbers of wheels", location="encoder messages")
+
+    def times(key: str) -> np.ndarray:
+        return np.asarray(cols[key], dtype=np.float64)
+
+    return DriveLog(
+        vehicle=vehicle, lidar=lidar,
+        scans=ScanStream(times("scan_t"), np.asarray(cols["scan_r"], dtype=np.float32)) if cols["scan_t"] else None,
+        encoders=EncoderStream(times("enc_t"), np.asarray(cols["enc"], dtype=np.int64)) if cols["enc"] else None,
+        gyro=GyroStream(times("gyro_t"), np.asarray(cols["gyro"], dtype=np.float64)) if cols["gyro"] else None,
+        odometry=OdometryStream(times("odo_t"), np.asarray(cols["odo"], dtype=np.float64)) if cols["odo"] else None,
+        source_format=source,
+    )
+
+
+def messages_of_log(log: DriveLog) -> list[dict[str, Any]]:
+    """A DriveLog's messages as stream JSON dicts (time-ordered): what a streaming client sends."""
+    from slam_engine.messages import EncoderMessage, GyroMessage, OdometryMessage, ScanMessage
+
+    out: list[dict[str, Any]] = []
+    for m in log.messages():
+        if isinstance(m, ScanMessage):
+            ranges = [None if not np.isfinite(r) else float(r) for r in np.asarray(m.ranges_m)]
+            out.append({"type": "scan", "t_s": m.t_s, "ranges_m": ranges})
+        elif isinstance(m, EncoderMessage):
+            out.append({"type": "encoder", "t_s": m.t_s, "ticks": [int(t) for t in m.ticks]})
+        elif isinstance(m, GyroMessage):
+            out.append({"type": "gyro", "t_s": m.t_s, "yaw_rate_rad_s": m.yaw_rate_rad_s})
+        elif isinstance(m, OdometryMessage):
+            out.append({"type": "odometry", "t_s": m.t_s, "x_m": m.x_m, "y_m": m.y_m, "theta_rad": m.theta_rad})
+    return out
+
+
+def _matrix(value: Any) -> np.ndarray:
+    if value is None:
+        return np.eye(4)
+    matrix = np.asarray(value, dtype=np.float64)
+    if matrix.shape != (4, 4):
+        raise LogFormatError(f"a transform must be 4x4, got shape {matrix.shape}", location="calibration")
+    return matrix

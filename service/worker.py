@@ -1,0 +1,114 @@
+"""What runs inside a worker process: the job's status transitions around a job function.
+
+A job function takes a :class:`JobContext` and does the work; it reports progress through
+``ctx.progress(...)``, which writes the job store (throttled) and raises
+:class:`~slam_engine.errors.Cancelled` once a cancel was requested, so a run stops within one
+progress interval. The job function is named by a dotted path (``"package.module:function"``) so
+that the spawned worker can import it; tests inject tiny ones.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import os
+import signal
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from service.storage import DataDir
+from service.store import JobStore
+from slam_engine.errors import Cancelled, LogFormatError, SlamEngineError
+
+logger = logging.getLogger("lidarmap.worker")
+
+PROGRESS_INTERVAL_S = 0.2
+
+JobFunction = Callable[["JobContext"], None]
+
+
+@dataclass
+class JobContext:
+    """One job as its function sees it: the stored row, the store, the data folder, progress."""
+
+    job_id: str
+    job: dict[str, Any]
+    store: JobStore
+    data: DataDir
+    _last_write_s: float = field(default=0.0, repr=False)
+
+    @property
+    def out_dir(self) -> Path:
+        """The job's artifact folder (created)."""
+        path = self.data.job_dir(self.job_id)
+        path.mkdir(parents=True, exist_ok=True)
+        return path
+
+    def progress(self, scans_done: int, scans_total: int | None, force: bool = False) -> None:
+        """Record progress at most every PROGRESS_INTERVAL_S; raise Cancelled when asked to stop."""
+        now = time.monotonic()
+        if not force and now - self._last_write_s < PROGRESS_INTERVAL_S:
+            return
+        self._last_write_s = now
+        if self.store.update_progress(self.job_id, scans_done, scans_total):
+            raise Cancelled("cancelled by request")
+
+    def check_cancel(self) -> None:
+        """Raise Cancelled when a cancel was requested (for steps without progress counts)."""
+        if self.store.cancel_requested(self.job_id):
+            raise Cancelled("cancelled by request")
+
+
+def import_function(dotted: str) -> JobFunction:
+    """``"package.module:function"`` -> the function."""
+    module_name, _, name = dotted.partition(":")
+    if not name:
+        raise ValueError(f"job function must look like 'package.module:function', got {dotted!r}")
+    return getattr(importlib.import_module(module_name), name)
+
+
+def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFunction) -> str:
+    """Run one job to a terminal status; returns that status. Never raises for the job's own errors."""
+    if not store.mark_running(job_id, os.getpid()):
+        return "skipped"  # cancelled (or deleted) while queued
+    job = store.get_job(job_id)
+    if job is None:
+        return "skipped"
+    ctx = JobContext(job_id=job_id, job=job, store=store, data=data)
+    try:
+        function(ctx)
+    except Cancelled:
+        store.finish(job_id, "cancelled", "cancelled by request")
+        return "cancelled"
+    except LogFormatError as exc:
+        where = f" ({exc.location})" if exc.location else ""
+        store.finish(job_id, "failed", f"log_format: {exc.message}{where}")
+        return "failed"
+    except SlamEngineError as exc:
+        store.finish(job_id, "failed", f"{type(exc).__name__}: {exc}")
+        return "failed"
+    except Exception as exc:  # the job's bug must not kill the worker
+        logger.error("job %s crashed:\n%s", job_id, traceback.format_exc())
+        store.finish(job_id, "failed", f"internal error: {type(exc).__name__}: {exc}")
+        return "failed"
+    store.finish(job_id, "succeeded")
+    return "succeeded"
+
+
+def worker_main(data_root: str, job_function: str, slot: int, inbox: Any, outbox: Any) -> None:
+    """Entry point of a spawned worker process: take job ids from ``inbox`` until ``None``."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which shuts us down
+    logging.basicConfig(level=logging.INFO)
+    data = DataDir(Path(data_root))
+    store = JobStore(data.database)
+    function = import_function(job_function)
+    while True:
+        job_id = inbox.get()
+        if job_id is None:
+            return
+        status = execute_job(job_id, store, data, function)
+        outbox.put((slot, job_id, status))
