@@ -35,3 +35,11 @@ class ConfigError(SlamEngineError):
 
 class Cancelled(SlamEngineError):
     """A run was asked to stop (raised from the progress callback or a stop check)."""
+
+
+class TrajectoryFormatError(LogFormatError):
+    """A trajectory file (lidarmap JSON or TUM) cannot be read; ``message`` names the expected format."""
+
+
+class TileOutOfRangeError(SlamEngineError):
+    """A map tile outside the pyramid: zoom level or x/y index out of bounds (HTTP 404)."""

@@ -1,0 +1,113 @@
+"""Grid and texture to images (north up), trajectory overlays, and block pooling for zoomed-out views.
+
+Image convention: row 0 is the map's top (largest y), column 0 its left (smallest x), so the
+image of a grid is its ``log_odds`` flipped upside down; cell (ix, iy) is pixel (ix, H - 1 - iy).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from slam_engine.result import OccupancyGrid, TextureMap, Trajectory
+
+OCCUPIED_THRESHOLD = 0.65  # probability above which a cell counts as occupied (also map.yaml)
+FREE_THRESHOLD = 0.196  # probability below which a cell counts as free (also map.yaml)
+UNKNOWN_GRAY = 205  # grey level of never-observed cells (the ROS map_saver convention)
+TRAJECTORY_RGB = (220, 30, 30)
+DEAD_RECKONING_RGB = (30, 90, 230)
+START_RGB = (20, 160, 40)
+
+
+def occupancy_north_up(grid: OccupancyGrid) -> tuple[np.ndarray, np.ndarray]:
+    """(probability, known) arrays, each (H, W), with row 0 at the top (north up)."""
+    return np.flipud(grid.probability()), np.flipud(grid.known())
+
+
+def occupancy_gray(probability: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """uint8 grey image: known cells shaded white (free, p = 0) to black (occupied, p = 1),
+    unknown cells :data:`UNKNOWN_GRAY`."""
+    shade = np.rint(255.0 * (1.0 - np.clip(probability, 0.0, 1.0))).astype(np.uint8)
+    return np.where(known, shade, np.uint8(UNKNOWN_GRAY))
+
+
+def occupancy_image(grid: OccupancyGrid) -> Image.Image:
+    """The grid as a north-up greyscale ("L") image, one pixel per cell."""
+    return Image.fromarray(occupancy_gray(*occupancy_north_up(grid)))
+
+
+def texture_north_up(texture: TextureMap) -> tuple[np.ndarray, np.ndarray]:
+    """(colors (H, W, 3) uint8, seen (H, W) bool), north up; grayscale textures become RGB."""
+    colors = np.asarray(texture.colors)
+    if colors.ndim == 2:
+        colors = np.repeat(colors[:, :, None], 3, axis=2)
+    return np.flipud(colors.astype(np.uint8)), np.flipud(np.asarray(texture.counts) > 0)
+
+
+def texture_image(texture: TextureMap) -> Image.Image:
+    """The texture as a north-up RGBA image; never-seen cells are transparent."""
+    colors, seen = texture_north_up(texture)
+    alpha = np.where(seen, np.uint8(255), np.uint8(0))
+    return Image.fromarray(np.dstack([colors, alpha]))
+
+
+def map_pixels(grid: OccupancyGrid, poses: np.ndarray) -> np.ndarray:
+    """(N, 2) image coordinates (column, row; continuous, pixel centres at +0.5) of map-frame poses."""
+    col = (poses[:, 0] - grid.origin_x_m) / grid.resolution_m
+    row = grid.shape[0] - (poses[:, 1] - grid.origin_y_m) / grid.resolution_m
+    return np.column_stack([col, row])
+
+
+def occupancy_with_trajectories(grid: OccupancyGrid, trajectory: Trajectory,
+                                dead_reckoning: Trajectory | None = None) -> Image.Image:
+    """RGB map image with dead reckoning (blue), the SLAM trajectory (red) on top and a green start dot."""
+    image = occupancy_image(grid).convert("RGB")
+    draw = ImageDraw.Draw(image)
+    for traj, rgb in ((dead_reckoning, DEAD_RECKONING_RGB), (trajectory, TRAJECTORY_RGB)):
+        if traj is not None and len(traj) > 1:
+            draw.line([tuple(p) for p in map_pixels(grid, traj.poses)], fill=rgb, width=1)
+    if len(trajectory):
+        c, r = map_pixels(grid, trajectory.poses[:1])[0]
+        draw.ellipse([c - 2, r - 2, c + 2, r + 2], fill=START_RGB)
+    return image
+
+
+def _pad_to_blocks(array: np.ndarray, factor: int, fill) -> np.ndarray:
+    """Pad rows and columns at the bottom/right up to multiples of ``factor``."""
+    pad_r = -array.shape[0] % factor
+    pad_c = -array.shape[1] % factor
+    if not (pad_r or pad_c):
+        return array
+    widths = [(0, pad_r), (0, pad_c)] + [(0, 0)] * (array.ndim - 2)
+    return np.pad(array, widths, constant_values=fill)
+
+
+def _blocks(array: np.ndarray, factor: int) -> np.ndarray:
+    """View (H, W, ...) as (H/f, W/f, f*f, ...) blocks (H, W multiples of f)."""
+    h, w = array.shape[:2]
+    rest = array.shape[2:]
+    b = array.reshape(h // factor, factor, w // factor, factor, *rest).swapaxes(1, 2)
+    return b.reshape(h // factor, w // factor, factor * factor, *rest)
+
+
+def pool_occupancy(probability: np.ndarray, known: np.ndarray, inside: np.ndarray,
+                   factor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Reduce f x f blocks to one pixel, keeping obstacles visible: the block's probability is the
+    largest among its known cells; known / inside = any cell known / inside the map."""
+    if factor == 1:
+        return probability, known, inside
+    p = _blocks(_pad_to_blocks(np.where(known, probability, -1.0), factor, -1.0), factor).max(axis=2)
+    k = _blocks(_pad_to_blocks(known, factor, False), factor).any(axis=2)
+    i = _blocks(_pad_to_blocks(inside, factor, False), factor).any(axis=2)
+    return p, k, i
+
+
+def pool_texture(colors: np.ndarray, seen: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Reduce f x f blocks to the mean colour of their seen cells; seen = any seen."""
+    if factor == 1:
+        return colors, seen
+    s = _blocks(_pad_to_blocks(seen, factor, False), factor)
+    c = _blocks(_pad_to_blocks(colors, factor, 0), factor).astype(np.float64)
+    n = s.sum(axis=2)
+    mean = (c * s[..., None]).sum(axis=2) / np.maximum(n, 1)[..., None]
+    return np.rint(mean).astype(np.uint8), n > 0
