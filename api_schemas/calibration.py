@@ -28,7 +28,7 @@ class LidarCalibration(BaseModel):
 
     num_beams: int = Field(ge=1, le=100_000)
     angle_min_rad: float = Field(ge=-7.0, le=7.0)
-    angle_increment_rad: float = Field(gt=-1.0, lt=1.0)
+    angle_increment_rad: float = Field(ge=-3.2, le=3.2)
     range_min_m: float = Field(ge=0.0)
     range_max_m: float = Field(gt=0.0, le=1000.0)
     T_vehicle_from_lidar: Matrix4 | None = None

@@ -16,7 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from slam_engine.errors import ConfigError, LogFormatError, SlamEngineError, UnknownFormatError
+from slam_engine.errors import ConfigError, LogFormatError, SlamEngineError, TileOutOfRangeError, UnknownFormatError
 
 logger = logging.getLogger("lidarmap.service")
 
@@ -81,6 +81,10 @@ def error_response(status_code: int, code: str, message: str, detail: Any = None
 
 def engine_error_to_service(exc: SlamEngineError) -> ServiceError:
     """The HTTP meaning of an engine error."""
+    if isinstance(exc, TileOutOfRangeError):
+        err = NotFound(str(exc))
+        err.code = "tile_out_of_range"
+        return err
     if isinstance(exc, UnknownFormatError):
         return UnsupportedFormat(exc.message, {"path": None, "location": exc.location})
     if isinstance(exc, LogFormatError):

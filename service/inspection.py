@@ -20,9 +20,8 @@ from service.errors import InvalidInput, UnsupportedFormat
 
 def inspect_log(path: str, format_name: str) -> dict[str, Any]:
     """Load the log at ``path``; ``{"summary": DriveLog.summary()}`` or ``{"error": ...}``."""
-    from slam_engine.formats import load_log
-
     from slam_engine.errors import LogFormatError, SlamEngineError, UnknownFormatError
+    from slam_engine.formats import load_log
 
     try:
         log = load_log(Path(path), format=format_name)
@@ -36,6 +35,18 @@ def inspect_log(path: str, format_name: str) -> dict[str, Any]:
         return {"error": "log_format", "message": f"the loader failed: {type(exc).__name__}: {exc}",
                 "location": None}
     return {"summary": log.summary()}
+
+
+def is_log_file(path: str, format_name: str) -> bool:
+    """Whether the file itself is a log (e.g. a drive-log archive is a zip, yet no zipped folder)."""
+    from slam_engine.errors import SlamEngineError
+    from slam_engine.formats import detect_format
+
+    try:
+        detected = detect_format(Path(path))
+    except SlamEngineError:
+        return False
+    return format_name in ("auto", detected)
 
 
 class LogInspector:
@@ -70,6 +81,17 @@ class LogInspector:
         err = InvalidInput(result["message"], detail)
         err.code = "log_format"
         raise err
+
+    async def is_log_file(self, path: Path, format_name: str) -> bool:
+        """Whether the uploaded file is itself a log (else a .zip is a zipped folder to extract)."""
+        pool = self._executor()
+        try:
+            return await asyncio.wrap_future(pool.submit(is_log_file, str(path), format_name))
+        except BrokenProcessPool:
+            with self._lock:
+                if self._pool is pool:
+                    self._pool = None
+            return False
 
     def shutdown(self) -> None:
         with self._lock:

@@ -17,7 +17,7 @@ from slam_engine.result import OccupancyGrid, TextureMap
 
 MEDIA_TYPES = {
     "trajectory.json": "application/json", "trajectory.tum": "text/plain",
-    "dead-reckoning.json": "application/json", "dead-reckoning.tum": "text/plain",
+    "dead_reckoning.json": "application/json", "dead_reckoning.tum": "text/plain",
     "occupancy.png": "image/png", "occupancy.tif": "image/tiff", "map.yaml": "application/yaml",
     "map.pgm": "image/x-portable-graymap", "texture.png": "image/png", "texture.tif": "image/tiff",
     "animation.gif": "image/gif", "run.json": "application/json",
@@ -109,16 +109,21 @@ def _load_texture(path: Path) -> TextureMap:
                           origin_x_m=float(z["origin_x_m"]), origin_y_m=float(z["origin_y_m"]))
 
 
-def tile_source(data: DataDir, job: dict[str, Any], layer: str) -> OccupancyGrid | TextureMap:
-    """The grid (or texture) that tiles of ``layer`` are cut from."""
+def tile_source(data: DataDir, job: dict[str, Any], layer: str) -> tuple[OccupancyGrid | TextureMap, tuple]:
+    """The grid (or texture) that tiles of ``layer`` are cut from, and a version key for the tile cache
+    (changes whenever the file does)."""
     job_dir = data.job_dir(job["id"])
     if job["status"] == "succeeded":
         path = job_dir / (GRID_FILE if layer == "occupancy" else TEXTURE_FILE)
         if not path.exists():
             raise NotFound(f"this job has no {layer} layer", {"layer": layer})
-        return _cache.get(path, _load_grid if layer == "occupancy" else _load_texture)
+        return _cache.get(path, _load_grid if layer == "occupancy" else _load_texture), _version(path)
     if job["status"] == "running" and layer == "occupancy":
         path = data.live_dir(job["id"]) / GRID_FILE
         if path.exists():
-            return _cache.get(path, _load_grid)
+            return _cache.get(path, _load_grid), _version(path)
     raise NotReady(f"no {layer} tiles while the job is {job['status']}", {"layer": layer, "status": job["status"]})
+
+
+def _version(path: Path) -> tuple:
+    return (str(path), path.stat().st_mtime_ns)

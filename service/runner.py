@@ -68,12 +68,17 @@ def exit_reason(exitcode: int | None) -> str:
     return f"worker process exited with code {exitcode}"
 
 
+RESPAWN_BACKOFF_S = 2.0  # a worker that dies this soon after starting is replaced only after this pause
+
+
 @dataclass
 class _Slot:
     index: int
     process: Any
     inbox: Any
+    started_s: float
     job_id: str | None = None
+    respawn_at_s: float | None = None
 
 
 class LocalProcessRunner:
@@ -149,7 +154,7 @@ class LocalProcessRunner:
             target=_worker_entry, name=f"lidarmap-worker-{index}", daemon=True,
             args=(str(self._data.root), self._job_function, index, inbox, self._outbox))
         process.start()
-        return _Slot(index=index, process=process, inbox=inbox)
+        return _Slot(index=index, process=process, inbox=inbox, started_s=time.monotonic())
 
     def _supervise(self) -> None:
         while not self._stopping.is_set():
@@ -162,7 +167,7 @@ class LocalProcessRunner:
     def _tick(self) -> None:
         self._drain_outbox()
         with self._lock:
-            for slot in self._slots:
+            for slot in list(self._slots):
                 if not slot.process.is_alive():
                     self._replace_dead(slot)
             self._enforce_cancels()
@@ -191,7 +196,17 @@ class LocalProcessRunner:
                 self._store.finish(slot.job_id, "failed", reason)
             logger.warning("job %s: %s", slot.job_id, reason)
             self._cancel_asked.pop(slot.job_id, None)
-        if not self._stopping.is_set():
+            slot.job_id = None
+        if self._stopping.is_set():
+            return
+        now = time.monotonic()
+        if slot.respawn_at_s is None:
+            quick_death = now - slot.started_s < RESPAWN_BACKOFF_S
+            slot.respawn_at_s = now + (RESPAWN_BACKOFF_S if quick_death else 0.0)
+            if quick_death:
+                logger.error("worker %d died %.1f s after starting (%s): respawning in %.0f s", slot.index,
+                             now - slot.started_s, reason, RESPAWN_BACKOFF_S)
+        if now >= slot.respawn_at_s:
             self._slots[slot.index] = self._spawn(slot.index)
 
     def _enforce_cancels(self) -> None:

@@ -156,7 +156,10 @@ async def receive_upload(request: Request, tmp_dir: Path, max_bytes: int) -> Rec
     except BaseException:
         collector.discard()
         raise
-    if collector.file is None or collector._handle is not None:
+    if collector._handle is not None:
+        collector.discard()
+        raise BadRequest("the multipart body ended inside the file part (truncated upload?)")
+    if collector.file is None:
         collector.discard()
         raise InvalidInput("missing form field 'file' (the drive log)", {"field": FILE_FIELD})
     collector.file.fields = collector.fields
@@ -219,7 +222,7 @@ def _member_target(root: Path, member: zipfile.ZipInfo) -> Path:
     mode = member.external_attr >> 16
     if stat.S_ISLNK(mode):
         raise InvalidInput(f"zip member {name!r} is a symbolic link; links are not accepted")
-    if mode and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+    if stat.S_IFMT(mode) and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
         raise InvalidInput(f"zip member {name!r} is not a regular file or folder")
     if "\\" in name or "\x00" in name:
         raise InvalidInput(f"zip member name {name!r} contains a backslash or NUL")

@@ -105,7 +105,14 @@ def worker_main(data_root: str, job_function: str, slot: int, inbox: Any, outbox
     logging.basicConfig(level=logging.INFO)
     data = DataDir(Path(data_root))
     store = JobStore(data.database)
-    function = import_function(job_function)
+    try:
+        function = import_function(job_function)
+    except Exception as exc:  # fail each job with the reason instead of dying (and being respawned) in a loop
+        logger.error("cannot load job function %s:\n%s", job_function, traceback.format_exc())
+        reason = f"worker cannot load the job function {job_function!r}: {type(exc).__name__}: {exc}"
+
+        def function(ctx: JobContext) -> None:
+            raise RuntimeError(reason)
     while True:
         job_id = inbox.get()
         if job_id is None:

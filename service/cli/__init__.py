@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from service.cli import serve
+from service.cli import bench_cmd, serve
 
 app = typer.Typer(name="lidarmap", help="Maps from drive logs with particle-filter SLAM.",
                   no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False)
@@ -16,6 +16,7 @@ def _root() -> None:
 
 
 serve.register(app)
+bench_cmd.register(app)
 
 
 def main() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query, Request
+from starlette.concurrency import run_in_threadpool
 
 from api_schemas.errors import ErrorResponse
 from api_schemas.logs import LogPublic, LogsPublic
@@ -50,9 +51,10 @@ async def upload_log(request: Request, session: SessionRow, store: StoreDep, dat
         if format_name != "auto" and format_name not in known_format_names():
             raise InvalidInput(f"unknown format {format_name!r}; known: {', '.join(known_format_names())}",
                                {"field": "format"})
-        if is_zip_upload(received):
-            log_path = extract_zip(received.path, upload_dir / "tree", settings.max_zip_entries,
-                                   settings.max_extracted_bytes)
+        archive = is_zip_upload(received) and not await inspector.is_log_file(received.path, format_name)
+        if archive:
+            log_path = await run_in_threadpool(extract_zip, received.path, upload_dir / "tree",
+                                               settings.max_zip_entries, settings.max_extracted_bytes)
             received.path.unlink(missing_ok=True)
         else:
             log_path = upload_dir / f"log{safe_suffix(received.filename)}"
@@ -63,7 +65,7 @@ async def upload_log(request: Request, session: SessionRow, store: StoreDep, dat
         data.remove(upload_dir)
         raise
     row = store.add_log(log_id, session["id"], received.filename, received.size_bytes, received.sha256,
-                        is_zip_upload(received), summary, data.relative(log_path))
+                        archive, summary, data.relative(log_path))
     return log_public(row)
 
 

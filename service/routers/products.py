@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from enum import StrEnum
+from functools import partial
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Query
@@ -63,7 +64,7 @@ def trajectory(job: JobRow, data: DataDep, fmt: TrajectoryFormatQuery = Trajecto
 @router.get("/dead-reckoning", response_model=TrajectoryPublic, responses=TEXT)
 def dead_reckoning(job: JobRow, data: DataDep, fmt: TrajectoryFormatQuery = TrajectoryFormat.JSON):
     """Odometry alone, for comparison."""
-    return _trajectory(data, job, "dead-reckoning", "dead_reckoning", fmt)
+    return _trajectory(data, job, "dead_reckoning", "dead_reckoning", fmt)
 
 
 def _file_route(name: str, summary: str) -> None:
@@ -97,14 +98,14 @@ def run_record(job: JobRow, data: DataDep) -> dict[str, Any]:
 async def tile(job: JobRow, data: DataDep, layer: TileLayer,
                z: Annotated[int, Path(ge=0, le=MAX_TILE_ZOOM)], x: Annotated[int, Path(ge=0)],
                y: Annotated[int, Path(ge=0)]) -> Response:
-    """A 256x256 PNG tile of the map (z=0: the whole map; x, y in 0..2^z-1). While the job runs:
-    tiles of the map so far."""
+    """A 256x256 PNG tile of the map (z=0: the whole map; x, y in 0..2^z-1; 404 beyond the map's
+    deepest zoom). While the job runs: tiles of the map so far."""
     if x >= 2**z or y >= 2**z:
         raise InvalidInput(f"tile ({x}, {y}) does not exist at zoom {z}: x and y must be below {2**z}",
                            {"z": z, "x": x, "y": y})
     from slam_engine.products import render_tile
 
-    source = await run_in_threadpool(tile_source, data, job, layer.value)
-    png = await run_in_threadpool(render_tile, source, z, x, y)
+    source, version = await run_in_threadpool(tile_source, data, job, layer.value)
+    png = await run_in_threadpool(partial(render_tile, source, z, x, y, layer.value, map_version=version))
     headers = {"Cache-Control": "no-store"} if job["status"] == "running" else None
     return Response(png, media_type="image/png", headers=headers)

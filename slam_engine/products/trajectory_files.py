@@ -48,7 +48,7 @@ def write_trajectory_json(traj: Trajectory, path: str | Path, frame: str = "map"
 def write_trajectory_tum(traj: Trajectory, path: str | Path) -> Path:
     """Write ``traj`` in TUM format ``t x y z qx qy qz qw``; returns the path."""
     n = len(traj)
-    quat_xyzw = Rotation.from_euler("z", traj.poses[:, 2]).as_quat() if n else np.zeros((0, 4))
+    quat_xyzw = Rotation.from_euler("z", traj.poses[:, 2:3]).as_quat() if n else np.zeros((0, 4))
     table = np.column_stack([traj.t_s, traj.poses[:, 0], traj.poses[:, 1], np.zeros(n), quat_xyzw])
     with atomic_path(path) as tmp:
         np.savetxt(tmp, table, fmt="%.9f", header="t x y z qx qy qz qw (s, m, unit quaternion)")

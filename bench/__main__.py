@@ -1,0 +1,23 @@
+"""``python -m bench [SUBCOMMAND] ...``: ``accuracy`` (the default) runs the SLAM benchmark."""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from bench.cli import accuracy
+
+SUBCOMMANDS = {"accuracy": accuracy}
+
+
+def main(argv: list[str]) -> None:
+    name = argv[0] if argv and argv[0] in SUBCOMMANDS else "accuracy"
+    rest = argv[1:] if argv and argv[0] in SUBCOMMANDS else argv
+    app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+    app.command(name=name)(SUBCOMMANDS[name])
+    app(args=rest, prog_name=f"python -m bench {name}" if name != "accuracy" else "python -m bench")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

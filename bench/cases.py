@@ -1,0 +1,88 @@
+"""Which logs a benchmark runs: the shared datasets' benchmark logs, the maps-only logs, and any
+log or folder given on the command line, each with its relations / ground-truth files if present."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+# Logs without ground truth whose maps a person should look at (paths inside the datasets folder).
+MAP_ONLY_LOGS = ("breezyslam/exp2.dat", "malaga/*.clf")
+
+# Files beside a log that are never logs themselves.
+_COMPANION_SUFFIXES = (".relations", ".txt", ".md", ".json", ".yaml", ".yml", ".png", ".csv", ".log")
+
+
+@dataclass(frozen=True)
+class BenchCase:
+    """One log to benchmark: where it is, and its ground truth when it has some."""
+
+    name: str
+    log_path: str
+    relations_path: str | None = None
+    ground_truth_path: str | None = None
+
+    @property
+    def scored(self) -> bool:
+        return self.relations_path is not None
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def datasets_root() -> Path:
+    """The shared datasets folder: ``LIDARMAP_DATASETS`` or ``../shared/datasets`` beside the checkout."""
+    override = os.environ.get("LIDARMAP_DATASETS")
+    return Path(override) if override else REPO_ROOT.parent / "shared" / "datasets"
+
+
+def _stem(path: Path) -> str:
+    return path.name.split(".", 1)[0] if path.is_file() else path.name
+
+
+def case_for_log(log_path: Path) -> BenchCase:
+    """A case for one log file (or log folder), with ``NAME.relations`` and ``NAME.gt.txt`` /
+    ``ground_truth.txt`` beside it when they exist (NAME = file name without extensions); in a
+    folder holding exactly one ``*.relations`` file, that one is used."""
+    log_path = Path(log_path).resolve()
+    folder = log_path.parent if log_path.is_file() else log_path
+    name = _stem(log_path)
+    relations = folder / f"{name}.relations"
+    if not relations.exists():
+        candidates = sorted(folder.glob("*.relations"))
+        relations = candidates[0] if len(candidates) == 1 else None
+    truth = next((p for p in (folder / f"{name}.gt.txt", folder / "ground_truth.txt") if p.exists()), None)
+    return BenchCase(name=name, log_path=str(log_path),
+                     relations_path=None if relations is None else str(relations),
+                     ground_truth_path=None if truth is None else str(truth))
+
+
+def cases_for_path(path: Path) -> list[BenchCase]:
+    """Cases for a command-line argument: a log file, or a folder holding logs (files beside a
+    ``*.relations`` file, or every non-companion file; a folder with none of these is itself the log)."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such log or folder")
+    if path.is_file():
+        return [case_for_log(path)]
+    files = sorted(p for p in path.iterdir() if p.is_file() and not p.name.startswith("."))
+    named = [p for p in files if p.with_name(f"{_stem(p)}.relations").exists()
+             and not p.name.endswith(_COMPANION_SUFFIXES)]
+    logs = named or [p for p in files if not p.name.endswith(_COMPANION_SUFFIXES)]
+    if len(logs) == 0:
+        return [case_for_log(path)]
+    return [case_for_log(p) for p in logs]
+
+
+def default_cases(root: Path | None = None, map_only: bool = True) -> list[BenchCase]:
+    """The benchmark logs (``benchmark/*.clf`` with relations) and, with ``map_only``, the logs
+    without ground truth listed in :data:`MAP_ONLY_LOGS`. Missing files are skipped."""
+    root = datasets_root() if root is None else Path(root)
+    cases = [case_for_log(p) for p in sorted((root / "benchmark").glob("*.clf"))]
+    if map_only:
+        for pattern in MAP_ONLY_LOGS:
+            cases.extend(case_for_log(p) for p in sorted(root.glob(pattern)))
+    return cases

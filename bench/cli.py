@@ -1,0 +1,103 @@
+"""The benchmark's command line (``python -m bench`` and ``lidarmap bench``): thin wrapper over
+:func:`bench.harness.run_benchmark` and :func:`bench.report.print_report`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+SEEDS_HELP = "Seeds to run, e.g. '0-4' or '0,3,7'."
+
+
+def parse_seeds(text: str) -> list[int]:
+    """'0-4' -> [0, 1, 2, 3, 4]; '0,3,7' -> [0, 3, 7]; ranges and lists can be mixed."""
+    seeds: list[int] = []
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        first, dash, last = part.partition("-")
+        try:
+            seeds.extend(range(int(first), int(last) + 1) if dash else [int(first)])
+        except ValueError:
+            raise typer.BadParameter(f"{part!r} is not a seed or a range like 0-4") from None
+    if not seeds:
+        raise typer.BadParameter("no seeds given")
+    return seeds
+
+
+def readable_cases(cases: list, loader: str, console) -> list:
+    """The cases whose log format the default loader recognises; the others are named and skipped."""
+    if loader != "slam_engine.formats:load_log":
+        return cases
+    from slam_engine.errors import LogFormatError
+    from slam_engine.formats import detect_format
+
+    kept = []
+    for case in cases:
+        try:
+            detect_format(case.log_path)
+        except LogFormatError as error:
+            console.print(f"[yellow]skipped {case.name}:[/yellow] {error}", highlight=False)
+            continue
+        kept.append(case)
+    return kept
+
+
+def accuracy(
+    paths: list[Path] = typer.Argument(None, help="More logs or folders to run (NAME.relations and "
+                                       "NAME.gt.txt / ground_truth.txt beside a log are used when present)."),
+    seeds: str = typer.Option("0-4", help=SEEDS_HELP),
+    particles: int | None = typer.Option(None, min=1, max=1000,
+                                         help="Particles per run (default: the SlamConfig default)."),
+    quick: bool = typer.Option(False, help="One seed (the first), benchmark logs only (no maps-only logs)."),
+    datasets: bool = typer.Option(True, help="Include the shared datasets' logs (LIDARMAP_DATASETS or "
+                                  "../shared/datasets)."),
+    config: Path | None = typer.Option(None, exists=True, dir_okay=False,
+                                       help="YAML or JSON file with SlamConfig overrides."),
+    out: Path | None = typer.Option(None, help="Output folder (default bench/results/<date-time>)."),
+    timeout_s: float = typer.Option(3600.0, min=1.0, help="Time limit per run, seconds."),
+    runner: str = typer.Option("slam_engine.pipeline:run_slam", hidden=True,
+                               help="SLAM function to benchmark (module:function)."),
+    loader: str = typer.Option("slam_engine.formats:load_log", hidden=True, help="Log loader (module:function)."),
+) -> None:
+    """Accuracy and speed of SLAM on the benchmark logs (relation errors, ATE, time, memory) over
+    several seeds, plus maps of logs without ground truth. Writes JSON and map PNGs."""
+    import yaml
+    from rich.console import Console
+
+    from bench.cases import cases_for_path, datasets_root, default_cases
+    from bench.harness import BenchOptions, run_benchmark
+    from bench.report import fmt, print_report
+    from bench.worker import resolve
+
+    seed_list = parse_seeds(seeds)[:1] if quick else parse_seeds(seeds)
+    cases = default_cases(map_only=not quick) if datasets else []
+    try:
+        for path in paths or []:
+            cases.extend(cases_for_path(path))
+    except FileNotFoundError as exc:
+        raise typer.BadParameter(str(exc)) from None
+    if not cases:
+        raise typer.BadParameter(f"nothing to run: no logs under {datasets_root()} and none given")
+    overrides = yaml.safe_load(config.read_text()) if config is not None else {}
+    console = Console()
+    if not console.is_terminal:  # files and pipes get the whole table, not an 80-column squeeze
+        console = Console(width=200)
+    for dotted in (runner, loader):
+        try:
+            resolve(dotted)
+        except (ImportError, AttributeError, ValueError) as error:
+            raise typer.BadParameter(f"cannot use {dotted!r}: {error}") from None
+    cases = readable_cases(cases, loader, console)
+    console.print(f"{len(cases)} logs × {len(seed_list)} seeds, {particles or 'default'} particles, "
+                  "one process at a time")
+
+    def progress(record: dict) -> None:
+        if record.get("status") == "ok":
+            console.print(f"  {record['case']} seed {record['seed']}: {fmt(record.get('wall_s'), 1)} s, "
+                          f"{fmt(record.get('peak_memory_mb'), 0)} MB", highlight=False)
+        else:
+            console.print(f"  [red]{record['case']} seed {record['seed']} failed[/red]")
+
+    options = BenchOptions(seeds=seed_list, particles=particles, config=overrides or {}, out_dir=out,
+                           timeout_s=timeout_s, runner=runner, loader=loader)
+    print_report(run_benchmark(cases, options, on_run=progress), console)

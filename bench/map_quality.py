@@ -1,0 +1,144 @@
+"""Map numbers for logs without ground truth, and a PNG a person can look at.
+
+- ``wall_thickness_m``: 2 x occupied area / occupied-free boundary length of the final grid. A
+  straight one-cell wall scores about one cell; blurred or doubled walls score more.
+- ``occupied_with_neighbour``: fraction of occupied cells with at least one occupied 8-neighbour
+  (isolated specks lower it).
+- ``half_agreement``: scan endpoints of the first and the second half of the log, placed with the
+  estimated trajectory; of the hit cells of one half that lie within ``window_m`` of the other
+  half's hits (the part both halves saw), the fraction within one cell (``half_mean_offset_m``: their
+  mean distance). Walls seen twice coincide when the trajectory is consistent.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw
+from scipy import ndimage
+
+from slam_engine.drive_log import DriveLog
+from slam_engine.result import OccupancyGrid, Trajectory
+
+OCCUPIED_PROBABILITY = 0.65
+# The half agreement uses its own fixed cells so that runs with different grids compare.
+AGREEMENT_RESOLUTION_M = 0.05
+AGREEMENT_WINDOW_M = 0.5
+
+
+def scan_endpoints_world(log: DriveLog, trajectory: Trajectory, max_range_m: float) -> np.ndarray:
+    """(N_scans, N_beams, 2) map-frame endpoints [m] of every scan placed at the trajectory pose
+    nearest in time; NaN for no-return beams and beams beyond ``max_range_m``."""
+    lidar, scans = log.lidar, log.scans
+    ranges = np.asarray(scans.ranges_m, dtype=np.float64)
+    valid = np.isfinite(ranges) & (ranges >= lidar.range_min_m) & (ranges <= min(lidar.range_max_m, max_range_m))
+    angles = lidar.beam_angles_rad
+    T = np.asarray(lidar.T_vehicle_from_lidar, dtype=np.float64)
+    # Beam endpoints in the vehicle frame (the 2-D part of T_vehicle_from_lidar).
+    x_lidar, y_lidar = ranges * np.cos(angles), ranges * np.sin(angles)
+    x_vehicle = T[0, 0] * x_lidar + T[0, 1] * y_lidar + T[0, 3]
+    y_vehicle = T[1, 0] * x_lidar + T[1, 1] * y_lidar + T[1, 3]
+    index = np.clip(np.searchsorted(trajectory.t_s, scans.t_s), 0, len(trajectory) - 1)
+    previous = np.clip(index - 1, 0, len(trajectory) - 1)
+    closer = np.abs(trajectory.t_s[previous] - scans.t_s) < np.abs(trajectory.t_s[index] - scans.t_s)
+    pose = trajectory.poses[np.where(closer, previous, index)]
+    cos_t, sin_t = np.cos(pose[:, 2:3]), np.sin(pose[:, 2:3])
+    x_world = pose[:, 0:1] + cos_t * x_vehicle - sin_t * y_vehicle
+    y_world = pose[:, 1:2] + sin_t * x_vehicle + cos_t * y_vehicle
+    points = np.stack([x_world, y_world], axis=-1)
+    points[~valid] = np.nan
+    return points
+
+
+def _occupied(grid: OccupancyGrid) -> np.ndarray:
+    return grid.probability() > OCCUPIED_PROBABILITY
+
+
+def wall_thickness_m(grid: OccupancyGrid) -> float:
+    """2 x occupied area / boundary length [m] (NaN for a map without occupied cells)."""
+    occupied = np.pad(_occupied(grid), 1)
+    area = int(occupied.sum())
+    if area == 0:
+        return float("nan")
+    edges = int(np.count_nonzero(occupied[1:, :] != occupied[:-1, :])
+                + np.count_nonzero(occupied[:, 1:] != occupied[:, :-1]))
+    return 2.0 * area / edges * grid.resolution_m
+
+
+def occupied_with_neighbour(grid: OccupancyGrid) -> float:
+    """Fraction of occupied cells with at least one occupied 8-neighbour (NaN when none occupied)."""
+    occupied = _occupied(grid)
+    if not occupied.any():
+        return float("nan")
+    neighbours = ndimage.convolve(occupied.astype(np.int32), np.ones((3, 3), np.int32), mode="constant") - occupied
+    return float(np.mean(neighbours[occupied] > 0))
+
+
+def _hit_cells(points: np.ndarray, origin: np.ndarray, shape: tuple[int, int], resolution_m: float,
+               min_hits: int) -> np.ndarray:
+    points = points[np.isfinite(points[:, 0])]
+    cells = np.floor((points - origin) / resolution_m).astype(np.int64)
+    counts = np.zeros(shape, dtype=np.int64)
+    np.add.at(counts, (cells[:, 1], cells[:, 0]), 1)
+    return counts >= min_hits
+
+
+def half_agreement(endpoints: np.ndarray, resolution_m: float = AGREEMENT_RESOLUTION_M,
+                   window_m: float = AGREEMENT_WINDOW_M, min_hits: int = 2) -> dict:
+    """Agreement of the walls seen in the first and the second half of the scans (module docstring).
+
+    ``endpoints`` (N_scans, N_beams, 2) as from :func:`scan_endpoints_world`."""
+    half = endpoints.shape[0] // 2
+    first, second = endpoints[:half].reshape(-1, 2), endpoints[half:].reshape(-1, 2)
+    every = endpoints.reshape(-1, 2)
+    every = every[np.isfinite(every[:, 0])]
+    if half == 0 or every.shape[0] == 0:
+        return {"half_agreement": float("nan"), "half_mean_offset_m": float("nan"), "half_overlap_cells": 0}
+    origin = every.min(axis=0) - 2 * resolution_m
+    shape_xy = np.floor((every.max(axis=0) - origin) / resolution_m).astype(int) + 3
+    shape = (int(shape_xy[1]), int(shape_xy[0]))
+    hits = [_hit_cells(part, origin, shape, resolution_m, min_hits) for part in (first, second)]
+    distances = [ndimage.distance_transform_edt(~h) * resolution_m if h.any() else None for h in hits]
+    offsets = []
+    for mine, theirs in ((hits[0], distances[1]), (hits[1], distances[0])):
+        if theirs is None:
+            continue
+        distance = theirs[mine]
+        offsets.append(distance[distance <= window_m])
+    offsets = np.concatenate(offsets) if offsets else np.zeros(0)
+    if offsets.size == 0:
+        return {"half_agreement": float("nan"), "half_mean_offset_m": float("nan"), "half_overlap_cells": 0}
+    return {"half_agreement": float(np.mean(offsets <= resolution_m * 1.5)),
+            "half_mean_offset_m": float(np.mean(offsets)), "half_overlap_cells": int(offsets.size)}
+
+
+def map_quality(grid: OccupancyGrid, log: DriveLog | None = None, trajectory: Trajectory | None = None,
+                max_range_m: float = 30.0) -> dict:
+    """All map numbers above; the half agreement only when the log has scans and a LiDAR model."""
+    numbers = {"wall_thickness_m": wall_thickness_m(grid), "occupied_with_neighbour": occupied_with_neighbour(grid),
+               "occupied_cells": int(_occupied(grid).sum())}
+    if log is not None and trajectory is not None and log.scans is not None and log.lidar is not None \
+            and len(log.scans) and len(trajectory):
+        numbers.update(half_agreement(scan_endpoints_world(log, trajectory, max_range_m)))
+    return numbers
+
+
+def save_map_png(grid: OccupancyGrid, path: Path, trajectory: Trajectory | None = None,
+                 ground_truth: Trajectory | None = None) -> Path:
+    """Probability map as a grayscale PNG (white free, black occupied, grey unknown, north up), with
+    the trajectory in red and, when given, the ground truth in blue."""
+    gray = np.round(255.0 * (1.0 - grid.probability())).astype(np.uint8)
+    image = Image.fromarray(np.flipud(gray), mode="L").convert("RGB")
+    draw = ImageDraw.Draw(image)
+    height = gray.shape[0]
+    for track, colour in ((ground_truth, (40, 90, 255)), (trajectory, (230, 30, 30))):
+        if track is None or len(track) < 2:
+            continue
+        ix = (track.poses[:, 0] - grid.origin_x_m) / grid.resolution_m
+        iy = height - (track.poses[:, 1] - grid.origin_y_m) / grid.resolution_m
+        draw.line(list(zip(ix.tolist(), iy.tolist(), strict=True)), fill=colour, width=1)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    image.save(path)
+    return path

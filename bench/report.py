@@ -1,0 +1,89 @@
+"""Rich tables of a benchmark's ``results.json``: one table per log, SLAM vs dead reckoning."""
+
+from __future__ import annotations
+
+from rich.console import Console
+from rich.table import Table
+
+
+def fmt(value, digits: int = 3) -> str:
+    """A number with ``digits`` decimals, or an en dash when missing."""
+    if value is None:
+        return "–"
+    if isinstance(value, int):
+        return str(value)
+    return f"{value:.{digits}f}"
+
+
+def _median_worst(spread: dict | None, digits: int) -> str:
+    if not spread or spread.get("median") is None:
+        return "–"
+    return f"{fmt(spread['median'], digits)} / {fmt(spread['worst'], digits)}"
+
+
+def _pair(first, second, digits_first: int = 3, digits_second: int = 2) -> str:
+    if first is None and second is None:
+        return "–"
+    return f"{fmt(first, digits_first)} / {fmt(second, digits_second)}"
+
+
+def _timing_cells(summary: dict) -> list[str]:
+    return [str(summary.get("particles")), f"{summary['seeds_ok']}/{len(summary['seeds'])}",
+            fmt(summary.get("wall_s"), 2), fmt(summary.get("scans_per_s"), 1),
+            fmt(summary.get("realtime_factor"), 1), fmt(summary.get("peak_memory_mb"), 0)]
+
+
+def scored_table(summary: dict) -> Table:
+    """Relation errors (median / worst seed), ATE, local and loop subsets, timing and memory."""
+    table = Table(title=_title(summary), title_justify="left")
+    for column in ("method", "particles", "seeds ok", "wall s", "scans/s", "real-time ×", "peak MB",
+                   "trans m (med / worst)", "rot ° (med / worst)", "ATE m (med / worst)",
+                   "local m / °", "loop m / °", "failed rel."):
+        table.add_column(column, justify="left" if column == "method" else "right")
+    slam = summary["slam"]
+    table.add_row("RBPF SLAM", *_timing_cells(summary),
+                  _median_worst(slam["trans_mean_m"], 3), _median_worst(slam["rot_mean_deg"], 2),
+                  _median_worst(slam["ate_m"], 3),
+                  _pair(slam["local_trans_m"]["median"], slam["local_rot_deg"]["median"]),
+                  _pair(slam["loop_trans_m"]["median"], slam["loop_rot_deg"]["median"]),
+                  fmt(slam["failed_relations"]["worst"], 0))
+    dr = summary["dead_reckoning"]
+    table.add_row("dead reckoning", "", "", "", "", "", "",
+                  fmt(dr["trans_mean_m"], 3), fmt(dr["rot_mean_deg"], 2), fmt(dr["ate_m"], 3),
+                  _pair(dr["local_trans_m"], dr["local_rot_deg"]), _pair(dr["loop_trans_m"], dr["loop_rot_deg"]),
+                  fmt(dr["failed_relations"], 0))
+    return table
+
+
+def map_table(summary: dict) -> Table:
+    """Map numbers for a log without ground truth (median / worst seed)."""
+    table = Table(title=_title(summary) + " (no ground truth)", title_justify="left")
+    for column in ("method", "particles", "seeds ok", "wall s", "scans/s", "real-time ×", "peak MB",
+                   "wall thickness m", "occupied w/ neighbour", "half agreement", "half offset m"):
+        table.add_column(column, justify="left" if column == "method" else "right")
+    quality = summary["map"]
+    table.add_row("RBPF SLAM", *_timing_cells(summary),
+                  _median_worst(quality["wall_thickness_m"], 3), _median_worst(quality["occupied_with_neighbour"], 3),
+                  _median_worst(quality["half_agreement"], 3), _median_worst(quality["half_mean_offset_m"], 3))
+    dr = summary.get("dead_reckoning_map") or {}
+    table.add_row("dead reckoning", "", "", "", "", "", "", "", "",
+                  fmt(dr.get("half_agreement"), 3), fmt(dr.get("half_mean_offset_m"), 3))
+    return table
+
+
+def _title(summary: dict) -> str:
+    scans, duration = summary.get("scans"), summary.get("duration_s")
+    return f"{summary['case']} — {fmt(scans)} scans, {fmt(duration, 0)} s of log"
+
+
+def print_report(results: dict, console: Console | None = None) -> None:
+    """Every log's table, its errors and where the files are."""
+    console = console or Console()
+    for summary in results["summaries"]:
+        console.print(scored_table(summary) if summary["scored"] else map_table(summary))
+        for seed, error in summary["errors"].items():
+            last_line = (error or "").strip().splitlines()[-1:] or ["unknown error"]
+            console.print(f"[red]seed {seed} failed:[/red] {last_line[0]}", highlight=False)
+        if summary["map_pngs"]:
+            console.print(f"maps: {summary['map_pngs'][0]} …", highlight=False)
+    console.print(f"results: {results['out_dir']}/results.json", highlight=False)

@@ -1,0 +1,138 @@
+"""The mapping job, run in a worker process: load the input, run SLAM with progress, cancel and
+live snapshots, then write the products.
+
+Input: an uploaded log (loaded again with ``load_log``) or the session's streamed chunks
+0..k that are contiguous when the job starts (later chunks are not followed: start another job).
+"""
+
+from __future__ import annotations
+
+import io
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.chunks import read_chunk_messages, stream_state
+from service.products import GRID_FILE, TEXTURE_FILE, save_grid, save_texture
+from service.storage import write_atomic
+from service.stream_log import drive_log_from_messages
+from service.worker import JobContext
+from slam_engine.config import SlamConfig
+from slam_engine.drive_log import DriveLog
+from slam_engine.errors import ConfigError, LogFormatError
+from slam_engine.result import OccupancyGrid
+
+
+def slam_config(job_config: dict[str, Any]) -> SlamConfig:
+    """The engine configuration for a job's parameters (already bounded by JobCreate)."""
+    try:
+        return SlamConfig(
+            particles=job_config["particles"], seed=job_config["seed"],
+            snapshot_every_scans=job_config["snapshot_every_scans"],
+            grid={"resolution_m": job_config["resolution_m"], "max_range_m": job_config["max_range_m"]},
+            scheduling={"linear_update_m": job_config["linear_update_m"],
+                        "angular_update_rad": job_config["angular_update_rad"]},
+        )
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def load_input(ctx: JobContext) -> tuple[DriveLog, dict[str, Any]]:
+    """The job's DriveLog and a description of what it is (stored with the job)."""
+    job = ctx.job
+    store, data = ctx.store, ctx.data
+    session = _session_row(ctx)
+    if job["source"] == "log":
+        from slam_engine.formats import load_log
+
+        log_row = store.get_log(job["log_id"], job["session_id"])
+        if log_row is None:
+            raise LogFormatError("the job's log was deleted")
+        log = load_log(data.resolve(log_row["stored_path"]))
+        return log, {"source": "log", "log_id": log_row["id"], "sha256": log_row["sha256"], "summary": log.summary()}
+    rows = store.chunk_rows(job["session_id"])
+    state = stream_state(rows)
+    if state.contiguous_through < 0:
+        raise LogFormatError("no contiguous chunks from seq 0", location="chunk 0")
+    messages: list[dict[str, Any]] = []
+    for seq in range(state.contiguous_through + 1):
+        ctx.check_cancel()
+        messages.extend(read_chunk_messages(data, job["session_id"], seq))
+    log = drive_log_from_messages(session["calibration"], messages)
+    return log, {"source": "stream", "chunks_used": state.contiguous_through + 1,
+                 "messages": len(messages), "missing_seqs_after": state.missing_seqs, "summary": log.summary()}
+
+
+def _session_row(ctx: JobContext) -> dict[str, Any]:
+    session = ctx.store.get_session(ctx.job["session_id"], ctx.job["owner"])
+    if session is None:
+        raise LogFormatError("the job's session was deleted")
+    return session
+
+
+class LiveMap:
+    """Writes the map so far (PNG and the tile grid) whenever the run hands over a new snapshot;
+    files are replaced atomically, so readers never see half a file."""
+
+    def __init__(self, live_dir: Path):
+        self.live_dir = live_dir
+        self._last_scan_index: int | None = None
+
+    def update(self, snapshot: Any) -> None:
+        if snapshot is None or snapshot.scan_index == self._last_scan_index:
+            return
+        self._last_scan_index = snapshot.scan_index
+        self.live_dir.mkdir(parents=True, exist_ok=True)
+        save_grid(snapshot.grid, self.live_dir / GRID_FILE)
+        write_atomic(self.live_dir / "occupancy.png", grid_png(snapshot.grid))
+
+
+def grid_png(grid: OccupancyGrid) -> bytes:
+    """A quick grayscale PNG of a grid, north up (occupied black, free white, unknown grey)."""
+    from PIL import Image
+
+    p = grid.probability()
+    image = np.full(p.shape, 205, dtype=np.uint8)
+    known = grid.known()
+    image[known] = np.round(255.0 * (1.0 - p[known])).astype(np.uint8)
+    buffer = io.BytesIO()
+    Image.fromarray(image[::-1]).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def run_mapping_job(ctx: JobContext) -> None:
+    """Job function for the worker: input -> run_slam -> products (names as the API serves them)."""
+    from slam_engine.pipeline import run_slam
+    from slam_engine.products import GeoOrigin, write_products, write_trajectory_tum
+
+    log, description = load_input(ctx)
+    ctx.store.set_input(ctx.job_id, description)
+    config = slam_config(ctx.job["config"])
+    live = LiveMap(ctx.data.live_dir(ctx.job_id))
+
+    def on_progress(progress: Any) -> None:
+        ctx.progress(progress.scans_done, progress.scans_total)
+        live.update(getattr(progress, "snapshot", None))
+
+    result = run_slam(log, config, rng=np.random.default_rng(config.seed), progress=on_progress)
+    ctx.check_cancel()
+    out_dir = ctx.out_dir
+    session = _session_row(ctx)
+    geo = None if session["geo"] is None else GeoOrigin(
+        latitude_deg=session["geo"]["lat_deg"], longitude_deg=session["geo"]["lon_deg"],
+        heading_deg=session["geo"]["heading_deg"])
+    files = write_products(result, out_dir / "products", geo=geo, log=log)
+    files["dead_reckoning.tum"] = write_trajectory_tum(result.dead_reckoning,
+                                                       out_dir / "products" / "dead_reckoning.tum")
+    save_grid(result.grid, out_dir / GRID_FILE)
+    if result.texture is not None:
+        save_texture(result.texture, out_dir / TEXTURE_FILE)
+    ctx.store.set_products(ctx.job_id, product_names(files, out_dir))
+    shutil.rmtree(ctx.data.live_dir(ctx.job_id), ignore_errors=True)
+
+
+def product_names(files: dict[str, Path], out_dir: Path) -> dict[str, str]:
+    """API product name -> file path relative to the job folder, for the files write_products made."""
+    return {Path(path).name: str(Path(path).resolve().relative_to(out_dir.resolve())) for path in files.values()}

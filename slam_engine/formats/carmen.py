@@ -1,0 +1,346 @@
+"""CARMEN text logs (.clf / .log, optionally gzipped).
+
+Records read (one per line, whitespace separated, ``#`` comments):
+
+- ``PARAM name value [host ts]`` — ``robot_frontlaser_offset`` / ``_side_offset`` /
+  ``_angular_offset`` (rear: ``robot_rearlaser_*``) place the LiDAR in the robot frame;
+  ``robot_front_laser_max`` (``robot_rear_laser_max``) is the no-return range.
+- ``ODOM x y theta tv rv accel ts host logger_ts`` — robot odometry pose [m, m, rad].
+- ``FLASER n r1..rn lx ly ltheta x y theta ts host logger_ts`` (old format; ``RLASER`` for the rear
+  laser): 180 deg counter-clockwise from -90 deg; beam i at -90 deg + i * 180/n for even n and
+  -90 deg + i * 180/(n-1) for odd n (e.g. 361 beams 0.5 deg apart). ``lx ly ltheta`` is the laser's
+  pose, ``x y theta`` the robot's odometry pose (used when there are no ODOM lines).
+- ``ROBOTLASER1|2 type start_angle fov resolution max_range accuracy remission_mode n r1..rn m
+  rem1..remm lx ly ltheta x y theta tv rv forward_safety side_safety turn_axis ts host logger_ts``.
+- ``RAWLASER1..4 type start_angle fov resolution max_range accuracy remission_mode n r1..rn m
+  rem1..remm ts host logger_ts`` (no poses).
+
+Ranges are metres; ranges at or above the no-return range (``robot_front_laser_max``, the
+ROBOTLASER/RAWLASER ``max_range`` field, else 80 m), zero, and a saturation value that fills many
+beams (e.g. 50 m) become ``inf``. Only one laser is loaded (ROBOTLASER1, FLASER, RAWLASER1, ...
+whichever comes first in that order); the others are reported in the log's warnings.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from slam_engine.drive_log import DriveLog, LidarModel, MotionModelKind, OdometryStream, ScanStream, VehicleModel
+from slam_engine.errors import LogFormatError
+from slam_engine.formats._checks import clean_ranges, head_lines, is_number, open_text, time_order
+from slam_engine.formats._odometry import (
+    compose_se2,
+    dead_reckon,
+    interpolate_poses,
+    planar_part,
+    relative_se2,
+    se2_matrix,
+)
+
+DEFAULT_NO_RETURN_M = 80.0
+# A single range value filling this share of all beams, at >= SATURATION_MIN_M, is a no-return code.
+SATURATION_SHARE = 0.005
+SATURATION_MIN_M = 20.0
+_LASER_PREFERENCE = ("ROBOTLASER1", "FLASER", "RAWLASER1", "ROBOTLASER2", "RLASER",
+                     "RAWLASER2", "RAWLASER3", "RAWLASER4")
+_KNOWN = {"PARAM", "ODOM", "TRUEPOS", "SYNC", "NMEA-GGA", "NMEA-RMC", "SONAR", "BUMPER", "IMU", "GPS",
+          "POSITIONLASER", "VECTORMOVE", "ROBOTVELOCITY", "ARMSTATE", "FLASER", "RLASER", "LASER3", "LASER4",
+          "ROBOTLASER1", "ROBOTLASER2", "RAWLASER1", "RAWLASER2", "RAWLASER3", "RAWLASER4", "SCANMARK",
+          "POSITION"}
+
+
+@dataclass
+class _Laser:
+    """The records of one laser channel as read."""
+
+    t: list[float] = field(default_factory=list)
+    ranges: list[np.ndarray] = field(default_factory=list)
+    laser_pose: list[tuple[float, float, float]] = field(default_factory=list)
+    robot_pose: list[tuple[float, float, float]] = field(default_factory=list)
+    lines: list[int] = field(default_factory=list)
+    start_angle: float | None = None
+    resolution: float | None = None
+    max_range: float | None = None
+
+
+def sniff(path: Path) -> bool:
+    """A CARMEN log: the first records are known CARMEN keywords followed by numbers."""
+    records = [line.split() for line in head_lines(path, 16384) if line.strip() and not line.startswith("#")]
+    if not records:
+        return False
+    checked = records[:20]
+    return all(r[0] in _KNOWN for r in checked) and any(
+        r[0] in _KNOWN - {"PARAM"} and len(r) > 4 and is_number(r[1]) for r in checked)
+
+
+def _floats(tokens: list[str], path: Path, line_no: int) -> np.ndarray:
+    try:
+        return np.array(tokens, dtype=np.float64)
+    except ValueError as error:
+        raise LogFormatError(f"not a number: {error}", path=str(path), location=f"line {line_no}") from None
+
+
+def _int_field(token: str, path: Path, line_no: int, what: str) -> int:
+    try:
+        value = int(token)
+    except ValueError:
+        raise LogFormatError(f"{what} is not an integer: {token!r}", path=str(path),
+                             location=f"line {line_no}") from None
+    if value < 0:
+        raise LogFormatError(f"{what} is negative: {value}", path=str(path), location=f"line {line_no}")
+    return value
+
+
+def _expect_length(tokens: list[str], expected: int, path: Path, line_no: int) -> None:
+    if len(tokens) != expected:
+        raise LogFormatError(f"{tokens[0]} record has {len(tokens)} fields, expected {expected} "
+                             "(truncated or malformed line)", path=str(path), location=f"line {line_no}")
+
+
+def _parse_old_laser(tokens: list[str], laser: _Laser, path: Path, line_no: int) -> None:
+    n = _int_field(tokens[1], path, line_no, "beam count") if len(tokens) > 1 else 0
+    _expect_length(tokens, n + 11, path, line_no)
+    values = _floats(tokens[2:n + 8], path, line_no)
+    laser.ranges.append(values[:n])
+    laser.laser_pose.append(tuple(values[n:n + 3]))
+    laser.robot_pose.append(tuple(values[n + 3:n + 6]))
+    laser.t.append(float(_floats([tokens[n + 8]], path, line_no)[0]))
+    laser.lines.append(line_no)
+
+
+def _parse_new_laser(tokens: list[str], laser: _Laser, path: Path, line_no: int, with_poses: bool) -> None:
+    if len(tokens) < 10:
+        _expect_length(tokens, 10, path, line_no)
+    header = _floats(tokens[2:6], path, line_no)
+    n = _int_field(tokens[8], path, line_no, "beam count")
+    if len(tokens) < 10 + n:
+        _expect_length(tokens, 10 + n, path, line_no)
+    m = _int_field(tokens[9 + n], path, line_no, "remission count")
+    tail = 11 + 3 if with_poses else 3
+    _expect_length(tokens, 10 + n + m + tail, path, line_no)
+    laser.ranges.append(_floats(tokens[9:9 + n], path, line_no))
+    rest = _floats(tokens[10 + n + m:-2], path, line_no)
+    if with_poses:
+        laser.laser_pose.append(tuple(rest[0:3]))
+        laser.robot_pose.append(tuple(rest[3:6]))
+    laser.t.append(float(rest[-1]))
+    laser.lines.append(line_no)
+    start, _fov, resolution, max_range = (float(v) for v in header)
+    if laser.start_angle is None:
+        laser.start_angle, laser.resolution, laser.max_range = start, resolution, max_range
+    elif abs(start - laser.start_angle) > 1e-6 or abs(resolution - laser.resolution) > 1e-9:
+        raise LogFormatError("laser geometry (start angle / resolution) changes within the log",
+                             path=str(path), location=f"line {line_no}")
+
+
+def load(path: Path, no_return_m: float | None = None) -> DriveLog:
+    """Read a CARMEN log into a DriveLog with an odometry stream and one laser's scans."""
+    path = Path(path)
+    params: dict[str, str] = {}
+    odom_t: list[float] = []
+    odom_poses: list[np.ndarray] = []
+    odom_lines: list[int] = []
+    lasers: dict[str, _Laser] = {}
+    skipped: dict[str, int] = {}
+    try:
+        with open_text(path) as handle:
+            for line_no, line in enumerate(handle, start=1):
+                tokens = line.split()
+                if not tokens or tokens[0].startswith("#"):
+                    continue
+                kind = tokens[0]
+                if kind == "PARAM":
+                    if len(tokens) < 3:
+                        raise LogFormatError("PARAM record needs a name and a value", path=str(path),
+                                             location=f"line {line_no}")
+                    params[tokens[1]] = tokens[2]
+                elif kind == "ODOM":
+                    _expect_length(tokens, 10, path, line_no)
+                    values = _floats(tokens[1:8], path, line_no)
+                    odom_poses.append(values[:3])
+                    odom_t.append(float(values[6]))
+                    odom_lines.append(line_no)
+                elif kind in ("FLASER", "RLASER"):
+                    _parse_old_laser(tokens, lasers.setdefault(kind, _Laser()), path, line_no)
+                elif kind in ("ROBOTLASER1", "ROBOTLASER2"):
+                    _parse_new_laser(tokens, lasers.setdefault(kind, _Laser()), path, line_no, with_poses=True)
+                elif kind.startswith("RAWLASER") and kind in _KNOWN:
+                    _parse_new_laser(tokens, lasers.setdefault(kind, _Laser()), path, line_no, with_poses=False)
+                elif kind in _KNOWN:
+                    skipped[kind] = skipped.get(kind, 0) + 1
+                else:
+                    raise LogFormatError(f"unknown CARMEN record type {kind!r}", path=str(path),
+                                         location=f"line {line_no}")
+    except (OSError, EOFError) as error:
+        raise LogFormatError(f"cannot read file: {error}", path=str(path)) from None
+    except UnicodeDecodeError as error:
+        raise LogFormatError(f"not a text file: {error}", path=str(path)) from None
+
+    warnings: list[str] = []
+    if skipped:
+        listed = ", ".join(f"{k} x{v}" for k, v in sorted(skipped.items()))
+        warnings.append(f"{path}: ignored records: {listed}")
+    chosen = next((k for k in _LASER_PREFERENCE if k in lasers), None)
+    for other in lasers:
+        if other != chosen:
+            warnings.append(f"{path}: ignored {len(lasers[other].t)} {other} scans (only {chosen} is used)")
+
+    lidar, scans = None, None
+    if chosen is not None:
+        lidar, scans = _laser_stream(path, chosen, lasers[chosen], params, no_return_m, warnings)
+
+    odometry = None
+    if odom_t:
+        poses = np.array(odom_poses)
+        order = time_order(np.array(odom_t), path, "ODOM", warnings, _line_label(odom_lines))
+        odometry = OdometryStream(t_s=np.array(odom_t)[order], poses=poses[order])
+    elif chosen is not None and lasers[chosen].robot_pose:
+        laser = lasers[chosen]
+        order = time_order(np.array(laser.t), path, chosen, [], _line_label(laser.lines))
+        odometry = OdometryStream(t_s=np.array(laser.t)[order], poses=np.array(laser.robot_pose)[order])
+        warnings.append(f"{path}: no ODOM records; odometry taken from the {chosen} robot poses")
+    else:
+        warnings.append(f"{path}: no odometry (no ODOM records and no robot poses in the laser records)")
+    if odometry is None and scans is None:
+        raise LogFormatError("no ODOM and no laser records: not a usable CARMEN log", path=str(path))
+    return DriveLog(vehicle=VehicleModel(kind=MotionModelKind.ODOMETRY, name="carmen robot"),
+                    lidar=lidar, scans=scans, odometry=odometry, source_format="carmen",
+                    source_path=str(path), warnings=warnings)
+
+
+def _line_label(lines: list[int]):
+    return lambda i: f"line {lines[i]}"
+
+
+def _laser_stream(path: Path, kind: str, laser: _Laser, params: dict[str, str], no_return_m: float | None,
+                  warnings: list[str]) -> tuple[LidarModel, ScanStream]:
+    counts = {len(r) for r in laser.ranges}
+    if len(counts) != 1:
+        first = laser.ranges[0].size
+        bad = next(i for i, r in enumerate(laser.ranges) if r.size != first)
+        raise LogFormatError(f"{kind} beam count changes from {first} to {laser.ranges[bad].size}",
+                             path=str(path), location=f"line {laser.lines[bad]}")
+    n = counts.pop()
+    if n == 0:
+        raise LogFormatError(f"{kind} scans have no beams", path=str(path), location=f"line {laser.lines[0]}")
+    side = "rear" if kind in ("RLASER", "ROBOTLASER2") else "front"
+    if laser.start_angle is not None:
+        angle_min, increment = laser.start_angle, laser.resolution
+        threshold = laser.max_range if laser.max_range and laser.max_range > 0 else DEFAULT_NO_RETURN_M
+    else:
+        angle_min = -np.pi / 2
+        increment = np.pi / (n - 1) if n % 2 == 1 and n > 1 else np.pi / n
+        threshold = DEFAULT_NO_RETURN_M
+    if f"robot_{side}_laser_max" in params:
+        threshold = _param_float(params, f"robot_{side}_laser_max", path)
+    if no_return_m is not None:
+        threshold = no_return_m
+    raw = np.array(laser.ranges)
+    label = _line_label(laser.lines)
+    saturation = _saturation_value(raw, threshold)
+    if saturation is not None:
+        warnings.append(f"{path}: {kind}: range {saturation:g} m fills many beams; treated as no return")
+        threshold = saturation
+    ranges = clean_ranges(raw, path, kind, no_return_at_or_above_m=threshold, location_of=label)
+    order = time_order(np.array(laser.t), path, kind, warnings, label)
+    lidar = LidarModel(num_beams=n, angle_min_rad=float(angle_min), angle_increment_rad=float(increment),
+                       range_min_m=0.0, range_max_m=float(threshold),
+                       T_vehicle_from_lidar=_mounting(path, side, laser, params), name=f"carmen {kind}")
+    return lidar, ScanStream(t_s=np.array(laser.t)[order], ranges_m=ranges[order])
+
+
+def _saturation_value(raw: np.ndarray, threshold: float) -> float | None:
+    """A range below ``threshold`` that fills a large share of beams: the scanner's no-return code."""
+    below = raw[(raw >= SATURATION_MIN_M) & (raw < threshold)]
+    if below.size == 0:
+        return None
+    top = below.max()
+    if np.count_nonzero(below == top) >= SATURATION_SHARE * raw.size:
+        return float(top)
+    return None
+
+
+def _param_float(params: dict[str, str], name: str, path: Path) -> float:
+    try:
+        return float(params[name])
+    except ValueError:
+        raise LogFormatError(f"PARAM {name} is not a number: {params[name]!r}", path=str(path)) from None
+
+
+def _mounting(path: Path, side: str, laser: _Laser, params: dict[str, str]) -> np.ndarray:
+    """T_vehicle_from_lidar from PARAM offsets, else from the first record's laser vs robot pose."""
+    names = [f"robot_{side}laser_offset", f"robot_{side}laser_side_offset", f"robot_{side}laser_angular_offset"]
+    if any(name in params for name in names):
+        x, y, yaw = (_param_float(params, name, path) if name in params else 0.0 for name in names)
+        if side == "rear" and names[2] not in params:
+            yaw = np.pi
+        return se2_matrix(x, y, yaw)
+    if laser.laser_pose:
+        offset = relative_se2(np.array([laser.robot_pose[0]]), np.array([laser.laser_pose[0]]))[0]
+        return se2_matrix(*offset)
+    return se2_matrix(0.0, 0.0, np.pi if side == "rear" else 0.0)
+
+
+# ---------------------------------------------------------------------------------------------- writing
+
+def _flaser_geometry(lidar: LidarModel) -> bool:
+    """Whether the LiDAR's beams follow the FLASER convention (180 deg from -90 deg)."""
+    n = lidar.num_beams
+    increment = np.pi / (n - 1) if n % 2 == 1 and n > 1 else np.pi / n
+    return abs(lidar.angle_min_rad + np.pi / 2) < 1e-6 and abs(lidar.angle_increment_rad - increment) < 1e-9
+
+
+def write(log: DriveLog, out_dir: Path, name: str = "log") -> Path:
+    """Write ``out_dir/<name>.clf``: PARAM lines, ODOM lines at the odometry stamps (dead-reckoned
+    from the encoders when the log has no odometry), and one FLASER (or ROBOTLASER1 when the beams
+    do not follow the FLASER convention) per scan. Ranges in mm precision, poses in micrometres."""
+    odometry = dead_reckon(log)
+    path = Path(out_dir) / f"{name}.clf"
+    lines = [f"# written by lidarmap from a {log.source_format} log",
+             "# ODOM x y theta tv rv accel ts host logger_ts; FLASER/ROBOTLASER1 see CARMEN docs"]
+    if log.scans is not None and log.lidar is not None:
+        lidar = log.lidar
+        mount = planar_part(lidar.T_vehicle_from_lidar)
+        if mount is None:
+            raise LogFormatError("CARMEN cannot store a tilted LiDAR (its mounting has roll or pitch)",
+                                 path=str(path))
+        lines.append(f"PARAM robot_frontlaser_offset {mount[0]:.6f} lidarmap 0")
+        lines.append(f"PARAM robot_frontlaser_side_offset {mount[1]:.6f} lidarmap 0")
+        lines.append(f"PARAM robot_frontlaser_angular_offset {mount[2]:.9f} lidarmap 0")
+        lines.append(f"PARAM robot_front_laser_max {lidar.range_max_m:.6f} lidarmap 0")
+    records: list[tuple[float, int, str]] = []
+    for t, (x, y, th) in zip(odometry.t_s, odometry.poses, strict=True):
+        records.append((float(t), 0, f"ODOM {x:.6f} {y:.6f} {th:.6f} 0 0 0 {t:.6f} lidarmap {t:.6f}"))
+    if log.scans is not None and log.lidar is not None:
+        records.extend(_laser_lines(log, odometry, mount))
+    records.sort(key=lambda r: (r[0], r[1]))
+    lines.extend(r[2] for r in records)
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _laser_lines(log: DriveLog, odometry: OdometryStream,
+                 mount: tuple[float, float, float]) -> list[tuple[float, int, str]]:
+    lidar, scans = log.lidar, log.scans
+    robot = interpolate_poses(odometry.t_s, odometry.poses, scans.t_s)
+    laser = compose_se2(robot, np.tile(np.array(mount), (len(robot), 1)))
+    no_return = max(lidar.range_max_m, DEFAULT_NO_RETURN_M) + 1.91
+    flaser = _flaser_geometry(lidar)
+    out = []
+    for k in range(len(scans)):
+        t = float(scans.t_s[k])
+        r = np.where(np.isfinite(scans.ranges_m[k]), scans.ranges_m[k], no_return)
+        ranges = " ".join(f"{v:.3f}" for v in r)
+        poses = " ".join(f"{v:.6f}" for v in (*laser[k], *robot[k]))
+        if flaser:
+            line = f"FLASER {lidar.num_beams} {ranges} {poses} {t:.6f} lidarmap {t:.6f}"
+        else:
+            fov = lidar.num_beams * lidar.angle_increment_rad
+            line = (f"ROBOTLASER1 0 {lidar.angle_min_rad:.9f} {fov:.9f} {lidar.angle_increment_rad:.12f} "
+                    f"{no_return:.3f} 0.01 0 {lidar.num_beams} {ranges} 0 {poses} 0 0 0 0 0 "
+                    f"{t:.6f} lidarmap {t:.6f}")
+        out.append((t, 1, line))
+    return out

@@ -1,0 +1,53 @@
+"""Helpers for the service tests: an app on a temporary data folder, polling a job."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from service.settings import Settings
+
+TERMINAL = {"succeeded", "failed", "cancelled"}
+
+
+@contextmanager
+def service_client(data_dir: Path, job_function: str | None = None, **settings) -> Iterator[TestClient]:
+    """A TestClient whose lifespan (store, worker processes) runs for the ``with`` block."""
+    settings.setdefault("workers", 1)
+    app = create_app(Settings(data_dir=data_dir, **settings), job_function=job_function)
+    with TestClient(app) as client:
+        yield client
+
+
+def wait_for(client: TestClient, job_id: str, statuses: set[str] = TERMINAL, timeout_s: float = 60.0,
+             condition=None) -> dict:
+    """Poll GET /v1/jobs/{id} until its status is in ``statuses`` (and ``condition(job)`` holds)."""
+    deadline = time.monotonic() + timeout_s
+    job = {}
+    while time.monotonic() < deadline:
+        job = client.get(f"/v1/jobs/{job_id}").json()
+        if job.get("status") in statuses and (condition is None or condition(job)):
+            return job
+        time.sleep(0.05)
+    raise AssertionError(f"job {job_id} did not reach {statuses} in {timeout_s} s: {job}")
+
+
+def new_session(client: TestClient, **extra) -> str:
+    response = client.post("/v1/sessions", json={"name": "test drive", **extra})
+    assert response.status_code == 201, response.text
+    return response.json()["id"]
+
+
+def assert_error(response, status: int, code: str | None = None) -> dict:
+    """The response is the JSON error body with this status (and code)."""
+    assert response.status_code == status, response.text
+    body = response.json()
+    assert set(body) == {"error"} and {"code", "message", "detail"} <= set(body["error"])
+    if code is not None:
+        assert body["error"]["code"] == code, body
+    return body["error"]

@@ -1,0 +1,34 @@
+"""Tiny job functions injected into the worker processes by the lifecycle tests (imported by name
+in the spawned workers). ``particles`` sets the number of steps, ``seed`` the step time in ms."""
+
+from __future__ import annotations
+
+import json
+import time
+
+from slam_engine.errors import LogFormatError
+
+
+def counting(ctx) -> None:
+    """``particles`` steps of ``seed`` ms, reporting progress; writes run.json."""
+    steps, step_s = ctx.job["config"]["particles"], ctx.job["config"]["seed"] / 1000.0
+    for i in range(steps):
+        ctx.progress(i, steps)
+        time.sleep(step_s)
+    ctx.progress(steps, steps, force=True)
+    (ctx.out_dir / "run.json").write_text(json.dumps({"steps": steps}))
+    ctx.store.set_products(ctx.job_id, {"run.json": "run.json"})
+
+
+def stubborn(ctx) -> None:
+    """Never checks for a cancel."""
+    ctx.progress(0, 10, force=True)
+    time.sleep(60)
+
+
+def bad_log(ctx) -> None:
+    raise LogFormatError("range count 179 does not match 180 beams", path="/secret/server/path", location="line 3")
+
+
+def buggy(ctx) -> None:
+    raise ZeroDivisionError("division by zero")
