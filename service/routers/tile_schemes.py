@@ -22,6 +22,6 @@ async def tile_scheme(job: JobRow, data: DataDep, layer: TileLayer) -> TileSchem
     grow: fetch this again when ``scans_done`` changes."""
     from slam_engine.products import TileScheme
 
-    source = await run_in_threadpool(tile_source, data, job, layer.value)
+    source, _ = await run_in_threadpool(tile_source, data, job, layer.value)
     description = TileScheme.for_map(source).describe()
     return TileSchemePublic(job_id=job["id"], layer=layer.value, scans_done=job["scans_done"], **description)

@@ -10,6 +10,7 @@ export const DOWNLOADS = Object.freeze([
   ["map.pgm", "map.pgm", "map.pgm", "map.pgm"],
   ["map.yaml", "map.yaml", "map.yaml", "map.yaml"],
   ["trajectory (TUM)", "trajectory?format=tum", "trajectory.tum", "trajectory.tum"],
+  ["dead reckoning (TUM)", "dead-reckoning?format=tum", "dead_reckoning.tum", "dead_reckoning.tum"],
   ["animation.gif", "animation.gif", "animation.gif", "animation.gif"],
   ["texture.png", "texture.png", "texture.png", "texture.png"],
   ["run record (JSON)", "run", "run.json", "run.json"],

@@ -19,6 +19,7 @@ const newRun = new NewRunPanel((job) => {
   pollSoon();
 });
 jobMap.onError = showListError;
+window.lidarmap = { jobMap }; // for the browser console and the end-to-end tests
 
 function showListError(error) {
   listError.hidden = !error;

@@ -159,6 +159,10 @@ export class JobMap {
   async _update(job) {
     const version = `${job.status}-${job.scans_done}`;
     if (job.id !== this.jobId || (this.map && version === this.version)) return;
+    if (job.status !== "succeeded" && !job.products.includes("tiles/occupancy")) {
+      if (!this.map) this._setPlaceholder(this._waitingText(job));
+      return;
+    }
     let scheme;
     try {
       scheme = await getJson(TILE_SCHEME.path(job.id, "occupancy"));
@@ -169,8 +173,11 @@ export class JobMap {
     }
     const textureScheme = hasTexture(job)
       ? await getJson(TILE_SCHEME.path(job.id, "texture")).catch(() => null) : null;
+    // Trajectories while a job runs only when the service lists them among the products available now.
+    const listed = (name) => job.status === "succeeded" || job.products.includes(name);
     const [trajectory, deadReckoning] = await Promise.all([
-      posesOf(`/v1/jobs/${job.id}/trajectory`), posesOf(`/v1/jobs/${job.id}/dead-reckoning`)]);
+      listed("trajectory.json") ? posesOf(`/v1/jobs/${job.id}/trajectory`) : null,
+      listed("dead_reckoning.json") ? posesOf(`/v1/jobs/${job.id}/dead-reckoning`) : null]);
     if (job.id !== this.jobId) return; // another job was selected meanwhile
     if (!this.map || !sameGeometry(this.scheme, scheme) || !!textureScheme !== !!this.layers.texture) {
       this._build(job.id, scheme, !!textureScheme, version);
