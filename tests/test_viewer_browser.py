@@ -26,6 +26,7 @@ from collections.abc import Iterator
 from html.parser import HTMLParser
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 import uvicorn
@@ -333,7 +334,25 @@ def test_known_room_through_the_page_with_an_api_key(tmp_path) -> None:
         # Tiles of the final maps were requested for both layers.
         assert any("/tiles/texture/" in u and "v=succeeded-12" in u for u in tile_urls)
         assert any("/tiles/occupancy/" in u and "v=succeeded-12" in u for u in tile_urls)
-        assert page.evaluate("window.lidarmap.jobMap.scheme.native_zoom") == 1  # 280 x 200 cells of 0.05 m
+
+        # The tile layout the page used: 280 x 200 cells of 0.05 m whose top-left corner is (-1, 9) m; one
+        # tile pixel per cell at zoom 1, so zoom 0 has 0.1 m per pixel.
+        job_id = page.evaluate("window.location.hash").removeprefix("#job=")
+        scheme = httpx.get(f"{url}/v1/jobs/{job_id}/tiles/occupancy", headers={"X-API-Key": API_KEY}).json()
+        assert (scheme["width_cells"], scheme["height_cells"], scheme["native_zoom"]) == (280, 200, 1)
+        assert scheme["top_left_m"] == pytest.approx([-1.0, 9.0])
+        assert scheme["leaflet_transformation"] == pytest.approx([10.0, 10.0, -10.0, 90.0])
+        assert page.evaluate("window.lidarmap.jobMap.scheme") == scheme
+
+        # Another job on the same session from its "Map again" button, cancelled from the job header.
+        page.fill("#param-particles", "400")
+        page.click(".session button:has-text('Map again')")
+        page.wait_for_function(f"!window.location.hash.endsWith('{job_id}')")
+        page.wait_for_selector("#job-status.running", timeout=30_000)
+        page.click("#job-cancel")
+        page.wait_for_selector("#job-status.cancelled", timeout=30_000)
+        assert "cancelled" in page.inner_text("#job-error")
+        assert page.locator(".job").count() == 2
 
 
 @pytest.mark.slow
@@ -360,11 +379,10 @@ def test_simulated_log_dropped_on_the_page_is_mapped(tmp_path) -> None:
         assert all(w == 256 for w in page.eval_on_selector_all(
             ".tiles-occupancy img.leaflet-tile-loaded", "tiles => tiles.map((t) => t.naturalWidth)"))
 
-        # Not blank: walls (dark), free space (light) and unknown grey all drawn.
-        image = _map_image(page).astype(int)
-        gray = image.mean(axis=2)
-        dark, light = (gray < 80).mean(), (gray > 235).mean()
-        assert dark > 0.002 and light > 0.02, (dark, light)
+        # Not blank: walls (dark) and free space (light) drawn around the trajectory, which the first view shows.
+        gray = _map_image(page).astype(int).mean(axis=2)
+        dark, light = int((gray < 80).sum()), int((gray > 235).sum())
+        assert dark > 2000 and light > 20_000, (dark, light)
 
         # The trajectory starts at the map origin (first pose) and has one point per scan of the log.
         trajectory = page.evaluate("window.lidarmap.jobMap.layers.trajectory.getLatLngs()"

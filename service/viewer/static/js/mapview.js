@@ -17,6 +17,8 @@ export const TILE_SCHEME = Object.freeze({
   zoomOutPastWhole: 2, // and out this far past the whole map in one tile
 });
 
+const VIEW_MARGIN_M = 5; // first view: the trajectory and at least this much around it [m]
+
 const LAYER_NAMES = Object.freeze({
   occupancy: "Occupancy grid",
   texture: "Ground texture",
@@ -40,6 +42,20 @@ function boundsOf(scheme) {
   const right = left + scheme.width_cells * scheme.resolution_m;
   const bottom = top - scheme.height_cells * scheme.resolution_m;
   return L.latLngBounds([bottom, left], [top, right]);
+}
+
+/**
+ * What to show first: the trajectory with room around it (the grid also holds every long beam's free
+ * ray, often far beyond the walls), or the whole map when the trajectory is not known yet.
+ */
+function initialView(mapBounds, trajectory) {
+  if (!trajectory || !trajectory.length) return mapBounds;
+  const path = L.latLngBounds(trajectory);
+  const margin = Math.max(VIEW_MARGIN_M, 0.25 * Math.max(
+    path.getNorth() - path.getSouth(), path.getEast() - path.getWest()));
+  const view = L.latLngBounds([path.getSouth() - margin, path.getWest() - margin],
+    [path.getNorth() + margin, path.getEast() + margin]);
+  return mapBounds.intersects(view) ? view : mapBounds;
 }
 
 function sameGeometry(a, b) {
@@ -159,10 +175,9 @@ export class JobMap {
   async _update(job) {
     const version = `${job.status}-${job.scans_done}`;
     if (job.id !== this.jobId || (this.map && version === this.version)) return;
-    if (job.status !== "succeeded" && !job.products.includes("tiles/occupancy")) {
-      if (!this.map) this._setPlaceholder(this._waitingText(job));
-      return;
-    }
+    const hasTiles = job.status === "succeeded" || job.products.includes("tiles/occupancy");
+    if (!this.map) this._setPlaceholder(hasTiles ? "Loading the map…" : this._waitingText(job));
+    if (!hasTiles) return;
     let scheme;
     try {
       scheme = await getJson(TILE_SCHEME.path(job.id, "occupancy"));
@@ -180,7 +195,7 @@ export class JobMap {
       listed("dead_reckoning.json") ? posesOf(`/v1/jobs/${job.id}/dead-reckoning`) : null]);
     if (job.id !== this.jobId) return; // another job was selected meanwhile
     if (!this.map || !sameGeometry(this.scheme, scheme) || !!textureScheme !== !!this.layers.texture) {
-      this._build(job.id, scheme, !!textureScheme, version);
+      this._build(job.id, scheme, !!textureScheme, version, trajectory);
     } else {
       this.layers.occupancy.refreshTiles(version);
       if (this.layers.texture) this.layers.texture.refreshTiles(version);
@@ -197,7 +212,7 @@ export class JobMap {
     return "This job has no map.";
   }
 
-  _build(jobId, scheme, withTexture, version) {
+  _build(jobId, scheme, withTexture, version, trajectory) {
     const previous = this.map ? { center: this.map.getCenter(), zoom: this.map.getZoom(),
       nativeZoom: this.scheme.native_zoom } : null;
     if (this.map) this.map.remove();
@@ -207,8 +222,7 @@ export class JobMap {
       crs: crsFor(scheme),
       minZoom: -TILE_SCHEME.zoomOutPastWhole,
       maxZoom: native + TILE_SCHEME.zoomPastNative,
-      zoomSnap: 0.25,
-      zoomDelta: 0.5,
+      zoomSnap: 1, // whole zooms: tiles drawn at 1:1 or a power of two, no seams between them
       attributionControl: false,
     });
     const tileOptions = {
@@ -244,7 +258,7 @@ export class JobMap {
       // Same place, same metres per pixel: one native zoom step more halves the cell size on screen.
       map.setView(previous.center, previous.zoom + (native - previous.nativeZoom), { animate: false });
     } else {
-      map.fitBounds(bounds.pad(0.03), { animate: false });
+      map.fitBounds(initialView(bounds, trajectory), { animate: false });
     }
     this.map = map;
     this.scheme = scheme;
