@@ -114,7 +114,7 @@ def run_mapping_job(ctx: JobContext) -> None:
 
     def on_progress(progress: Any) -> None:
         ctx.progress(progress.scans_done, progress.scans_total)
-        live.update(getattr(progress, "snapshot", None))
+        live.update(progress.latest_snapshot)
 
     result = run_slam(log, config, rng=np.random.default_rng(config.seed), progress=on_progress)
     ctx.check_cancel()

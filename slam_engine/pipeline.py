@@ -20,16 +20,19 @@ from slam_engine.errors import ConfigError
 from slam_engine.messages import ScanMessage
 from slam_engine.odometry import dead_reckoning, odometry_source
 from slam_engine.particle_filter import SlamFilter
-from slam_engine.result import OccupancyGrid, ScanStats, SlamResult
+from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, SlamResult
 
 
 @dataclass(frozen=True)
 class RunProgress:
-    """Progress of a run: scans handled so far, scans in the log, seconds since the start."""
+    """Progress of a run: scans handled so far, scans in the log, seconds since the start, and the
+    newest map snapshot kept so far (``config.snapshot_every_scans``; None before the first), for live
+    previews."""
 
     scans_done: int
     scans_total: int
     elapsed_s: float
+    latest_snapshot: MapSnapshot | None = None
 
 
 ProgressCallback = Callable[[RunProgress], None]
@@ -78,7 +81,8 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
     for message in odometry_only.messages():
         slam.step(message)
         if progress is not None and isinstance(message, ScanMessage):
-            progress(RunProgress(slam.scans_seen, scans_total, time.perf_counter() - start))
+            progress(RunProgress(slam.scans_seen, scans_total, time.perf_counter() - start,
+                                 slam.snapshots[-1] if slam.snapshots else None))
     slam.finish()
     trajectory = slam.trajectory()
     if progress is not None:
