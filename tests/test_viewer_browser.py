@@ -237,6 +237,30 @@ def test_known_room_through_the_page_with_an_api_key(tmp_path) -> None:
         assert page.evaluate("localStorage.getItem('lidarmap.apiKey')") == API_KEY
         page.wait_for_function("document.querySelectorAll('#param-format option').length > 1")  # /v1/formats
 
+        # A file in no known format: the service's 415 message, and no empty session left behind.
+        junk = tmp_path / "notes.txt"
+        junk.write_text("shopping list\nmilk\n")
+        page.set_input_files("#log-file", str(junk))
+        page.click("#upload-button")
+        page.wait_for_selector("#run-error:not([hidden])", timeout=60_000)
+        assert "format" in page.inner_text("#run-error").lower(), page.inner_text("#run-error")
+        sessions = httpx.get(f"{url}/v1/sessions", headers={"X-API-Key": API_KEY}).json()
+        assert sessions["count"] == 0
+
+        # Error bodies in both shapes read as "field: message" lines.
+        messages = page.evaluate("""async () => {
+            const { describeError } = await import("/viewer/js/api.js");
+            return [
+              describeError(422, { detail: [{ loc: ["body", "particles"], msg: "Input should be >= 1" },
+                                            { loc: ["query", "limit"], msg: "too big" }] }).message,
+              describeError(404, { error: { code: "not_found", message: "no job 'x'", detail: { job_id: "x" } } })
+                .message,
+              describeError(500, "<html>boom</html>").message,
+            ];
+        }""")
+        assert messages == ["particles: Input should be >= 1\nlimit: too big", "no job 'x'\njob_id: x",
+                            "HTTP 500: <html>boom</html>"]
+
         # A parameter out of bounds: the upload goes through, the job is refused with the API's words.
         page.set_input_files("#log-file", str(log))
         page.fill("#param-particles", "5000")
