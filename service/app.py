@@ -12,6 +12,8 @@ from service.errors import install_error_handlers
 from service.inspection import LogInspector
 from service.limits import BodyLimitMiddleware
 from service.routers import chunks, formats, health, jobs, logs, products, sessions
+from service.routers.tile_schemes import router as tile_schemes_router
+from service.routers.viewer import register_viewer
 from service.runner import create_runner
 from service.settings import Settings, get_settings
 from service.storage import DataDir
@@ -68,4 +70,6 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
         app.include_router(module.router)
     app.include_router(jobs.session_jobs)
     app.include_router(jobs.router)
+    app.include_router(tile_schemes_router)
+    register_viewer(app)
     return app

@@ -1,0 +1,27 @@
+"""/v1/jobs/{id}/tiles/{layer}: the layout of a job's tile pyramid (zooms, origin, Leaflet transformation)."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+from starlette.concurrency import run_in_threadpool
+
+from api_schemas.errors import ErrorResponse
+from api_schemas.tiles import TileSchemePublic
+from service.deps import DataDep, JobRow
+from service.products import tile_source
+from service.routers.products import TileLayer
+
+router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["products"],
+                   responses={401: {"model": ErrorResponse}, 404: {"model": ErrorResponse},
+                              409: {"model": ErrorResponse, "description": "Not available (yet)."}})
+
+
+@router.get("/tiles/{layer}", response_model=TileSchemePublic)
+async def tile_scheme(job: JobRow, data: DataDep, layer: TileLayer) -> TileSchemePublic:
+    """Which zooms and tiles exist and where they lie in the map frame. While the job runs the map may
+    grow: fetch this again when ``scans_done`` changes."""
+    from slam_engine.products import TileScheme
+
+    source, _ = await run_in_threadpool(tile_source, data, job, layer.value)
+    description = TileScheme.for_map(source).describe()
+    return TileSchemePublic(job_id=job["id"], layer=layer.value, scans_done=job["scans_done"], **description)

@@ -1,0 +1,122 @@
+// Sessions with their jobs (status, progress), and the selected job's header with its downloads.
+
+import { getBlob } from "./api.js";
+import { ACTIVE_STATUSES, el, formatEta, formatScans, formatTime, progressPercent, shortId } from "./format.js";
+
+/** Every product the page offers for download: [label, path under /v1/jobs/{id}/, product name, file name]. */
+export const DOWNLOADS = Object.freeze([
+  ["occupancy.png", "occupancy.png", "occupancy.png", "occupancy.png"],
+  ["occupancy.tif (GeoTIFF)", "occupancy.tif", "occupancy.tif", "occupancy.tif"],
+  ["map.pgm", "map.pgm", "map.pgm", "map.pgm"],
+  ["map.yaml", "map.yaml", "map.yaml", "map.yaml"],
+  ["trajectory (TUM)", "trajectory?format=tum", "trajectory.tum", "trajectory.tum"],
+  ["dead reckoning (TUM)", "dead-reckoning?format=tum", "dead_reckoning.tum", "dead_reckoning.tum"],
+  ["animation.gif", "animation.gif", "animation.gif", "animation.gif"],
+  ["texture.png", "texture.png", "texture.png", "texture.png"],
+  ["run record (JSON)", "run", "run.json", "run.json"],
+]);
+
+function progressBar(job) {
+  return el("div", { class: "progress" },
+    el("div", { class: `progress-fill ${job.status}`, style: `width: ${progressPercent(job).toFixed(1)}%` }));
+}
+
+function jobRow(job, selected, onSelect) {
+  const meta = [formatScans(job), formatEta(job)].filter(Boolean).join(" · ");
+  return el("li", {
+    class: `job${selected ? " selected" : ""}`, dataset: { jobId: job.id, status: job.status },
+    title: `job ${job.id}`, onclick: () => onSelect(job.id),
+  },
+  el("span", { class: `pill ${job.status}` }, job.status),
+  el("span", { class: "job-label" }, `job ${shortId(job.id)} · ${job.config.particles ?? "?"} particles`),
+  el("span", { class: "job-meta" }, meta || formatTime(job.created_at)),
+  progressBar(job),
+  job.error ? el("span", { class: "job-error", title: job.error }, job.error) : null);
+}
+
+/** Render the sessions (newest first), each with its jobs. */
+export function renderSessions(list, sessions, jobsBySession, selectedJobId, handlers) {
+  list.replaceChildren(...sessions.map((session) => {
+    const jobs = jobsBySession.get(session.id) || [];
+    return el("li", { class: "session", dataset: { sessionId: session.id } },
+      el("div", { class: "session-head" },
+        el("span", { class: "session-name", title: session.name }, session.name),
+        el("span", { class: "muted" }, formatTime(session.created_at)),
+        session.logs > 0 || session.chunks > 0
+          ? el("button", { type: "button", class: "small", title: "Start another job with the parameters above",
+            onclick: () => handlers.onMapAgain(session.id) }, "Map again")
+          : null),
+      jobs.length
+        ? el("ul", { class: "jobs" }, jobs.map((job) => jobRow(job, job.id === selectedJobId, handlers.onSelect)))
+        : el("div", { class: "muted" }, session.logs ? "no jobs yet" : "no log uploaded"));
+  }));
+}
+
+function productAvailable(job, productName) {
+  if (job.status !== "succeeded") return job.products.includes(productName);
+  // A succeeded job lists what it wrote; an empty list means the service did not say.
+  return job.products.length === 0 || job.products.includes(productName);
+}
+
+/** Download with the API key (a plain link cannot send the header) and save under ``fileName``. */
+async function download(url, fileName) {
+  const blob = await getBlob(url);
+  const objectUrl = URL.createObjectURL(blob);
+  const link = el("a", { href: objectUrl, download: fileName });
+  document.body.append(link);
+  link.click();
+  link.remove();
+  setTimeout(() => URL.revokeObjectURL(objectUrl), 10000);
+}
+
+export class JobHeader {
+  constructor(onCancel, onError) {
+    this.root = document.getElementById("job-header");
+    this.name = document.getElementById("job-name");
+    this.status = document.getElementById("job-status");
+    this.scans = document.getElementById("job-scans");
+    this.eta = document.getElementById("job-eta");
+    this.progress = document.getElementById("job-progress");
+    this.error = document.getElementById("job-error");
+    this.downloads = document.getElementById("job-downloads");
+    this.cancel = document.getElementById("job-cancel");
+    this.onError = onError;
+    this.cancel.addEventListener("click", () => this.job && onCancel(this.job.id));
+    this.job = null;
+    this.downloadsKey = null;
+  }
+
+  render(job, session) {
+    this.job = job;
+    this.root.hidden = !job;
+    if (!job) return;
+    this.name.textContent = `${session ? session.name : "session " + shortId(job.session_id)} · job ${shortId(job.id)}`;
+    this.status.textContent = job.status;
+    this.status.className = `pill ${job.status}`;
+    this.scans.textContent = formatScans(job);
+    this.eta.textContent = formatEta(job);
+    this.progress.style.width = `${progressPercent(job).toFixed(1)}%`;
+    this.progress.className = `progress-fill ${job.status}`;
+    this.error.hidden = !job.error;
+    this.error.textContent = job.error || "";
+    this.cancel.hidden = !ACTIVE_STATUSES.has(job.status);
+    this._renderDownloads(job);
+  }
+
+  _renderDownloads(job) {
+    const key = `${job.id}:${job.status}:${job.products.join(",")}`;
+    if (key === this.downloadsKey) return;
+    this.downloadsKey = key;
+    const links = DOWNLOADS.filter(([, , product]) => productAvailable(job, product)).map(([label, path, , file]) => {
+      const url = `/v1/jobs/${job.id}/${path}`;
+      return el("a", {
+        href: url, download: file, dataset: { product: file },
+        onclick: (event) => {
+          event.preventDefault();
+          download(url, file).catch(this.onError);
+        },
+      }, label);
+    });
+    this.downloads.replaceChildren(...(links.length ? [el("span", { class: "muted" }, "Download:"), ...links] : []));
+  }
+}

@@ -1,0 +1,293 @@
+// One job's map: occupancy and texture tiles on a metric L.CRS.Simple, the SLAM and dead-reckoning
+// trajectories as polylines, a scale bar in metres and the cursor's map coordinates.
+
+import * as L from "../vendor/leaflet/leaflet-src.esm.js";
+import { getBlob, getJson } from "./api.js";
+
+// Tile scheme, as slam_engine.products.tiles.TileScheme defines it and GET /v1/jobs/{id}/tiles/{layer}
+// describes it: zoom `native_zoom` shows one tile pixel per grid cell, each zoom below halves the
+// resolution, zoom 0 is the whole map in one 256 px tile; tile (x, y) counts right and down from the
+// map's top-left corner. `leaflet_transformation` (a, b, c, d) on L.CRS.Simple makes LatLng = [y_m, x_m]
+// in the map frame, so Leaflet distances are metres. The texture map lies on the occupancy grid's
+// geometry (slam_engine.result.TextureMap), so both layers share one CRS.
+export const TILE_SCHEME = Object.freeze({
+  path: (jobId, layer) => `/v1/jobs/${jobId}/tiles/${layer}`,
+  tileUrl: (jobId, layer) => `/v1/jobs/${jobId}/tiles/${layer}/{z}/{x}/{y}.png?v={version}`,
+  zoomPastNative: 3, // zoom in this far past one pixel per cell (pixels enlarged)
+  zoomOutPastWhole: 2, // and out this far past the whole map in one tile
+});
+
+const VIEW_MARGIN_M = 5; // first view: the trajectory and at least this much around it [m]
+
+const LAYER_NAMES = Object.freeze({
+  occupancy: "Occupancy grid",
+  texture: "Ground texture",
+  trajectory: "Trajectory (SLAM)",
+  deadReckoning: "Dead reckoning",
+});
+const TRAJECTORY_STYLE = { color: "#e8590c", weight: 2.5, opacity: 0.95, className: "trajectory-slam" };
+const DEAD_RECKONING_STYLE = { color: "#1c7ed6", weight: 2, opacity: 0.85, dashArray: "6 5",
+  className: "trajectory-dead-reckoning" };
+const POSE_STYLE = { radius: 5, color: "#fff", weight: 2, fillColor: "#e8590c", fillOpacity: 1,
+  className: "trajectory-pose" };
+
+function crsFor(scheme) {
+  const [a, b, c, d] = scheme.leaflet_transformation;
+  return L.extend({}, L.CRS.Simple, { transformation: new L.Transformation(a, b, c, d) });
+}
+
+/** The map's extent as LatLng bounds ([y_m, x_m] corners). */
+function boundsOf(scheme) {
+  const [left, top] = scheme.top_left_m;
+  const right = left + scheme.width_cells * scheme.resolution_m;
+  const bottom = top - scheme.height_cells * scheme.resolution_m;
+  return L.latLngBounds([bottom, left], [top, right]);
+}
+
+/**
+ * What to show first: the trajectory with room around it (the grid also holds every long beam's free
+ * ray, often far beyond the walls), or the whole map when the trajectory is not known yet.
+ */
+function initialView(mapBounds, trajectory) {
+  if (!trajectory || !trajectory.length) return mapBounds;
+  const path = L.latLngBounds(trajectory);
+  const margin = Math.max(VIEW_MARGIN_M, 0.25 * Math.max(
+    path.getNorth() - path.getSouth(), path.getEast() - path.getWest()));
+  const view = L.latLngBounds([path.getSouth() - margin, path.getWest() - margin],
+    [path.getNorth() + margin, path.getEast() + margin]);
+  return mapBounds.intersects(view) ? view : mapBounds;
+}
+
+function sameGeometry(a, b) {
+  return !!a && !!b && a.native_zoom === b.native_zoom && a.width_cells === b.width_cells
+    && a.height_cells === b.height_cells && a.resolution_m === b.resolution_m
+    && a.top_left_m[0] === b.top_left_m[0] && a.top_left_m[1] === b.top_left_m[1];
+}
+
+/** Tiles fetched with the API key (an <img> cannot send headers) and refreshed in place while a job runs. */
+const FetchTileLayer = L.TileLayer.extend({
+  createTile(coords, done) {
+    const tile = document.createElement("img");
+    tile.alt = "";
+    tile.setAttribute("role", "presentation");
+    this._fetchInto(tile, this.getTileUrl(coords), done);
+    return tile;
+  },
+
+  _fetchInto(tile, url, done) {
+    tile.dataset.url = url;
+    getBlob(url).then((blob) => {
+      const objectUrl = URL.createObjectURL(blob);
+      tile.onload = () => {
+        URL.revokeObjectURL(objectUrl);
+        if (done) done(null, tile);
+      };
+      tile.onerror = () => {
+        URL.revokeObjectURL(objectUrl);
+        if (done) done(new Error(`tile ${url} is not an image`), tile);
+      };
+      tile.src = objectUrl;
+    }, (error) => {
+      if (done) done(error, tile);
+    });
+  },
+
+  /** Fetch the visible tiles again for map ``version`` and swap each in when it arrives (no blank flash). */
+  refreshTiles(version) {
+    this.options.version = version;
+    for (const { el, coords } of Object.values(this._tiles)) {
+      if (coords.z === this._tileZoom) this._fetchInto(el, this.getTileUrl(coords), null);
+    }
+  },
+});
+
+/** Bottom-right readout of the cursor's map-frame coordinates [m]. */
+const CursorPosition = L.Control.extend({
+  options: { position: "bottomright" },
+  onAdd(map) {
+    const div = L.DomUtil.create("div", "cursor-position");
+    div.textContent = "x —  y —";
+    map.on("mousemove", (event) => {
+      div.textContent = `x ${event.latlng.lng.toFixed(2)} m   y ${event.latlng.lat.toFixed(2)} m`;
+    });
+    map.on("mouseout", () => { div.textContent = "x —  y —"; });
+    return div;
+  },
+});
+
+async function posesOf(path) {
+  try {
+    const trajectory = await getJson(path);
+    return trajectory.poses.map((pose) => [pose.y_m, pose.x_m]);
+  } catch (error) {
+    if (error.status === 404 || error.status === 409) return null; // not (yet) available
+    throw error;
+  }
+}
+
+function hasTexture(job) {
+  return job.products.some((name) => name === "texture.png" || name === "tiles/texture");
+}
+
+export class JobMap {
+  constructor(container, placeholder) {
+    this.container = container;
+    this.placeholder = placeholder;
+    this.map = null;
+    this.jobId = null;
+    this.scheme = null;
+    this.layers = {};
+    this.hidden = new Set(); // layer names the user switched off, kept across rebuilds
+    this.version = null;
+    this.running = null;
+    this.queued = null;
+    this.onError = () => {};
+  }
+
+  /** Show ``job`` (null: nothing) or bring the shown job's map up to date; calls are coalesced. */
+  async show(job) {
+    if (!job) {
+      this._clear("Select a job, or upload a drive log to make a map.");
+      this.jobId = null;
+      return;
+    }
+    if (job.id !== this.jobId) {
+      this._clear("Loading the map…");
+      this.jobId = job.id;
+    }
+    this.queued = job;
+    if (this.running) return this.running;
+    this.running = (async () => {
+      while (this.queued) {
+        const next = this.queued;
+        this.queued = null;
+        try {
+          await this._update(next);
+        } catch (error) {
+          this.onError(error);
+        }
+      }
+      this.running = null;
+    })();
+    return this.running;
+  }
+
+  async _update(job) {
+    const version = `${job.status}-${job.scans_done}`;
+    if (job.id !== this.jobId || (this.map && version === this.version)) return;
+    const hasTiles = job.status === "succeeded" || job.products.includes("tiles/occupancy");
+    if (!this.map) this._setPlaceholder(hasTiles ? "Loading the map…" : this._waitingText(job));
+    if (!hasTiles) return;
+    let scheme;
+    try {
+      scheme = await getJson(TILE_SCHEME.path(job.id, "occupancy"));
+    } catch (error) {
+      if (error.status !== 404 && error.status !== 409) throw error;
+      if (!this.map) this._setPlaceholder(this._waitingText(job));
+      return;
+    }
+    const textureScheme = hasTexture(job)
+      ? await getJson(TILE_SCHEME.path(job.id, "texture")).catch(() => null) : null;
+    // Trajectories while a job runs only when the service lists them among the products available now.
+    const listed = (name) => job.status === "succeeded" || job.products.includes(name);
+    const [trajectory, deadReckoning] = await Promise.all([
+      listed("trajectory.json") ? posesOf(`/v1/jobs/${job.id}/trajectory`) : null,
+      listed("dead_reckoning.json") ? posesOf(`/v1/jobs/${job.id}/dead-reckoning`) : null]);
+    if (job.id !== this.jobId) return; // another job was selected meanwhile
+    if (!this.map || !sameGeometry(this.scheme, scheme) || !!textureScheme !== !!this.layers.texture) {
+      this._build(job.id, scheme, !!textureScheme, version, trajectory);
+    } else {
+      this.layers.occupancy.refreshTiles(version);
+      if (this.layers.texture) this.layers.texture.refreshTiles(version);
+    }
+    this._setPaths(trajectory, deadReckoning);
+    this.version = version;
+  }
+
+  _waitingText(job) {
+    if (job.status === "queued") return "Queued: the map appears once the job runs.";
+    if (job.status === "running") return "Running: the map appears after the first scans.";
+    if (job.status === "failed") return "The job failed before it made a map.";
+    if (job.status === "cancelled") return "The job was cancelled before it made a map.";
+    return "This job has no map.";
+  }
+
+  _build(jobId, scheme, withTexture, version, trajectory) {
+    const previous = this.map ? { center: this.map.getCenter(), zoom: this.map.getZoom(),
+      nativeZoom: this.scheme.native_zoom } : null;
+    if (this.map) this.map.remove();
+    const native = scheme.native_zoom;
+    const bounds = boundsOf(scheme);
+    const map = L.map(this.container, {
+      crs: crsFor(scheme),
+      minZoom: -TILE_SCHEME.zoomOutPastWhole,
+      maxZoom: native + TILE_SCHEME.zoomPastNative,
+      zoomSnap: 1, // whole zooms: tiles drawn at 1:1 or a power of two, no seams between them
+      attributionControl: false,
+    });
+    const tileOptions = {
+      tileSize: scheme.tile_size, minNativeZoom: 0, maxNativeZoom: native, minZoom: map.getMinZoom(),
+      maxZoom: map.getMaxZoom(), noWrap: true, bounds, version, keepBuffer: 1,
+    };
+    this.layers = {
+      occupancy: new FetchTileLayer(TILE_SCHEME.tileUrl(jobId, "occupancy"), { ...tileOptions, className: "tiles-occupancy" }),
+      texture: withTexture
+        ? new FetchTileLayer(TILE_SCHEME.tileUrl(jobId, "texture"), { ...tileOptions, className: "tiles-texture" })
+        : null,
+      trajectory: L.polyline([], TRAJECTORY_STYLE),
+      pose: L.circleMarker([0, 0], POSE_STYLE),
+      deadReckoning: L.polyline([], DEAD_RECKONING_STYLE),
+    };
+    const trajectoryGroup = L.layerGroup([this.layers.trajectory]);
+    this.layers.trajectoryGroup = trajectoryGroup;
+    const overlays = {
+      [LAYER_NAMES.occupancy]: this.layers.occupancy,
+      ...(withTexture ? { [LAYER_NAMES.texture]: this.layers.texture } : {}),
+      [LAYER_NAMES.deadReckoning]: this.layers.deadReckoning,
+      [LAYER_NAMES.trajectory]: trajectoryGroup,
+    };
+    for (const [name, layer] of Object.entries(overlays)) {
+      if (!this.hidden.has(name)) layer.addTo(map);
+    }
+    L.control.layers(null, overlays, { collapsed: false, position: "topright" }).addTo(map);
+    L.control.scale({ imperial: false, metric: true, maxWidth: 160, position: "bottomleft" }).addTo(map);
+    new CursorPosition().addTo(map);
+    map.on("overlayadd", (event) => this.hidden.delete(event.name));
+    map.on("overlayremove", (event) => this.hidden.add(event.name));
+    if (previous) {
+      // Same place, same metres per pixel: one native zoom step more halves the cell size on screen.
+      map.setView(previous.center, previous.zoom + (native - previous.nativeZoom), { animate: false });
+    } else {
+      map.fitBounds(initialView(bounds, trajectory), { animate: false });
+    }
+    this.map = map;
+    this.scheme = scheme;
+    this._setPlaceholder(null);
+  }
+
+  _setPaths(trajectory, deadReckoning) {
+    this.layers.trajectory.setLatLngs(trajectory || []);
+    this.layers.deadReckoning.setLatLngs(deadReckoning || []);
+    const group = this.layers.trajectoryGroup;
+    if (trajectory && trajectory.length) {
+      this.layers.pose.setLatLng(trajectory[trajectory.length - 1]);
+      if (!group.hasLayer(this.layers.pose)) group.addLayer(this.layers.pose);
+    } else if (group.hasLayer(this.layers.pose)) {
+      group.removeLayer(this.layers.pose);
+    }
+  }
+
+  _clear(text) {
+    if (this.map) this.map.remove();
+    this.map = null;
+    this.scheme = null;
+    this.layers = {};
+    this.version = null;
+    this._setPlaceholder(text);
+  }
+
+  _setPlaceholder(text) {
+    this.placeholder.hidden = !text;
+    this.placeholder.textContent = text || "";
+  }
+}
