@@ -9,6 +9,7 @@ worker dies - and no job is ever left 'running'.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import signal
@@ -31,7 +32,7 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 TERMINAL = {"succeeded", "failed", "cancelled"}
 HEARTBEAT_S, WORKER_LOST_S, CANCEL_GRACE_S = 0.5, 3.0, 2.0
 QUICK = {"particles": 5, "seed": 1, "resolution_m": 0.1, "snapshot_every_scans": 0}
-SLOW = {**QUICK, "particles": 40}  # several seconds: long enough to kill or cancel mid-run
+SLOW = {**QUICK, "particles": 25}  # several seconds: long enough to kill or cancel mid-run
 
 
 def _require(condition: bool, reason: str) -> None:
@@ -97,10 +98,8 @@ class Worker:
 
     def kill_all(self) -> None:
         """kill -9 the worker and its pool processes (a machine that vanishes)."""
-        try:
+        with contextlib.suppress(ProcessLookupError):
             os.killpg(self.process.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
         self.process.wait(timeout=10)
 
 
@@ -196,9 +195,9 @@ def test_jobs_spread_over_both_workers_map_correctly_and_a_duplicate_delivery_is
     from service.celery_runner import TASK_NAME
     from slam_engine.evaluation import absolute_trajectory_error
 
-    job_ids = [cluster.post_job(QUICK) for _ in range(4)]
+    job_ids = [cluster.post_job(QUICK) for _ in range(3)]
     jobs = [cluster.wait(job_id) for job_id in job_ids]
-    assert [j["status"] for j in jobs] == ["succeeded"] * 4, jobs
+    assert [j["status"] for j in jobs] == ["succeeded"] * 3, jobs
     assert {cluster.worker_of(j).name for j in job_ids} == {"w0", "w1"}  # both workers took jobs
 
     # same log, same seed: the same trajectory whichever worker ran it, and close to the truth
@@ -230,14 +229,13 @@ def test_cancel_a_running_and_a_queued_job(cluster) -> None:
     assert cluster.client.get(f"/v1/jobs/{queued}").json()["status"] == "queued"
 
     assert cluster.client.delete(f"/v1/jobs/{queued}").json()["status"] == "cancelled"  # at once
-    t0 = time.monotonic()
-    cluster.client.delete(f"/v1/jobs/{running[0]}")
-    stopped = cluster.wait(running[0], timeout_s=10)
-    assert stopped["status"] == "cancelled" and stopped["error"] == "cancelled by request"
-    assert time.monotonic() - t0 < 3.0
-    assert 0 < stopped["scans_done"] < 200
-
-    assert cluster.wait(running[1])["status"] == "succeeded"
+    for job_id in running:
+        t0 = time.monotonic()
+        cluster.client.delete(f"/v1/jobs/{job_id}")
+        stopped = cluster.wait(job_id, timeout_s=10)
+        assert stopped["status"] == "cancelled" and stopped["error"] == "cancelled by request"
+        assert time.monotonic() - t0 < 3.0
+        assert 0 < stopped["scans_done"] < 200
     # the cancelled job's message still reached a worker, which dropped it without running it
     settings = cluster.client.app.state.settings
     reader = Celery(broker=settings.broker_url, backend=settings.broker_url, set_as_current=False)
@@ -275,3 +273,44 @@ def test_killed_workers_fail_their_jobs_and_the_survivor_goes_on(cluster) -> Non
     assert cluster.wait(after)["status"] == "succeeded"
     assert cluster.worker_of(after) is w0
     assert cluster.store.jobs_with_status("queued", "running") == []
+
+
+def test_heartbeat_stops_a_job_that_ignores_its_cancel(tmp_path) -> None:
+    """The pool process's heartbeat thread: beats while the job runs; once a cancel has been ignored
+    for the grace period it marks the job cancelled and kills its process (here: a stand-in)."""
+    from service.celery_runner import Heartbeat
+
+    store = JobStore(tmp_path / "jobs.sqlite3")
+    store.initialise()
+    job_id = store.create_job("s", "", "log", None, {})["id"]
+    assert store.mark_running(job_id, worker_pid=1)
+    killed: list[float] = []
+    beat = Heartbeat(store, job_id, every_s=0.05, cancel_grace_s=0.3, kill=lambda: killed.append(time.monotonic()))
+    beat.start()
+    time.sleep(0.3)
+    first_beat = store.get_job(job_id)["heartbeat_at"]
+    time.sleep(0.2)
+    assert store.get_job(job_id)["heartbeat_at"] > first_beat and not killed
+    asked = time.monotonic()
+    store.request_cancel(job_id)
+    beat.join(timeout=3)
+    assert not beat.is_alive() and len(killed) == 1
+    assert 0.3 <= killed[0] - asked < 1.0
+    job = store.get_job(job_id)
+    assert (job["status"], job["error"]) == ("cancelled", "cancelled by request (worker stopped)")
+
+
+def test_reaper_fails_only_silent_running_jobs(tmp_path) -> None:
+    store = JobStore(tmp_path / "jobs.sqlite3")
+    store.initialise()
+    silent, alive, queued = (store.create_job("s", "", "log", None, {})["id"] for _ in range(3))
+    for job_id in (silent, alive):
+        assert store.mark_running(job_id, worker_pid=42)
+    time.sleep(0.3)
+    store.heartbeat(alive)
+    assert store.fail_lost(silent_s=0.2) == [silent]
+    job = store.get_job(silent)
+    assert job["status"] == "failed" and job["cancel_requested"]
+    assert job["error"].startswith("worker lost: no heartbeat for 0 s (worker pid 42)")
+    assert [store.get_job(j)["status"] for j in (alive, queued)] == ["running", "queued"]
+    assert store.heartbeat(silent) is True  # a slow-but-alive worker is told to stop
