@@ -143,8 +143,12 @@ class LocalProcessRunner:
                 if slot.job_id is not None:
                     self._store.finish(slot.job_id, "failed", "interrupted: the service stopped while the job "
                                        "was running")
+            for slot in self._slots:
+                slot.inbox.close()
+                slot.inbox.join_thread()
             self._slots = []
         self._outbox.close()
+        self._outbox.join_thread()
 
     # ---- supervision ----------------------------------------------------------------------------
 

@@ -63,6 +63,7 @@ def test_upload_map_and_fetch_every_product(tmp_path, dataset) -> None:
         slam = Trajectory(t_s=np.array([p["t_s"] for p in traj["poses"]]),
                           poses=np.array([[p["x_m"], p["y_m"], p["theta_rad"]] for p in traj["poses"]]))
         error_m = relation_errors(slam, relations).all.trans_mean_m
+        print(f"intel relation error: SLAM {error_m:.3f} m (dead reckoning {DEAD_RECKONING_INTEL_M} m)")
         dr = client.get(f"{base}/dead-reckoning").json()
         dead = Trajectory(t_s=np.array([p["t_s"] for p in dr["poses"]]),
                           poses=np.array([[p["x_m"], p["y_m"], p["theta_rad"]] for p in dr["poses"]]))
