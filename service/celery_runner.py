@@ -177,7 +177,7 @@ class CeleryRunner:
         self._app = make_celery(settings)
         try:
             with self._app.connection_for_write() as conn:
-                conn.ensure_connection(max_retries=3)
+                conn.ensure_connection(max_retries=3, interval_start=0.2, interval_step=0.4, interval_max=1.0)
         except Exception as exc:
             raise RuntimeError(f"the Celery broker at {_safe_url(settings.broker_url)} is unreachable: {exc}") from exc
         self._stopping = threading.Event()

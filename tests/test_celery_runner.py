@@ -314,3 +314,19 @@ def test_reaper_fails_only_silent_running_jobs(tmp_path) -> None:
     assert job["error"].startswith("worker lost: no heartbeat for 0 s (worker pid 42)")
     assert [store.get_job(j)["status"] for j in (alive, queued)] == ["running", "queued"]
     assert store.heartbeat(silent) is True  # a slow-but-alive worker is told to stop
+
+
+def test_unreachable_broker_and_bad_settings_are_clear_errors(tmp_path) -> None:
+    from pydantic import ValidationError
+
+    from service.celery_runner import CeleryRunner
+    from service.store import open_store
+
+    _require(_importable("celery"), "celery not installed: pip install '.[distributed]'")
+    with pytest.raises(RuntimeError, match=r"broker at redis://\*\*\*@127.0.0.1:\d+/0 is unreachable"):
+        CeleryRunner(Settings(runner="celery", broker_url=f"redis://:secret@127.0.0.1:{_free_port()}/0"), None, None)
+    with pytest.raises(ValidationError, match="worker_lost_s .* must be at least twice heartbeat_s"):
+        Settings(heartbeat_s=5, worker_lost_s=6)
+    assert open_store(f"sqlite:///{tmp_path}/jobs.sqlite3", tmp_path / "default").path == tmp_path / "jobs.sqlite3"
+    with pytest.raises(ValueError, match="unsupported LIDARMAP_DATABASE_URL 'mysql://db/x'"):
+        open_store("mysql://db/x", tmp_path / "default")
