@@ -1,4 +1,5 @@
-"""``python -m bench [SUBCOMMAND] ...``: ``accuracy`` (the default) runs the SLAM benchmark."""
+"""``python -m bench [SUBCOMMAND] ...``: ``accuracy`` (the default) runs the SLAM benchmark;
+``throughput`` measures jobs per minute through the Celery runner."""
 
 from __future__ import annotations
 
@@ -7,8 +8,9 @@ import sys
 import typer
 
 from bench.cli import accuracy
+from bench.throughput import throughput
 
-SUBCOMMANDS = {"accuracy": accuracy}
+SUBCOMMANDS = {"accuracy": accuracy, "throughput": throughput}
 
 
 def main(argv: list[str]) -> None:

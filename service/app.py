@@ -17,7 +17,7 @@ from service.routers.viewer import register_viewer
 from service.runner import create_runner
 from service.settings import Settings, get_settings
 from service.storage import DataDir
-from service.store import JobStore
+from service.store import open_store
 from service.uploads import MULTIPART_OVERHEAD_BYTES
 from slam_engine import __version__
 
@@ -36,11 +36,12 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         data = DataDir(settings.data_dir)
         data.create()
-        store = JobStore(data.database)
+        store = open_store(settings.database_url, data.database)
         store.initialise()
-        interrupted = store.fail_interrupted()
-        if interrupted:
-            logger.warning("%d job(s) were running when the service stopped: marked failed", len(interrupted))
+        if settings.runner == "local":  # Celery workers outlive the API: their jobs go on (the reaper watches them)
+            interrupted = store.fail_interrupted()
+            if interrupted:
+                logger.warning("%d job(s) were running when the service stopped: marked failed", len(interrupted))
         runner = create_runner(settings, data, store, job_function)
         for job_id in store.jobs_with_status("queued"):
             runner.submit(job_id)

@@ -245,4 +245,8 @@ def create_runner(settings: Any, data: DataDir, store: JobStore, job_function: s
     if settings.runner == "local":
         return LocalProcessRunner(data, store, settings.workers, settings.cancel_grace_s,
                                   job_function or DEFAULT_JOB_FUNCTION)
+    if settings.runner == "celery":
+        from service.celery_runner import CeleryRunner  # celery is an optional dependency
+
+        return CeleryRunner(settings, data, store)
     raise ValueError(f"unknown runner {settings.runner!r}")

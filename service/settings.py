@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -17,8 +17,17 @@ class Settings(BaseSettings):
     data_dir: Path = Field(Path("lidarmap-data"), description="Where the job store, uploads and "
                            "artifacts live.")
     workers: int = Field(2, ge=1, le=64, description="Local SLAM worker processes.")
-    runner: Literal["local"] = Field("local", description="Job runner: 'local' worker processes "
-                                     "('celery' is planned).")
+    runner: Literal["local", "celery"] = Field("local", description="Job runner: 'local' worker processes, "
+                                               "or 'celery' (jobs go through the broker to `lidarmap worker`s).")
+    broker_url: str = Field("redis://127.0.0.1:6379/0", description="Celery broker (runner 'celery').")
+    queue: str = Field("lidarmap", min_length=1, max_length=200, pattern=r"^[A-Za-z0-9_.:-]+$",
+                       description="Celery queue the API sends jobs to and workers consume by default.")
+    database_url: str = Field("", description="Job store: empty = SQLite in the data folder, or "
+                              "sqlite:////absolute/path.sqlite3 (one host only).")
+    heartbeat_s: float = Field(5.0, ge=0.1, le=300.0, description="How often a Celery worker's job "
+                               "writes its heartbeat to the store.")
+    worker_lost_s: float = Field(60.0, ge=1.0, le=86_400.0, description="A running Celery job whose "
+                                 "heartbeat is older than this is failed as 'worker lost'.")
     max_upload_bytes: int = Field(2 * 1024**3, ge=1024, le=1024**4, description="Largest accepted upload.")
     max_zip_entries: int = Field(100_000, ge=1, le=10_000_000, description="Most files in an uploaded zip.")
     max_extracted_bytes: int = Field(8 * 1024**3, ge=1024, le=4 * 1024**4,
@@ -27,6 +36,13 @@ class Settings(BaseSettings):
     cancel_grace_s: float = Field(5.0, ge=0.1, le=600.0, description="A running job that ignores a cancel "
                                   "this long has its worker process terminated.")
     api_keys: str = Field("", description="Comma-separated API keys; empty = no authentication.")
+
+    @model_validator(mode="after")
+    def _heartbeat_below_loss(self) -> Settings:
+        if self.worker_lost_s < 2 * self.heartbeat_s:
+            raise ValueError(f"worker_lost_s ({self.worker_lost_s}) must be at least twice heartbeat_s "
+                             f"({self.heartbeat_s}), or live jobs would be failed as lost")
+        return self
 
     def api_key_list(self) -> list[str]:
         """The configured keys (blank entries dropped)."""

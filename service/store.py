@@ -270,6 +270,29 @@ class JobStore:
             row = conn.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return "" if row is None else row[0]
 
+    def heartbeat(self, job_id: str) -> bool:
+        """A running job's worker is alive; returns whether the job should stop (cancel requested,
+        or no longer running because it was failed meanwhile)."""
+        with self._tx() as conn:
+            conn.execute("UPDATE jobs SET heartbeat_at = ? WHERE id = ? AND status = 'running'", (time.time(), job_id))
+            row = conn.execute("SELECT status, cancel_requested FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return row is None or row[0] != "running" or bool(row[1])
+
+    def fail_lost(self, silent_s: float) -> list[str]:
+        """Running jobs whose heartbeat is older than ``silent_s`` -> failed 'worker lost' (their
+        cancel flag is set too, so a worker that was only slow stops at its next progress report)."""
+        now = time.time()
+        with self._tx() as conn:
+            rows = conn.execute("SELECT id, heartbeat_at, worker_pid FROM jobs WHERE status = 'running' "
+                                "AND coalesce(heartbeat_at, started_at, 0) < ?", (now - silent_s,)).fetchall()
+            for job_id, heartbeat_at, pid in rows:
+                silence = f"{now - heartbeat_at:.0f} s" if heartbeat_at else "ever"
+                conn.execute("UPDATE jobs SET status = 'failed', cancel_requested = 1, finished_at = ?, error = ? "
+                             "WHERE id = ? AND status = 'running'",
+                             (now, f"worker lost: no heartbeat for {silence} (worker pid {pid}): its process "
+                              "or machine stopped", job_id))
+        return [r[0] for r in rows]
+
     def fail_interrupted(self) -> list[str]:
         """At start-up: jobs left 'running' by a previous process cannot resume -> failed 'interrupted'."""
         with self._tx() as conn:
@@ -315,3 +338,15 @@ def _job(row: sqlite3.Row) -> dict[str, Any]:
     d["products"] = _load(d.pop("products_json")) or {}
     d["cancel_requested"] = bool(d["cancel_requested"])
     return d
+
+
+def open_store(database_url: str, default_path: Path) -> JobStore:
+    """The job store that ``LIDARMAP_DATABASE_URL`` names: empty = SQLite at ``default_path``,
+    ``sqlite:////abs/path.sqlite3`` (or ``sqlite:///relative/path``) = SQLite there."""
+    if not database_url:
+        return JobStore(default_path)
+    scheme, sep, rest = database_url.partition("://")
+    if sep and scheme == "sqlite" and rest.startswith("/") and len(rest) > 1:
+        return JobStore(Path(rest[1:]))
+    raise ValueError(f"unsupported LIDARMAP_DATABASE_URL {database_url!r}: use sqlite:////absolute/path.sqlite3 "
+                     "(or leave it empty for SQLite in the data folder)")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from service.cli import bench_cmd, evaluate_cmd, formats_cmd, run_cmd, serve
+from service.cli import bench_cmd, evaluate_cmd, formats_cmd, run_cmd, serve, worker_cmd
 
 app = typer.Typer(name="lidarmap", help="Maps from drive logs with particle-filter SLAM.",
                   no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False)
@@ -20,6 +20,7 @@ run_cmd.register(app)
 evaluate_cmd.register(app)
 formats_cmd.register(app)
 bench_cmd.register(app)
+worker_cmd.register(app)
 
 
 def main() -> None:
