@@ -146,8 +146,7 @@ def _tile_of(tables, refcount, p, tile_x0, tile_y0, gx, gy):
 def integrate_rays(levels0, levels1, levels2, levels3, tables, refcount, tile_x0, tile_y0, poses, origin_v, ends_v,
                    is_hit, resolution_m, log_odds_hit, log_odds_miss, log_odds_min, log_odds_max):
     """Apply every beam to every particle's map: misses along the beams first, then the hits, so a
-    wall cell crossed by a grazing beam of the same scan still gains its hit. Beam b clears cells
-    only from ``free_from_m[b]`` on (near the LiDAR, neighbouring beams cover the same cells)."""
+    wall cell crossed by a grazing beam of the same scan still gains its hit."""
     mask = TILE - 1
     for p in range(poses.shape[0]):
         c = math.cos(poses[p, 2])
