@@ -217,8 +217,8 @@ def insert_scan(
 ) -> int:
     """Insert one scan into every particle's map.
 
-    ``poses`` (P, 3) vehicle poses in the map frame; ``origin_v`` (2,) the LiDAR's position in the
-    vehicle frame [m]; ``ends_v`` (B, 2) beam end points in the vehicle frame [m]; ``is_hit`` (B,)
+    ``poses`` (P, 3) vehicle poses of particles 0..P-1 in the map frame; ``origin_v`` (2,) the LiDAR's
+    position in the vehicle frame [m]; ``ends_v`` (B, 2) beam end points in the vehicle frame [m]; ``is_hit`` (B,)
     False for free-space-only beams. Returns the number of (particle, tile) pairs written."""
     poses = np.ascontiguousarray(poses, dtype=np.float64)
     origin_v = np.ascontiguousarray(origin_v, dtype=np.float64)

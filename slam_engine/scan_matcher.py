@@ -195,7 +195,7 @@ class ScanMatcher:
     finest level (coarser levels thin out further)."""
 
     def __init__(self, search_xy_m: float, search_theta_rad: float, min_score: float, beam_skip: int = 1,
-                 coarsest_level: int = N_LEVELS - 1, iterations: tuple[int, ...] = (6, 5, 5, 5),
+                 coarsest_level: int = N_LEVELS - 1, iterations: tuple[int, ...] = (15, 3, 3, 3),
                  prior_weight: float = 1.0):
         self.search_xy_m = float(search_xy_m)
         self.search_theta_rad = float(search_theta_rad)
