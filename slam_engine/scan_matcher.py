@@ -27,7 +27,7 @@ def _squash(v):
     return 0.5 + 0.5 * v / (1.0 + abs(v))
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _sample(pool, tables, p, tile_x0, tile_y0, shift, inv_res, x, y):
     """Bilinear map value M at (x, y) [m] and its gradient [1/m] on one level."""
     u = x * inv_res - 0.5
@@ -48,7 +48,7 @@ def _sample(pool, tables, p, tile_x0, tile_y0, shift, inv_res, x, y):
     return m, dmdu * inv_res, dmdv * inv_res
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _evaluate(pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride, x, y, theta, H, g):
     """Sum of squared residuals (1 - M) at pose (x, y, theta), filling the Gauss-Newton system
     H (3, 3) and g (3,) (for the step that lowers the residuals). Returns (E, sum M, n)."""
@@ -195,7 +195,7 @@ class ScanMatcher:
     finest level (coarser levels thin out further)."""
 
     def __init__(self, search_xy_m: float, search_theta_rad: float, min_score: float, beam_skip: int = 1,
-                 coarsest_level: int = N_LEVELS - 1, iterations: tuple[int, ...] = (6, 5, 5, 5),
+                 coarsest_level: int = N_LEVELS - 1, iterations: tuple[int, ...] = (15, 3, 3, 3),
                  prior_weight: float = 1.0):
         self.search_xy_m = float(search_xy_m)
         self.search_theta_rad = float(search_theta_rad)
