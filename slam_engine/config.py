@@ -39,6 +39,9 @@ class MatcherConfig(_Section):
     search_theta_rad: float = Field(0.2, ge=0.0, le=1.5, description="Half width of the heading window [rad].")
     sigma_m: float = Field(0.05, gt=0.0, le=2.0, description="Std. dev. of the endpoint likelihood [m].")
     beam_skip: int = Field(1, ge=1, le=50, description="Use every n-th beam for matching.")
+    independent_beams: float = Field(40.0, gt=0.0, le=10000.0, description="How many independent "
+                                     "measurements a scan counts as when weighting particles (beams are "
+                                     "correlated; fewer = smoother weights).")
     min_score: float = Field(0.3, ge=0.0, le=1.0, description="Below this normalised score the "
                              "odometry proposal is used instead of the match.")
 

@@ -1,0 +1,221 @@
+"""Log-odds occupancy maps for every particle, stored as shared copy-on-write tiles.
+
+Layout: the map frame is cut into square tiles of ``TILE`` x ``TILE`` cells. Tiles live in one
+pool (``levels[0]`` is ``(capacity, TILE, TILE)`` float32 log-odds); each particle has a tile table
+(``tables[p, ty, tx]`` -> pool index, -1 = never observed) over a tile window that grows with the
+drive (``tile_x0``, ``tile_y0`` = global tile index of table column/row 0). A pool tile carries a
+reference count: resampling copies only tables, and a particle writes into a tile only after
+making it private (copy when shared). Unchanged parts of the map are shared by every particle.
+
+Coarser copies of each tile (``levels[k]``, cells ``2**k`` times larger, max of the finer
+log-odds) give the scan matcher a smooth, wide basin of attraction.
+
+Cell ``(gx, gy)`` (global indices) covers ``[gx * res, (gx + 1) * res)`` in the map frame, so the
+map frame's origin is a cell corner; tiles and levels follow the same rule.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from slam_engine.result import OccupancyGrid
+
+TILE_SHIFT = 6
+TILE = 1 << TILE_SHIFT  # cells per tile side at level 0
+N_LEVELS = 4  # level k: cells of 2**k * resolution_m, tiles of TILE >> k cells
+TABLE_MARGIN_TILES = 4
+
+
+@nb.njit(cache=True, nogil=True)
+def cell_value(pool, tables, p, tile_x0, tile_y0, shift, cx, cy):
+    """Log-odds of global cell (cx, cy) of particle p's map at the level whose tiles are
+    ``1 << shift`` cells wide; 0 (unknown) outside the observed tiles."""
+    tx = (cx >> shift) - tile_x0
+    ty = (cy >> shift) - tile_y0
+    if tx < 0 or ty < 0 or ty >= tables.shape[1] or tx >= tables.shape[2]:
+        return 0.0
+    t = tables[p, ty, tx]
+    if t < 0:
+        return 0.0
+    mask = (1 << shift) - 1
+    return pool[t, cy & mask, cx & mask]
+
+
+@nb.njit(cache=True, nogil=True)
+def _privatize(levels0, levels1, levels2, levels3, tables, refcount, free_stack, n_free, touched, n_touched):
+    """Make tiles ``touched[:n_touched] = (p, ty, tx)`` private to their particle: a missing tile
+    becomes a fresh unknown tile, a shared one a copy. Returns the new number of free tiles."""
+    for k in range(n_touched):
+        p = touched[k, 0]
+        ty = touched[k, 1]
+        tx = touched[k, 2]
+        t = tables[p, ty, tx]
+        if t >= 0 and refcount[t] == 1:
+            continue
+        n_free -= 1
+        new = free_stack[n_free]
+        if t < 0:
+            levels0[new, :, :] = 0.0
+            levels1[new, :, :] = 0.0
+            levels2[new, :, :] = 0.0
+            levels3[new, :, :] = 0.0
+        else:
+            levels0[new, :, :] = levels0[t]
+            levels1[new, :, :] = levels1[t]
+            levels2[new, :, :] = levels2[t]
+            levels3[new, :, :] = levels3[t]
+            refcount[t] -= 1
+            if refcount[t] == 0:  # cannot happen with refcount > 1 above, kept for safety
+                free_stack[n_free] = t
+                n_free += 1
+        refcount[new] = 1
+        tables[p, ty, tx] = new
+    return n_free
+
+
+@nb.njit(cache=True, nogil=True)
+def _rebuild_coarse(levels0, levels1, levels2, levels3, tables, touched, n_touched):
+    """Recompute the coarse levels (max of 2x2 finer cells) of the touched tiles."""
+    for k in range(n_touched):
+        t = tables[touched[k, 0], touched[k, 1], touched[k, 2]]
+        if t < 0:
+            continue
+        for src, dst in ((levels0, levels1), (levels1, levels2), (levels2, levels3)):
+            n = dst.shape[1]
+            for i in range(n):
+                for j in range(n):
+                    a = src[t, 2 * i, 2 * j]
+                    b = src[t, 2 * i, 2 * j + 1]
+                    c = src[t, 2 * i + 1, 2 * j]
+                    d = src[t, 2 * i + 1, 2 * j + 1]
+                    m = a if a > b else b
+                    m2 = c if c > d else d
+                    dst[t, i, j] = m if m > m2 else m2
+
+
+class ParticleGrids:
+    """Occupancy maps of ``n_particles`` particles sharing copy-on-write tiles.
+
+    ``resolution_m``: level-0 cell size [m]. Maps grow as the drive reaches new tiles; no bounds
+    are set by hand."""
+
+    def __init__(self, n_particles: int, resolution_m: float, initial_capacity: int = 256):
+        self.n_particles = int(n_particles)
+        self.resolution_m = float(resolution_m)
+        self.levels = [np.zeros((initial_capacity, TILE >> k, TILE >> k), np.float32) for k in range(N_LEVELS)]
+        self.refcount = np.zeros(initial_capacity, np.int32)
+        self.free_stack = np.arange(initial_capacity - 1, -1, -1, dtype=np.int32)
+        self.n_free = initial_capacity
+        self.tables = np.full((self.n_particles, 1, 1), -1, np.int32)
+        self.tile_x0 = 0
+        self.tile_y0 = 0
+        self._touched = np.zeros((1024, 3), np.int32)
+        self._mark = np.zeros((self.n_particles, 1, 1), np.uint8)
+
+    # --- geometry -------------------------------------------------------------------------
+    @property
+    def capacity(self) -> int:
+        return self.levels[0].shape[0]
+
+    @property
+    def tile_size_m(self) -> float:
+        return TILE * self.resolution_m
+
+    def world_to_cell(self, x_m: np.ndarray, y_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Global level-0 cell indices of map-frame points [m]."""
+        return (np.floor(np.asarray(x_m) / self.resolution_m).astype(np.int64),
+                np.floor(np.asarray(y_m) / self.resolution_m).astype(np.int64))
+
+    def cell_to_world(self, gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Map-frame centres [m] of global level-0 cells."""
+        return ((np.asarray(gx) + 0.5) * self.resolution_m, (np.asarray(gy) + 0.5) * self.resolution_m)
+
+    def ensure_extent(self, x_min_m: float, y_min_m: float, x_max_m: float, y_max_m: float) -> None:
+        """Grow the tile tables so that the box [m] lies inside them (with a margin)."""
+        size = self.tile_size_m
+        tx_lo, ty_lo = int(np.floor(x_min_m / size)), int(np.floor(y_min_m / size))
+        tx_hi, ty_hi = int(np.floor(x_max_m / size)), int(np.floor(y_max_m / size))
+        _, h, w = self.tables.shape
+        if tx_lo >= self.tile_x0 and ty_lo >= self.tile_y0 and tx_hi < self.tile_x0 + w and ty_hi < self.tile_y0 + h:
+            return
+        new_x0 = min(self.tile_x0, tx_lo - TABLE_MARGIN_TILES)
+        new_y0 = min(self.tile_y0, ty_lo - TABLE_MARGIN_TILES)
+        new_w = max(self.tile_x0 + w, tx_hi + 1 + TABLE_MARGIN_TILES) - new_x0
+        new_h = max(self.tile_y0 + h, ty_hi + 1 + TABLE_MARGIN_TILES) - new_y0
+        tables = np.full((self.n_particles, new_h, new_w), -1, np.int32)
+        ox, oy = self.tile_x0 - new_x0, self.tile_y0 - new_y0
+        tables[:, oy:oy + h, ox:ox + w] = self.tables
+        self.tables, self.tile_x0, self.tile_y0 = tables, new_x0, new_y0
+        self._mark = np.zeros(tables.shape, np.uint8)
+
+    def ensure_free(self, n_tiles: int) -> None:
+        """Grow the pool so that ``n_tiles`` tiles can be allocated."""
+        if self.n_free >= n_tiles:
+            return
+        old = self.capacity
+        new = max(2 * old, old + n_tiles - self.n_free + 64)
+        self.levels = [np.concatenate([lv, np.zeros((new - old,) + lv.shape[1:], np.float32)]) for lv in self.levels]
+        self.refcount = np.concatenate([self.refcount, np.zeros(new - old, np.int32)])
+        stack = np.empty(new, np.int32)
+        stack[: self.n_free] = self.free_stack[: self.n_free]
+        stack[self.n_free: self.n_free + new - old] = np.arange(new - 1, old - 1, -1, dtype=np.int32)
+        self.free_stack = stack
+        self.n_free += new - old
+
+    # --- copy on write --------------------------------------------------------------------
+    def touched_buffer(self, n: int) -> np.ndarray:
+        """A scratch (n, 3) int32 buffer for touched (particle, ty, tx) entries."""
+        if self._touched.shape[0] < n:
+            self._touched = np.zeros((max(n, 2 * self._touched.shape[0]), 3), np.int32)
+        return self._touched
+
+    def privatize(self, touched: np.ndarray, n_touched: int) -> None:
+        """Make the touched tiles writable by their particle (fresh or copied)."""
+        entries = touched[:n_touched]
+        t = self.tables[entries[:, 0], entries[:, 1], entries[:, 2]]
+        needed = int(np.count_nonzero((t < 0) | (self.refcount[np.maximum(t, 0)] > 1)))
+        self.ensure_free(needed)
+        lv = self.levels
+        self.n_free = int(_privatize(lv[0], lv[1], lv[2], lv[3], self.tables, self.refcount, self.free_stack,
+                                     self.n_free, touched, n_touched))
+
+    def rebuild_coarse(self, touched: np.ndarray, n_touched: int) -> None:
+        lv = self.levels
+        _rebuild_coarse(lv[0], lv[1], lv[2], lv[3], self.tables, touched, n_touched)
+
+    def resample(self, ancestors: np.ndarray) -> None:
+        """Particle i takes the map of particle ``ancestors[i]`` (tables copied, tiles shared)."""
+        self.tables = self.tables[np.asarray(ancestors)]
+        used = self.tables[self.tables >= 0]
+        self.refcount = np.bincount(used, minlength=self.capacity).astype(np.int32)
+        free = np.flatnonzero(self.refcount == 0).astype(np.int32)
+        self.free_stack = np.empty(self.capacity, np.int32)
+        self.free_stack[: len(free)] = free[::-1]
+        self.n_free = len(free)
+
+    # --- reporting ------------------------------------------------------------------------
+    def tiles_in_use(self) -> int:
+        return self.capacity - self.n_free
+
+    def memory_bytes(self) -> int:
+        """Bytes held by the pool, the tables and the scratch buffers."""
+        return int(sum(lv.nbytes for lv in self.levels) + self.refcount.nbytes + self.free_stack.nbytes
+                   + self.tables.nbytes + self._mark.nbytes + self._touched.nbytes)
+
+    def occupancy_grid(self, particle: int) -> OccupancyGrid:
+        """Particle ``particle``'s level-0 map as a dense grid cropped to its observed tiles."""
+        table = self.tables[particle]
+        rows, cols = np.nonzero(table >= 0)
+        if len(rows) == 0:
+            return OccupancyGrid(np.zeros((1, 1), np.float32), self.resolution_m, 0.0, 0.0)
+        r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
+        out = np.zeros(((r1 - r0) * TILE, (c1 - c0) * TILE), np.float32)
+        for r, c in zip(rows, cols, strict=True):
+            out[(r - r0) * TILE:(r - r0 + 1) * TILE, (c - c0) * TILE:(c - c0 + 1) * TILE] = self.levels[0][table[r, c]]
+        return OccupancyGrid(
+            log_odds=out,
+            resolution_m=self.resolution_m,
+            origin_x_m=float((self.tile_x0 + c0) * self.tile_size_m),
+            origin_y_m=float((self.tile_y0 + r0) * self.tile_size_m),
+        )

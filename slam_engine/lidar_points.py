@@ -1,0 +1,88 @@
+"""LiDAR ranges -> 2-D beam end points in the vehicle frame.
+
+Each beam becomes a point through the full ``T_vehicle_from_lidar`` (4x4). A LiDAR whose scan
+plane is tilted (roll or pitch in its extrinsic) is transformed as an Open3D point cloud; its
+points below ``ground_z_m`` (ground hits) or above ``ceiling_z_m`` are dropped and the rest are
+projected onto the plane. A level LiDAR (rotation about z only) takes a NumPy fast path and no
+height filter (all its points lie at the mounting height).
+
+Beams without a return (``inf``, outside ``[range_min_m, range_max_m]``) and returns beyond the
+grid's ``max_range_m`` stay as free-space-only rays: they clear the cells they cross, up to
+``min(range_max_m, max_range_m)``, and never add a hit or take part in matching.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam_engine.drive_log import LidarModel
+from slam_engine.poses import is_planar_4x4
+
+
+@dataclass(frozen=True)
+class ProjectedScan:
+    """One scan in the vehicle frame: ``ends_v`` (K, 2) ray end points [m], ``is_hit`` (K,) False
+    for free-space-only rays, ``hits_v`` (H, 2) the returned end points (for matching)."""
+
+    ends_v: np.ndarray
+    is_hit: np.ndarray
+
+    @property
+    def hits_v(self) -> np.ndarray:
+        return self.ends_v[self.is_hit]
+
+
+class ScanProjector:
+    """Projects the scans of one LiDAR. ``origin_v`` (2,) is the LiDAR's position in the vehicle
+    frame [m], where every ray starts."""
+
+    def __init__(self, lidar: LidarModel, max_range_m: float, ground_z_m: float, ceiling_z_m: float):
+        self.lidar = lidar
+        self.T = np.asarray(lidar.T_vehicle_from_lidar, dtype=np.float64)
+        self.planar = is_planar_4x4(self.T)
+        angles = lidar.beam_angles_rad
+        self.dirs_lidar = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        self.dirs_v = self.dirs_lidar @ self.T[:2, :2].T
+        self.origin_v = self.T[:2, 3].copy()
+        self.max_range_m = float(max_range_m)
+        self.clear_range_m = float(min(lidar.range_max_m, max_range_m))
+        self.ground_z_m = float(ground_z_m)
+        self.ceiling_z_m = float(ceiling_z_m)
+
+    def project(self, ranges_m: np.ndarray) -> ProjectedScan:
+        """(num_beams,) ranges [m] -> :class:`ProjectedScan`."""
+        r = np.asarray(ranges_m, dtype=np.float64)
+        if r.shape != (self.lidar.num_beams,):
+            raise ValueError(f"scan has {r.shape} ranges, the LiDAR model {self.lidar.name!r} "
+                             f"has {self.lidar.num_beams} beams")
+        returned = np.isfinite(r) & (r >= self.lidar.range_min_m) & (r <= self.lidar.range_max_m)
+        is_hit = returned & (r <= self.max_range_m)
+        length = np.where(is_hit, r, self.clear_range_m)
+        if self.planar:
+            ends = self.origin_v + self.dirs_v * length[:, None]
+            return ProjectedScan(ends_v=ends, is_hit=is_hit)
+        return self._project_tilted(length, is_hit)
+
+    def _project_tilted(self, length: np.ndarray, is_hit: np.ndarray) -> ProjectedScan:
+        import open3d as o3d
+
+        pts_lidar = np.zeros((length.shape[0], 3))
+        pts_lidar[:, :2] = self.dirs_lidar * length[:, None]
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts_lidar))
+        cloud.transform(self.T)
+        pts_v = np.asarray(cloud.points)
+        z = pts_v[:, 2]
+        inside = (z >= self.ground_z_m) & (z <= self.ceiling_z_m)
+        # hits outside the height band (ground, overhangs) are dropped; free rays are kept, shortened
+        # to where they leave the band
+        keep = np.where(is_hit, inside, True)
+        ends = pts_v[:, :2].copy()
+        free_tilted = ~is_hit & ~inside
+        if free_tilted.any():
+            dz = z[free_tilted] - self.T[2, 3]
+            limit = np.where(dz < 0, self.ground_z_m, self.ceiling_z_m) - self.T[2, 3]
+            frac = np.clip(np.divide(limit, dz, out=np.ones_like(dz), where=dz != 0), 0.0, 1.0)
+            ends[free_tilted] = self.origin_v + (ends[free_tilted] - self.origin_v) * frac[:, None]
+        return ProjectedScan(ends_v=ends[keep], is_hit=is_hit[keep])

@@ -1,0 +1,242 @@
+"""Rao-Blackwellized particle filter SLAM, one message at a time.
+
+Odometry messages move the dead-reckoned odometry pose continuously. A scan is *processed* once
+the vehicle has moved ``linear_update_m`` / turned ``angular_update_rad`` (or ``temporal_update_s``
+passed) since the last processed scan: every particle samples the odometry motion, fits the scan
+onto its own map (scan-matched proposal), is weighted by how well the scan fits there, the set is
+resampled when the effective sample size drops, and the scan is inserted into every map. Other
+scans are *skipped*: their pose is the best particle's last pose moved by odometry, refined by a
+match against the best particle's map (no map update).
+
+Per-particle trajectories are kept as parent pointers per processed scan (no copied histories);
+:meth:`SlamFilter.trajectory` walks the best particle's ancestry back to the first scan.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam_engine.config import SlamConfig
+from slam_engine.drive_log import DriveLog, LidarModel
+from slam_engine.grid import ParticleGrids
+from slam_engine.lidar_points import ScanProjector
+from slam_engine.messages import EncoderMessage, GyroMessage, Message, OdometryMessage, ScanMessage
+from slam_engine.motion_models import odometry_increments, sample_odometry_motion
+from slam_engine.odometry import OdometryIntegrator, make_integrator
+from slam_engine.poses import compose, relative
+from slam_engine.raycast import insert_scan
+from slam_engine.resampling import low_variance_resample, n_eff, normalize_log_weights
+from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, Trajectory
+from slam_engine.scan_matcher import ScanMatcher
+
+
+@dataclass
+class _ScanRecord:
+    """Where a scan's pose comes from: processed step ``step`` composed with ``offset``."""
+
+    t_s: float
+    step: int
+    offset: np.ndarray
+
+
+class SlamFilter:
+    """Streaming RBPF SLAM: feed time-ordered messages to :meth:`step`, call :meth:`finish` at the
+    end, then read :meth:`trajectory`, :meth:`best_grid` and :meth:`scan_stats`."""
+
+    def __init__(self, lidar: LidarModel, integrator: OdometryIntegrator, config: SlamConfig,
+                 rng: np.random.Generator):
+        self.config = config
+        self.rng = rng
+        self.integrator = integrator
+        n = config.particles
+        g = config.grid
+        self.projector = ScanProjector(lidar, g.max_range_m, config.lidar_filter.ground_z_m,
+                                       config.lidar_filter.ceiling_z_m)
+        self.grids = ParticleGrids(n, g.resolution_m)
+        m = config.matcher
+        self.matcher = ScanMatcher(m.search_xy_m, m.search_theta_rad, m.min_score, m.beam_skip)
+        mo = config.motion
+        self.alphas = (mo.rot_from_rot, mo.rot_from_trans, mo.trans_from_trans, mo.trans_from_rot)
+        # weight of one scan: -(mean squared residual) * independent beams * (res / sigma)^2 / 2
+        self.likelihood_gain = m.independent_beams * (g.resolution_m / m.sigma_m) ** 2 / 2.0
+        self.particles = np.zeros((n, 3))
+        self.log_weights = np.zeros(n)
+        self.path_log_likelihood = np.zeros(n)
+        self._history: list[np.ndarray] = []
+        self._parents: list[np.ndarray] = []
+        self._next_parents = np.arange(n)
+        self._records: list[_ScanRecord] = []
+        self._last_odom: np.ndarray | None = None
+        self._last_t_s: float | None = None
+        self._pending: ScanMessage | None = None
+        self._stats: list[tuple[float, float, bool, float, bool, float]] = []
+        self.snapshots: list[MapSnapshot] = []
+
+    @classmethod
+    def from_log(cls, log: DriveLog, config: SlamConfig, rng: np.random.Generator | None = None) -> SlamFilter:
+        """A filter for ``log``'s LiDAR and odometry source (ConfigError when it has none)."""
+        if log.lidar is None:
+            raise ValueError("the log has no LiDAR model")
+        rng = np.random.default_rng(config.seed) if rng is None else rng
+        return cls(log.lidar, make_integrator(log), config, rng)
+
+    # --- streaming ------------------------------------------------------------------------
+    @property
+    def scans_seen(self) -> int:
+        return len(self._records) + (self._pending is not None)
+
+    @property
+    def steps_processed(self) -> int:
+        return len(self._history)
+
+    def step(self, message: Message) -> None:
+        """Consume one message (messages must come in time order)."""
+        if isinstance(message, (EncoderMessage, GyroMessage, OdometryMessage)):
+            if self.integrator.update(message) and self._pending is not None \
+                    and self.integrator.t_s >= self._pending.t_s:
+                self._handle_scan(self._pending)
+                self._pending = None
+        elif isinstance(message, ScanMessage):
+            if self._pending is not None:
+                self._handle_scan(self._pending)
+                self._pending = None
+            if self.integrator.t_s is not None and self.integrator.t_s >= message.t_s:
+                self._handle_scan(message)
+            else:
+                self._pending = message
+
+    def finish(self) -> None:
+        """Handle a scan still waiting for odometry (with the last odometry pose)."""
+        if self._pending is not None:
+            self._handle_scan(self._pending)
+            self._pending = None
+
+    def _odom_at(self, t_s: float) -> np.ndarray:
+        if self.integrator.t_s is None:
+            return np.zeros(3)
+        return self.integrator.pose_at(t_s)
+
+    def _handle_scan(self, scan: ScanMessage) -> None:
+        start = time.perf_counter()
+        odom = self._odom_at(scan.t_s)
+        projected = self.projector.project(scan.ranges_m)
+        if self._last_odom is None:
+            self._first_scan(scan, odom, projected)
+        elif self._due(scan.t_s, odom):
+            self._process(scan, odom, projected)
+        else:
+            self._skip(scan, odom, projected)
+            return
+        self._stats[-1] = self._stats[-1][:5] + (time.perf_counter() - start,)
+        every = self.config.snapshot_every_scans
+        if every and self.steps_processed % every == 0:
+            self.snapshots.append(MapSnapshot(scan_index=len(self._records) - 1, t_s=scan.t_s,
+                                              grid=self.best_grid(), trajectory=self.trajectory()))
+
+    def _due(self, t_s: float, odom: np.ndarray) -> bool:
+        s = self.config.scheduling
+        _, trans, _ = odometry_increments(self._last_odom, odom)
+        turn = abs(relative(self._last_odom, odom)[2])
+        waited = s.temporal_update_s > 0 and t_s - self._last_t_s >= s.temporal_update_s
+        return bool(abs(trans) >= s.linear_update_m or turn >= s.angular_update_rad or waited)
+
+    def _first_scan(self, scan: ScanMessage, odom: np.ndarray, projected) -> None:
+        g = self.config.grid
+        insert_scan(self.grids, self.particles[:1], self.projector.origin_v, projected.ends_v, projected.is_hit,
+                    g.log_odds_hit, g.log_odds_miss, g.log_odds_min, g.log_odds_max)
+        self.grids.resample(np.zeros(self.config.particles, np.int64))  # every particle shares that map
+        self._record_step(scan.t_s, odom)
+        self._stats.append((scan.t_s, float(self.config.particles), False, 1.0, False, 0.0))
+
+    def _record_step(self, t_s: float, odom: np.ndarray) -> None:
+        self._history.append(self.particles.copy())
+        self._parents.append(self._next_parents)
+        self._next_parents = np.arange(self.config.particles)
+        self._records.append(_ScanRecord(t_s, len(self._history) - 1, np.zeros(3)))
+        self._last_odom = odom
+        self._last_t_s = t_s
+
+    def _process(self, scan: ScanMessage, odom: np.ndarray, projected) -> None:
+        n = self.config.particles
+        predicted = sample_odometry_motion(self.particles, self._last_odom, odom, self.alphas, self.rng)
+        hits = projected.hits_v
+        if len(hits) >= 3:
+            poses, sq_residual, score, accepted = self.matcher.match(self.grids, np.arange(n), predicted, hits)
+            log_lik = -self.likelihood_gain * sq_residual / len(hits)
+        else:
+            poses, score, accepted, log_lik = predicted, np.zeros(n), np.zeros(n, bool), np.zeros(n)
+        self.particles = poses
+        self.log_weights = self.log_weights + log_lik
+        self.path_log_likelihood = self.path_log_likelihood + log_lik
+        best = self.best_particle()
+        weights = normalize_log_weights(self.log_weights)
+        neff = n_eff(weights)
+        resampled = neff < self.config.resample_threshold * n
+        # the history holds the poses before resampling; the next step's parents say who survived
+        self._record_step(scan.t_s, odom)
+        if resampled:
+            ancestors = low_variance_resample(weights, self.rng)
+            self.particles = self.particles[ancestors]
+            self.path_log_likelihood = self.path_log_likelihood[ancestors]
+            self.log_weights = np.zeros(n)
+            self.grids.resample(ancestors)
+            self._next_parents = ancestors
+        g = self.config.grid
+        insert_scan(self.grids, self.particles, self.projector.origin_v, projected.ends_v, projected.is_hit,
+                    g.log_odds_hit, g.log_odds_miss, g.log_odds_min, g.log_odds_max)
+        self._stats.append((scan.t_s, neff, bool(resampled), float(score[best]), bool(accepted[best]), 0.0))
+
+    def _skip(self, scan: ScanMessage, odom: np.ndarray, projected) -> None:
+        best = self.best_particle()
+        current = self.particles[best]  # equals its recorded pose at the last processed step
+        predicted = compose(current, relative(self._last_odom, odom))
+        pose = predicted
+        hits = projected.hits_v
+        if len(hits) >= 3:
+            fitted, _, _, accepted = self.matcher.match(self.grids, np.array([best]), predicted[None, :], hits)
+            if accepted[0]:
+                pose = fitted[0]
+        self._records.append(_ScanRecord(scan.t_s, len(self._history) - 1, relative(current, pose)))
+
+    def _parent_of_current(self, i: int) -> int:
+        """Index in the last recorded step of current particle ``i`` (its ancestor when resampled)."""
+        return int(self._next_parents[i])
+
+    # --- results --------------------------------------------------------------------------
+    def best_particle(self) -> int:
+        """Index of the particle with the highest weight (path likelihood breaks ties)."""
+        top = self.log_weights.max()
+        candidates = np.flatnonzero(self.log_weights >= top - 1e-9)
+        return int(candidates[np.argmax(self.path_log_likelihood[candidates])])
+
+    def _best_path(self) -> np.ndarray:
+        """(steps, 3) poses of the best particle's ancestry at every processed scan."""
+        k_total = len(self._history)
+        path = np.empty((k_total, 3))
+        idx = self._parent_of_current(self.best_particle())
+        for k in range(k_total - 1, -1, -1):
+            path[k] = self._history[k][idx]
+            idx = int(self._parents[k][idx])
+        return path
+
+    def trajectory(self) -> Trajectory:
+        """Best particle's trajectory, one pose per scan handled so far."""
+        if not self._records:
+            return Trajectory(t_s=np.zeros(0), poses=np.zeros((0, 3)))
+        path = self._best_path()
+        steps = np.array([r.step for r in self._records])
+        offsets = np.array([r.offset for r in self._records])
+        return Trajectory(t_s=np.array([r.t_s for r in self._records]), poses=compose(path[steps], offsets))
+
+    def best_grid(self) -> OccupancyGrid:
+        return self.grids.occupancy_grid(self.best_particle())
+
+    def scan_stats(self) -> ScanStats:
+        rows = self._stats
+        col = list(zip(*rows, strict=True)) if rows else [()] * 6
+        return ScanStats(t_s=np.array(col[0], float), n_eff=np.array(col[1], float),
+                         resampled=np.array(col[2], bool), match_score=np.array(col[3], float),
+                         matched=np.array(col[4], bool), step_time_s=np.array(col[5], float))

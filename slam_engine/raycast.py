@@ -1,0 +1,200 @@
+"""Insert one scan into every particle's occupancy map (numba).
+
+Each beam runs from the LiDAR's cell to its end cell (Bresenham): the cells it crosses get
+``log_odds_miss``, its end cell ``log_odds_hit`` when the beam returned. Beams without a return
+(or longer than the grid's ``max_range_m``) clear free space along their whole length and add no
+hit. Values are clamped to ``[log_odds_min, log_odds_max]``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from slam_engine.grid import TILE, TILE_SHIFT, ParticleGrids
+
+
+@nb.njit(cache=True, nogil=True)
+def _mark(mark, out, count, p, tx, ty):
+    if ty < 0 or tx < 0 or ty >= mark.shape[1] or tx >= mark.shape[2]:
+        return count
+    if mark[p, ty, tx] == 0:
+        mark[p, ty, tx] = 1
+        if count < out.shape[0]:
+            out[count, 0] = p
+            out[count, 1] = ty
+            out[count, 2] = tx
+        count += 1
+    return count
+
+
+@nb.njit(cache=True, nogil=True)
+def collect_touched_tiles(poses, origin_v, ends_v, resolution_m, tile_x0, tile_y0, mark, out):
+    """Mark (in ``mark``, list in ``out``) every tile a beam of each particle crosses
+    (grid traversal of the segment between cell centres, in tile units). Returns the number of
+    distinct (particle, tile) pairs; when it exceeds ``len(out)`` the caller grows ``out``, clears
+    ``mark`` and calls again."""
+    count = 0
+    tile = float(TILE)
+    for p in range(poses.shape[0]):
+        c = math.cos(poses[p, 2])
+        s = math.sin(poses[p, 2])
+        ox = poses[p, 0] + c * origin_v[0] - s * origin_v[1]
+        oy = poses[p, 1] + s * origin_v[0] + c * origin_v[1]
+        x0 = (math.floor(ox / resolution_m) + 0.5) / tile
+        y0 = (math.floor(oy / resolution_m) + 0.5) / tile
+        for b in range(ends_v.shape[0]):
+            ex = poses[p, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
+            ey = poses[p, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
+            x1 = (math.floor(ex / resolution_m) + 0.5) / tile
+            y1 = (math.floor(ey / resolution_m) + 0.5) / tile
+            tx = int(math.floor(x0))
+            ty = int(math.floor(y0))
+            tx_end = int(math.floor(x1))
+            ty_end = int(math.floor(y1))
+            count = _mark(mark, out, count, p, tx - tile_x0, ty - tile_y0)
+            dx = x1 - x0
+            dy = y1 - y0
+            step_x = 1 if dx > 0 else -1
+            step_y = 1 if dy > 0 else -1
+            t_delta_x = abs(1.0 / dx) if dx != 0 else 1e30
+            t_delta_y = abs(1.0 / dy) if dy != 0 else 1e30
+            t_max_x = ((tx + 1 - x0) if dx > 0 else (x0 - tx)) * t_delta_x if dx != 0 else 1e30
+            t_max_y = ((ty + 1 - y0) if dy > 0 else (y0 - ty)) * t_delta_y if dy != 0 else 1e30
+            guard = abs(tx_end - tx) + abs(ty_end - ty) + 2
+            while (tx != tx_end or ty != ty_end) and guard > 0:
+                guard -= 1
+                if abs(t_max_x - t_max_y) < 1e-9:  # through a corner: mark both neighbours
+                    count = _mark(mark, out, count, p, tx + step_x - tile_x0, ty - tile_y0)
+                    count = _mark(mark, out, count, p, tx - tile_x0, ty + step_y - tile_y0)
+                    tx += step_x
+                    ty += step_y
+                    t_max_x += t_delta_x
+                    t_max_y += t_delta_y
+                elif t_max_x < t_max_y:
+                    tx += step_x
+                    t_max_x += t_delta_x
+                else:
+                    ty += step_y
+                    t_max_y += t_delta_y
+                count = _mark(mark, out, count, p, tx - tile_x0, ty - tile_y0)
+            count = _mark(mark, out, count, p, tx_end - tile_x0, ty_end - tile_y0)
+    return count
+
+
+@nb.njit(cache=True, nogil=True)
+def clear_marks(mark, out, n):
+    for k in range(n):
+        mark[out[k, 0], out[k, 1], out[k, 2]] = 0
+
+
+@nb.njit(cache=True, nogil=True)
+def _add(levels0, tables, refcount, p, tile_x0, tile_y0, gx, gy, delta, lo, hi):
+    tx = (gx >> TILE_SHIFT) - tile_x0
+    ty = (gy >> TILE_SHIFT) - tile_y0
+    if tx < 0 or ty < 0 or ty >= tables.shape[1] or tx >= tables.shape[2]:
+        return
+    t = tables[p, ty, tx]
+    if t < 0 or refcount[t] != 1:
+        return
+    iy = gy & (TILE - 1)
+    ix = gx & (TILE - 1)
+    v = levels0[t, iy, ix] + delta
+    if v < lo:
+        v = lo
+    elif v > hi:
+        v = hi
+    levels0[t, iy, ix] = v
+
+
+@nb.njit(cache=True, nogil=True)
+def integrate_rays(levels0, tables, refcount, tile_x0, tile_y0, poses, origin_v, ends_v, is_hit, resolution_m,
+                   log_odds_hit, log_odds_miss, log_odds_min, log_odds_max):
+    """Apply every beam to every particle's level-0 map: misses along the beams first, then the
+    hits, so a wall cell crossed by a grazing beam of the same scan still gains its hit."""
+    for p in range(poses.shape[0]):
+        c = math.cos(poses[p, 2])
+        s = math.sin(poses[p, 2])
+        ox = poses[p, 0] + c * origin_v[0] - s * origin_v[1]
+        oy = poses[p, 1] + s * origin_v[0] + c * origin_v[1]
+        gx0 = int(math.floor(ox / resolution_m))
+        gy0 = int(math.floor(oy / resolution_m))
+        for b in range(ends_v.shape[0]):
+            ex = poses[p, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
+            ey = poses[p, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
+            gx1 = int(math.floor(ex / resolution_m))
+            gy1 = int(math.floor(ey / resolution_m))
+            # Bresenham from (gx0, gy0) to (gx1, gy1); the end cell is free too for no-return beams
+            dx = abs(gx1 - gx0)
+            dy = -abs(gy1 - gy0)
+            sx = 1 if gx0 < gx1 else -1
+            sy = 1 if gy0 < gy1 else -1
+            err = dx + dy
+            x = gx0
+            y = gy0
+            while True:
+                last = x == gx1 and y == gy1
+                if last and is_hit[b]:
+                    break
+                _add(levels0, tables, refcount, p, tile_x0, tile_y0, x, y, log_odds_miss, log_odds_min, log_odds_max)
+                if last:
+                    break
+                e2 = 2 * err
+                if e2 >= dy:
+                    err += dy
+                    x += sx
+                if e2 <= dx:
+                    err += dx
+                    y += sy
+        for b in range(ends_v.shape[0]):
+            if not is_hit[b]:
+                continue
+            ex = poses[p, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
+            ey = poses[p, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
+            _add(levels0, tables, refcount, p, tile_x0, tile_y0, int(math.floor(ex / resolution_m)),
+                 int(math.floor(ey / resolution_m)), log_odds_hit, log_odds_min, log_odds_max)
+
+
+def insert_scan(
+    grids: ParticleGrids,
+    poses: np.ndarray,
+    origin_v: np.ndarray,
+    ends_v: np.ndarray,
+    is_hit: np.ndarray,
+    log_odds_hit: float,
+    log_odds_miss: float,
+    log_odds_min: float,
+    log_odds_max: float,
+) -> int:
+    """Insert one scan into every particle's map.
+
+    ``poses`` (P, 3) vehicle poses in the map frame; ``origin_v`` (2,) the LiDAR's position in the
+    vehicle frame [m]; ``ends_v`` (B, 2) beam end points in the vehicle frame [m]; ``is_hit`` (B,)
+    False for free-space-only beams. Returns the number of (particle, tile) pairs written."""
+    poses = np.ascontiguousarray(poses, dtype=np.float64)
+    origin_v = np.ascontiguousarray(origin_v, dtype=np.float64)
+    ends_v = np.ascontiguousarray(ends_v, dtype=np.float64)
+    is_hit = np.ascontiguousarray(is_hit, dtype=np.bool_)
+    if ends_v.shape[0] == 0:
+        return 0
+    # grow the tile tables to cover every beam of every particle
+    reach = float(np.hypot(*np.vstack([ends_v, origin_v[None, :]]).T).max())
+    grids.ensure_extent(poses[:, 0].min() - reach, poses[:, 1].min() - reach,
+                        poses[:, 0].max() + reach, poses[:, 1].max() + reach)
+    buffer = grids.touched_buffer(poses.shape[0] * 64)
+    n = collect_touched_tiles(poses, origin_v, ends_v, grids.resolution_m, grids.tile_x0, grids.tile_y0,
+                              grids._mark, buffer)
+    if n > buffer.shape[0]:
+        clear_marks(grids._mark, buffer, buffer.shape[0])
+        grids._mark[:] = 0
+        buffer = grids.touched_buffer(n)
+        n = collect_touched_tiles(poses, origin_v, ends_v, grids.resolution_m, grids.tile_x0, grids.tile_y0,
+                                  grids._mark, buffer)
+    grids.privatize(buffer, n)
+    integrate_rays(grids.levels[0], grids.tables, grids.refcount, grids.tile_x0, grids.tile_y0, poses, origin_v,
+                   ends_v, is_hit, grids.resolution_m, log_odds_hit, log_odds_miss, log_odds_min, log_odds_max)
+    grids.rebuild_coarse(buffer, n)
+    clear_marks(grids._mark, buffer, n)
+    return n
