@@ -37,8 +37,11 @@ class MatcherConfig(_Section):
 
     search_xy_m: float = Field(0.3, ge=0.0, le=5.0, description="Half width of the xy search window [m].")
     search_theta_rad: float = Field(0.2, ge=0.0, le=1.5, description="Half width of the heading window [rad].")
-    sigma_m: float = Field(0.05, gt=0.0, le=2.0, description="Std. dev. of the endpoint likelihood [m].")
+    sigma_m: float = Field(0.05, gt=0.0, le=2.0, description="Std. dev. of the endpoint likelihood [m]; an end "
+                           "point's distance to the wall is taken as (1 - M) cells, M = map value in [0, 1].")
     beam_skip: int = Field(1, ge=1, le=50, description="Use every n-th beam for matching.")
+    max_points: int = Field(200, ge=10, le=100000, description="Match with at most this many end points "
+                            "(dense scans are thinned evenly, after beam_skip).")
     independent_beams: float = Field(40.0, gt=0.0, le=10000.0, description="How many independent "
                                      "measurements a scan counts as when weighting particles (beams are "
                                      "correlated; fewer = smoother weights).")

@@ -129,7 +129,7 @@ def _fit_level(pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stri
                 g[a] = g2[a]
                 for c in range(3):
                     H[a, c] = H2[a, c]
-            small = abs(step[0]) + abs(step[1]) < 1e-4 / inv_res and abs(step[2]) < 1e-5
+            small = abs(step[0]) + abs(step[1]) < 2e-3 / inv_res and abs(step[2]) < 5e-5
             e = e2
             lam *= 0.3
             if small:

@@ -61,7 +61,7 @@ def test_clamping_and_hits_win_over_same_scan_misses() -> None:
 def test_projector_keeps_no_return_beams_as_free_rays() -> None:
     lidar = LidarModel(num_beams=3, angle_min_rad=-np.pi / 2, angle_increment_rad=np.pi / 2, range_min_m=0.1,
                        range_max_m=20.0)
-    projector = ScanProjector(lidar, max_range_m=10.0, ground_z_m=0.2, ceiling_z_m=3.0)
+    projector = ScanProjector(lidar, max_range_m=10.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05)
     scan = projector.project(np.array([2.0, np.inf, 15.0]))
     np.testing.assert_allclose(scan.ends_v, [[0.0, -2.0], [10.0, 0.0], [0.0, 10.0]], atol=1e-12)
     np.testing.assert_array_equal(scan.is_hit, [True, False, False])
@@ -77,6 +77,6 @@ def test_projector_drops_ground_hits_of_a_tilted_lidar() -> None:
     T[2, 3] = 1.0
     lidar = LidarModel(num_beams=2, angle_min_rad=0.0, angle_increment_rad=0.0, range_min_m=0.1, range_max_m=30.0,
                        T_vehicle_from_lidar=T)
-    scan = ScanProjector(lidar, max_range_m=30.0, ground_z_m=0.2, ceiling_z_m=3.0).project(np.array([3.0, 8.0]))
+    scan = ScanProjector(lidar, max_range_m=30.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05).project(np.array([3.0, 8.0]))
     np.testing.assert_allclose(scan.ends_v, [[3.0 * np.cos(pitch), 0.0]], atol=1e-9)
     np.testing.assert_array_equal(scan.is_hit, [True])
