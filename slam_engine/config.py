@@ -62,7 +62,9 @@ class LidarFilterConfig(_Section):
 
     ground_z_m: float = Field(0.2, ge=-5.0, le=5.0, description="Points below this height in the vehicle "
                               "frame are ground hits and dropped [m].")
-    ceiling_z_m: float = Field(3.0, ge=-5.0, le=50.0, description="Points above this height are dropped [m].")
+    ceiling_z_m: float = Field(20.0, ge=-5.0, le=50.0, description="Points above this height are dropped [m] "
+                               "(tree tops, overhangs). A tilted LiDAR sees building walls high up: they "
+                               "are kept, projected onto the plane.")
 
 
 class SlamConfig(_Section):
