@@ -92,3 +92,15 @@ def test_free_space_thinning_keeps_beams_half_a_cell_apart() -> None:
     insert_scan(grids, np.zeros((1, 3)), np.array([0.05, 0.05]), np.array([[0.55, 0.05], [0.2, 0.05]]),
                 np.array([True, True]), 0.9, -0.4, -5.0, 5.0, free_from_m=np.array([0.3, 0.3]))
     assert _cells(grids.occupancy_grid(0)) == {(3, 0): -0.4, (4, 0): -0.4, (5, 0): 0.9, (2, 0): 0.9}
+
+
+def test_no_return_beams_can_be_left_out() -> None:
+    lidar = LidarModel(num_beams=3, angle_min_rad=-np.pi / 2, angle_increment_rad=np.pi / 2, range_min_m=0.1,
+                       range_max_m=20.0)
+    projector = ScanProjector(lidar, max_range_m=10.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05,
+                              no_return_clear_m=0.0)
+    scan = projector.project(np.array([2.0, np.inf, 15.0]))
+    # the no-return beam is gone; the over-range return still clears to max_range_m
+    np.testing.assert_allclose(scan.ends_v, [[0.0, -2.0], [0.0, 10.0]], atol=1e-12)
+    np.testing.assert_array_equal(scan.is_hit, [True, False])
+    assert len(scan.free_from_m) == 2
