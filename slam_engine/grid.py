@@ -27,7 +27,7 @@ N_LEVELS = 4  # level k: cells of 2**k * resolution_m, tiles of TILE >> k cells
 TABLE_MARGIN_TILES = 4
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def cell_value(pool, tables, p, tile_x0, tile_y0, shift, cx, cy):
     """Log-odds of global cell (cx, cy) of particle p's map at the level whose tiles are
     ``1 << shift`` cells wide; 0 (unknown) outside the observed tiles."""

@@ -174,7 +174,8 @@ def odometry_track(log: DriveLog) -> Trajectory:
         if integrator.update(message):
             t_list.append(integrator.t_s)
             poses.append(integrator.pose)
-    return Trajectory(t_s=np.asarray(t_list, dtype=np.float64), poses=np.asarray(poses, dtype=np.float64).reshape(-1, 3))
+    return Trajectory(t_s=np.asarray(t_list, dtype=np.float64),
+                      poses=np.asarray(poses, dtype=np.float64).reshape(-1, 3))
 
 
 def dead_reckoning(log: DriveLog) -> Trajectory:

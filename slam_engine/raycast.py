@@ -16,7 +16,7 @@ import numpy as np
 from slam_engine.grid import TILE, TILE_SHIFT, ParticleGrids
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _mark(mark, out, count, p, tx, ty):
     if ty < 0 or tx < 0 or ty >= mark.shape[1] or tx >= mark.shape[2]:
         return count
@@ -90,40 +90,82 @@ def clear_marks(mark, out, n):
         mark[out[k, 0], out[k, 1], out[k, 2]] = 0
 
 
-@nb.njit(cache=True, nogil=True)
-def _add(levels0, tables, refcount, p, tile_x0, tile_y0, gx, gy, delta, lo, hi):
-    tx = (gx >> TILE_SHIFT) - tile_x0
-    ty = (gy >> TILE_SHIFT) - tile_y0
-    if tx < 0 or ty < 0 or ty >= tables.shape[1] or tx >= tables.shape[2]:
-        return
-    t = tables[p, ty, tx]
-    if t < 0 or refcount[t] != 1:
-        return
-    iy = gy & (TILE - 1)
-    ix = gx & (TILE - 1)
-    v = levels0[t, iy, ix] + delta
+@nb.njit(cache=True, nogil=True, inline="always")
+def _max4(a, b, c, d):
+    m = a if a > b else b
+    m2 = c if c > d else d
+    return m if m > m2 else m2
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _add(levels0, levels1, levels2, levels3, t, iy, ix, delta, lo, hi):
+    """Add ``delta`` to cell (iy, ix) of pool tile t (clamped) and keep the coarse maxima current."""
+    old = levels0[t, iy, ix]
+    v = old + delta
     if v < lo:
         v = lo
     elif v > hi:
         v = hi
+    if v == old:
+        return
     levels0[t, iy, ix] = v
+    i = iy >> 1
+    j = ix >> 1
+    m = _max4(levels0[t, 2 * i, 2 * j], levels0[t, 2 * i, 2 * j + 1], levels0[t, 2 * i + 1, 2 * j],
+              levels0[t, 2 * i + 1, 2 * j + 1])
+    if m == levels1[t, i, j]:
+        return
+    levels1[t, i, j] = m
+    i >>= 1
+    j >>= 1
+    m = _max4(levels1[t, 2 * i, 2 * j], levels1[t, 2 * i, 2 * j + 1], levels1[t, 2 * i + 1, 2 * j],
+              levels1[t, 2 * i + 1, 2 * j + 1])
+    if m == levels2[t, i, j]:
+        return
+    levels2[t, i, j] = m
+    i >>= 1
+    j >>= 1
+    levels3[t, i, j] = _max4(levels2[t, 2 * i, 2 * j], levels2[t, 2 * i, 2 * j + 1], levels2[t, 2 * i + 1, 2 * j],
+                             levels2[t, 2 * i + 1, 2 * j + 1])
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _tile_of(tables, refcount, p, tile_x0, tile_y0, gx, gy):
+    """Pool index of the (private) tile holding global cell (gx, gy), or -1."""
+    tx = (gx >> TILE_SHIFT) - tile_x0
+    ty = (gy >> TILE_SHIFT) - tile_y0
+    if tx < 0 or ty < 0 or ty >= tables.shape[1] or tx >= tables.shape[2]:
+        return -1
+    t = tables[p, ty, tx]
+    if t < 0 or refcount[t] != 1:
+        return -1
+    return t
 
 
 @nb.njit(cache=True, nogil=True)
-def integrate_rays(levels0, tables, refcount, tile_x0, tile_y0, poses, origin_v, ends_v, is_hit, resolution_m,
-                   log_odds_hit, log_odds_miss, log_odds_min, log_odds_max):
-    """Apply every beam to every particle's level-0 map: misses along the beams first, then the
-    hits, so a wall cell crossed by a grazing beam of the same scan still gains its hit."""
+def integrate_rays(levels0, levels1, levels2, levels3, tables, refcount, tile_x0, tile_y0, poses, origin_v, ends_v,
+                   is_hit, free_from_m, resolution_m, log_odds_hit, log_odds_miss, log_odds_min, log_odds_max):
+    """Apply every beam to every particle's map: misses along the beams first, then the hits, so a
+    wall cell crossed by a grazing beam of the same scan still gains its hit. Beam b clears cells from
+    ``free_from_m[b]`` on (near the LiDAR its neighbours already cover every cell)."""
+    mask = TILE - 1
     for p in range(poses.shape[0]):
         c = math.cos(poses[p, 2])
         s = math.sin(poses[p, 2])
         ox = poses[p, 0] + c * origin_v[0] - s * origin_v[1]
         oy = poses[p, 1] + s * origin_v[0] + c * origin_v[1]
-        gx0 = int(math.floor(ox / resolution_m))
-        gy0 = int(math.floor(oy / resolution_m))
         for b in range(ends_v.shape[0]):
             ex = poses[p, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
             ey = poses[p, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
+            length = math.hypot(ex - ox, ey - oy)
+            if free_from_m[b] >= length:
+                if is_hit[b]:
+                    continue
+                frac = 1.0
+            else:
+                frac = free_from_m[b] / length if length > 0 else 0.0
+            gx0 = int(math.floor((ox + frac * (ex - ox)) / resolution_m))
+            gy0 = int(math.floor((oy + frac * (ey - oy)) / resolution_m))
             gx1 = int(math.floor(ex / resolution_m))
             gy1 = int(math.floor(ey / resolution_m))
             # Bresenham from (gx0, gy0) to (gx1, gy1); the end cell is free too for no-return beams
@@ -134,11 +176,20 @@ def integrate_rays(levels0, tables, refcount, tile_x0, tile_y0, poses, origin_v,
             err = dx + dy
             x = gx0
             y = gy0
+            key_x = x >> TILE_SHIFT
+            key_y = y >> TILE_SHIFT
+            t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
             while True:
                 last = x == gx1 and y == gy1
                 if last and is_hit[b]:
                     break
-                _add(levels0, tables, refcount, p, tile_x0, tile_y0, x, y, log_odds_miss, log_odds_min, log_odds_max)
+                if (x >> TILE_SHIFT) != key_x or (y >> TILE_SHIFT) != key_y:
+                    key_x = x >> TILE_SHIFT
+                    key_y = y >> TILE_SHIFT
+                    t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
+                if t >= 0:
+                    _add(levels0, levels1, levels2, levels3, t, y & mask, x & mask, log_odds_miss, log_odds_min,
+                         log_odds_max)
                 if last:
                     break
                 e2 = 2 * err
@@ -153,8 +204,12 @@ def integrate_rays(levels0, tables, refcount, tile_x0, tile_y0, poses, origin_v,
                 continue
             ex = poses[p, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
             ey = poses[p, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
-            _add(levels0, tables, refcount, p, tile_x0, tile_y0, int(math.floor(ex / resolution_m)),
-                 int(math.floor(ey / resolution_m)), log_odds_hit, log_odds_min, log_odds_max)
+            x = int(math.floor(ex / resolution_m))
+            y = int(math.floor(ey / resolution_m))
+            t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
+            if t >= 0:
+                _add(levels0, levels1, levels2, levels3, t, y & mask, x & mask, log_odds_hit, log_odds_min,
+                     log_odds_max)
 
 
 def insert_scan(
@@ -167,12 +222,15 @@ def insert_scan(
     log_odds_miss: float,
     log_odds_min: float,
     log_odds_max: float,
+    free_from_m: np.ndarray | None = None,
 ) -> int:
     """Insert one scan into every particle's map.
 
-    ``poses`` (P, 3) vehicle poses in the map frame; ``origin_v`` (2,) the LiDAR's position in the
-    vehicle frame [m]; ``ends_v`` (B, 2) beam end points in the vehicle frame [m]; ``is_hit`` (B,)
-    False for free-space-only beams. Returns the number of (particle, tile) pairs written."""
+    ``poses`` (P, 3) vehicle poses of particles 0..P-1 in the map frame; ``origin_v`` (2,) the
+    LiDAR's position in the vehicle frame [m]; ``ends_v`` (B, 2) beam end points in the vehicle
+    frame [m]; ``is_hit`` (B,) False for free-space-only beams; ``free_from_m`` (B,) where each beam
+    starts clearing [m] (:func:`slam_engine.lidar_points.free_space_start_m`; None: from the LiDAR).
+    Returns the number of (particle, tile) pairs written."""
     poses = np.ascontiguousarray(poses, dtype=np.float64)
     origin_v = np.ascontiguousarray(origin_v, dtype=np.float64)
     ends_v = np.ascontiguousarray(ends_v, dtype=np.float64)
@@ -193,8 +251,10 @@ def insert_scan(
         n = collect_touched_tiles(poses, origin_v, ends_v, grids.resolution_m, grids.tile_x0, grids.tile_y0,
                                   grids._mark, buffer)
     grids.privatize(buffer, n)
-    integrate_rays(grids.levels[0], grids.tables, grids.refcount, grids.tile_x0, grids.tile_y0, poses, origin_v,
-                   ends_v, is_hit, grids.resolution_m, log_odds_hit, log_odds_miss, log_odds_min, log_odds_max)
-    grids.rebuild_coarse(buffer, n)
+    free_from = np.zeros(len(ends_v)) if free_from_m is None else np.ascontiguousarray(free_from_m, np.float64)
+    lv = grids.levels
+    integrate_rays(lv[0], lv[1], lv[2], lv[3], grids.tables, grids.refcount, grids.tile_x0, grids.tile_y0, poses,
+                   origin_v, ends_v, is_hit, free_from, grids.resolution_m,
+                   log_odds_hit, log_odds_miss, log_odds_min, log_odds_max)
     clear_marks(grids._mark, buffer, n)
     return n

@@ -27,7 +27,7 @@ def _squash(v):
     return 0.5 + 0.5 * v / (1.0 + abs(v))
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _sample(pool, tables, p, tile_x0, tile_y0, shift, inv_res, x, y):
     """Bilinear map value M at (x, y) [m] and its gradient [1/m] on one level."""
     u = x * inv_res - 0.5
@@ -38,17 +38,32 @@ def _sample(pool, tables, p, tile_x0, tile_y0, shift, inv_res, x, y):
     j0 = int(fj)
     fu = u - fi
     fv = v - fj
-    v00 = _squash(cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0, j0))
-    v10 = _squash(cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0 + 1, j0))
-    v01 = _squash(cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0, j0 + 1))
-    v11 = _squash(cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0 + 1, j0 + 1))
+    mask = (1 << shift) - 1
+    li = i0 & mask
+    lj = j0 & mask
+    tx = (i0 >> shift) - tile_x0
+    ty = (j0 >> shift) - tile_y0
+    if li < mask and lj < mask and 0 <= tx < tables.shape[2] and 0 <= ty < tables.shape[1]:
+        # all four cells in one tile (the common case): one table lookup
+        t = tables[p, ty, tx]
+        if t < 0:
+            return 0.5, 0.0, 0.0
+        v00 = _squash(pool[t, lj, li])
+        v10 = _squash(pool[t, lj, li + 1])
+        v01 = _squash(pool[t, lj + 1, li])
+        v11 = _squash(pool[t, lj + 1, li + 1])
+    else:
+        v00 = _squash(cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0, j0))
+        v10 = _squash(cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0 + 1, j0))
+        v01 = _squash(cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0, j0 + 1))
+        v11 = _squash(cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0 + 1, j0 + 1))
     m = (1.0 - fv) * ((1.0 - fu) * v00 + fu * v10) + fv * ((1.0 - fu) * v01 + fu * v11)
     dmdu = (1.0 - fv) * (v10 - v00) + fv * (v11 - v01)
     dmdv = (1.0 - fu) * (v01 - v00) + fu * (v11 - v10)
     return m, dmdu * inv_res, dmdv * inv_res
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _evaluate(pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride, x, y, theta, H, g):
     """Sum of squared residuals (1 - M) at pose (x, y, theta), filling the Gauss-Newton system
     H (3, 3) and g (3,) (for the step that lowers the residuals). Returns (E, sum M, n)."""
@@ -129,7 +144,7 @@ def _fit_level(pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stri
                 g[a] = g2[a]
                 for c in range(3):
                     H[a, c] = H2[a, c]
-            small = abs(step[0]) + abs(step[1]) < 1e-4 / inv_res and abs(step[2]) < 1e-5
+            small = abs(step[0]) + abs(step[1]) < 2e-3 / inv_res and abs(step[2]) < 5e-5
             e = e2
             lam *= 0.3
             if small:
@@ -195,7 +210,7 @@ class ScanMatcher:
     finest level (coarser levels thin out further)."""
 
     def __init__(self, search_xy_m: float, search_theta_rad: float, min_score: float, beam_skip: int = 1,
-                 coarsest_level: int = N_LEVELS - 1, iterations: tuple[int, ...] = (6, 5, 5, 5),
+                 coarsest_level: int = N_LEVELS - 1, iterations: tuple[int, ...] = (15, 3, 3, 3),
                  prior_weight: float = 1.0):
         self.search_xy_m = float(search_xy_m)
         self.search_theta_rad = float(search_theta_rad)

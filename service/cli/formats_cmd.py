@@ -1,0 +1,54 @@
+"""``lidarmap simulate`` and ``lidarmap formats``: write simulated drive logs, list the log formats."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def simulate(
+        format: str = typer.Option(..., "--format", help="Log format to write (see `lidarmap formats`)."),
+        out: Path = typer.Option(..., "--out", help="Folder to create (must be new or empty)."),
+        seed: int = typer.Option(0, help="Random seed: same seed, same drive."),
+        scenario: str | None = typer.Option(None, help="office or campus (default: the vehicle's own)."),
+        duration: float | None = typer.Option(None, help="Stop the drive after this many seconds."),
+    ) -> None:
+        """Simulate a drive with exact ground truth and write it as a log, with ground_truth.txt and
+        a .relations file."""
+        from slam_engine.errors import SlamEngineError
+        from slam_engine.simulation import rig_for_format, write_simulated
+        from slam_engine.simulation import simulate as simulate_drive
+
+        try:
+            if out.exists() and (not out.is_dir() or any(out.iterdir())):
+                raise SlamEngineError(f"{out}: output folder exists and is not empty")
+            drive = simulate_drive(scenario=scenario, seed=seed, rig=rig_for_format(format), max_duration_s=duration)
+            out.mkdir(parents=True, exist_ok=True)
+            path = write_simulated(drive, format, out)
+        except SlamEngineError as error:
+            typer.echo(f"error: {error}", err=True)
+            raise typer.Exit(2) from None
+        streams = ", ".join(f"{n} {c}" for n, c in drive.log.streams().items())
+        typer.echo(f"wrote {format} log {path} ({drive.scenario}, {drive.motion.duration_s:.0f} s, {streams}); "
+                   f"ground truth in {out / 'ground_truth.txt'}, relations in {out / (drive.scenario + '.relations')}")
+
+    @app.command()
+    def formats(
+        schema: bool = typer.Option(False, "--schema", help="Print the JSON Schemas of the drivelog manifest "
+                                                            "and message chunks instead."),
+    ) -> None:
+        """List the drive-log formats lidarmap reads and writes."""
+        if schema:
+            from api_schemas.drivelog import json_schemas
+
+            typer.echo(json.dumps(json_schemas(), indent=2))
+            return
+        from slam_engine.formats import list_formats
+
+        for info in list_formats():
+            mode = "read/write" if info.can_write else "read"
+            typer.echo(f"{info.name:12s} {mode:10s} {info.description}")

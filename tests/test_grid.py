@@ -1,0 +1,68 @@
+"""Tiled copy-on-write particle grids: indexing, growth, sharing between particles."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slam_engine.grid import TILE, ParticleGrids
+from slam_engine.raycast import insert_scan
+
+
+def test_world_cell_round_trip_including_negative_coordinates() -> None:
+    grids = ParticleGrids(2, 0.05)
+    x = np.array([-3.21, -0.01, 0.0, 0.049, 7.5])
+    y = np.array([2.0, -0.051, 0.0, -12.3, 0.26])
+    gx, gy = grids.world_to_cell(x, y)
+    np.testing.assert_array_equal(gx, [-65, -1, 0, 0, 150])
+    cx, cy = grids.cell_to_world(gx, gy)
+    assert np.all(np.abs(cx - x) <= 0.025 + 1e-12) and np.all(np.abs(cy - y) <= 0.025 + 1e-12)
+    gx2, gy2 = grids.world_to_cell(cx, cy)
+    np.testing.assert_array_equal(gx2, gx)
+    np.testing.assert_array_equal(gy2, gy)
+
+
+def _one_beam(grids: ParticleGrids, poses: np.ndarray, end_v: tuple[float, float]) -> None:
+    insert_scan(grids, poses, np.zeros(2), np.array([end_v]), np.array([True]), 0.9, -0.4, -5.0, 5.0)
+
+
+def test_grids_grow_with_the_drive_and_keep_what_they_hold() -> None:
+    grids = ParticleGrids(1, 0.1)
+    _one_beam(grids, np.zeros((1, 3)), (1.0, 0.0))
+    before = grids.occupancy_grid(0)
+    ix, iy = before.world_to_cell(1.05, 0.05)
+    assert before.log_odds[iy, ix] == np.float32(0.9)
+    # drive 200 m away in -x and -y: the tables grow, the first wall stays where it was
+    _one_beam(grids, np.array([[-200.0, -150.0, 0.0]]), (1.0, 0.0))
+    after = grids.occupancy_grid(0)
+    assert after.shape[0] * after.resolution_m > 150 and after.shape[1] * after.resolution_m > 200
+    ix, iy = after.world_to_cell(1.05, 0.05)
+    assert after.log_odds[iy, ix] == np.float32(0.9)
+    ix, iy = after.world_to_cell(-198.95, -149.95)
+    assert after.log_odds[iy, ix] == np.float32(0.9)
+
+
+def test_resampled_particles_share_tiles_until_one_writes() -> None:
+    grids = ParticleGrids(3, 0.05)
+    _one_beam(grids, np.zeros((3, 3)), (2.0, 0.0))
+    grids.resample(np.array([0, 0, 0]))
+    assert grids.tiles_in_use() == 1  # one tile, three readers
+    assert np.all(grids.refcount[grids.tables[:, grids.tables[0] >= 0][:, 0]] == 3)
+    # particle 0 alone (poses of particles 0..P-1 are given) sees a wall at y = 1 m: it gets a private
+    # copy, the others keep reading the shared tile
+    insert_scan(grids, np.zeros((1, 3)), np.zeros(2), np.array([[0.5, 1.0]]), np.array([True]), 0.9, -0.4, -5, 5)
+    assert grids.tiles_in_use() == 2
+    g0, g2 = grids.occupancy_grid(0), grids.occupancy_grid(2)
+    ix, iy = g0.world_to_cell(0.525, 1.025)
+    assert g0.log_odds[iy, ix] == np.float32(0.9) and g2.log_odds[iy, ix] == 0.0
+    np.testing.assert_array_equal(grids.occupancy_grid(1).log_odds, g2.log_odds)
+
+
+def test_coarse_levels_hold_the_maximum_of_their_cells() -> None:
+    grids = ParticleGrids(1, 0.05)
+    _one_beam(grids, np.zeros((1, 3)), (1.0, 0.52))
+    t = grids.tables[0][grids.tables[0] >= 0][0]
+    level0 = grids.levels[0][t]
+    for k in range(1, 4):
+        f = 1 << k
+        expected = level0.reshape(TILE // f, f, TILE // f, f).max(axis=(1, 3))
+        np.testing.assert_array_equal(grids.levels[k][t], expected)

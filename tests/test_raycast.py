@@ -1,0 +1,106 @@
+"""Ray casting marks exactly the expected cells."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slam_engine.drive_log import LidarModel
+from slam_engine.grid import ParticleGrids
+from slam_engine.lidar_points import ScanProjector, free_space_start_m
+from slam_engine.raycast import insert_scan
+
+
+def _cells(grid) -> dict[tuple[int, int], float]:
+    """{(ix, iy) in global cells: log-odds} of the non-zero cells."""
+    iy, ix = np.nonzero(grid.log_odds)
+    gx = ix + int(round(grid.origin_x_m / grid.resolution_m))
+    gy = iy + int(round(grid.origin_y_m / grid.resolution_m))
+    return {(int(a), int(b)): round(float(grid.log_odds[i, j]), 6) for a, b, i, j in zip(gx, gy, iy, ix, strict=True)}
+
+
+def test_beam_along_x_misses_then_hits() -> None:
+    grids = ParticleGrids(1, 0.1)
+    insert_scan(grids, np.zeros((1, 3)), np.array([0.05, 0.05]), np.array([[0.55, 0.05]]), np.array([True]),
+                0.9, -0.4, -5.0, 5.0)
+    assert _cells(grids.occupancy_grid(0)) == {(0, 0): -0.4, (1, 0): -0.4, (2, 0): -0.4, (3, 0): -0.4,
+                                              (4, 0): -0.4, (5, 0): 0.9}
+
+
+def test_no_return_beam_clears_its_whole_length_and_adds_no_hit() -> None:
+    grids = ParticleGrids(1, 0.1)
+    ends = np.array([[0.55, 0.05], [0.05, 0.35]])
+    insert_scan(grids, np.zeros((1, 3)), np.array([0.05, 0.05]), ends, np.array([True, False]), 0.9, -0.4, -5, 5)
+    cells = _cells(grids.occupancy_grid(0))
+    assert cells[(0, 0)] == -0.8  # crossed by both beams
+    assert [cells[(0, k)] for k in (1, 2, 3)] == [-0.4, -0.4, -0.4]
+    assert cells[(5, 0)] == 0.9 and len(cells) == 9
+
+
+def test_diagonal_beam_from_a_rotated_pose() -> None:
+    grids = ParticleGrids(1, 0.1)
+    # vehicle at (0.05, 0.05) facing 45 deg, beam 0.4 * sqrt(2) m straight ahead: cells (k, k)
+    d = 0.4 * np.sqrt(2)
+    insert_scan(grids, np.array([[0.05, 0.05, np.pi / 4]]), np.zeros(2), np.array([[d, 0.0]]), np.array([True]),
+                0.9, -0.4, -5.0, 5.0)
+    assert _cells(grids.occupancy_grid(0)) == {(0, 0): -0.4, (1, 1): -0.4, (2, 2): -0.4, (3, 3): -0.4,
+                                              (4, 4): 0.9}
+
+
+def test_clamping_and_hits_win_over_same_scan_misses() -> None:
+    grids = ParticleGrids(1, 0.1)
+    # beam 1 ends at (3, 0); beam 2 runs through that cell to (6, 0): the cell keeps its hit
+    ends = np.array([[0.35, 0.05], [0.65, 0.05]])
+    for _ in range(20):
+        insert_scan(grids, np.zeros((1, 3)), np.array([0.05, 0.05]), ends, np.array([True, True]), 0.9, -0.4,
+                    -2.0, 3.0)
+    cells = _cells(grids.occupancy_grid(0))
+    assert cells[(0, 0)] == -2.0 and cells[(6, 0)] == 3.0
+    assert cells[(3, 0)] == 3.0  # +0.9 - 0.4 per scan, clamped at 3.0
+
+
+def test_projector_keeps_no_return_beams_as_free_rays() -> None:
+    lidar = LidarModel(num_beams=3, angle_min_rad=-np.pi / 2, angle_increment_rad=np.pi / 2, range_min_m=0.1,
+                       range_max_m=20.0)
+    projector = ScanProjector(lidar, max_range_m=10.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05)
+    scan = projector.project(np.array([2.0, np.inf, 15.0]))
+    np.testing.assert_allclose(scan.ends_v, [[0.0, -2.0], [10.0, 0.0], [0.0, 10.0]], atol=1e-12)
+    np.testing.assert_array_equal(scan.is_hit, [True, False, False])
+    np.testing.assert_allclose(scan.hits_v, [[0.0, -2.0]], atol=1e-12)
+
+
+def test_projector_drops_ground_hits_of_a_tilted_lidar() -> None:
+    # LiDAR 1 m up, pitched down 10 deg: a return at 3 m lands at z = 1 - 3 sin(10 deg) = 0.48 m (kept),
+    # one at 8 m at z = -0.39 m (ground: dropped)
+    pitch = np.radians(10.0)
+    T = np.eye(4)
+    T[:3, :3] = [[np.cos(pitch), 0, np.sin(pitch)], [0, 1, 0], [-np.sin(pitch), 0, np.cos(pitch)]]
+    T[2, 3] = 1.0
+    lidar = LidarModel(num_beams=2, angle_min_rad=0.0, angle_increment_rad=0.0, range_min_m=0.1, range_max_m=30.0,
+                       T_vehicle_from_lidar=T)
+    projector = ScanProjector(lidar, max_range_m=30.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05)
+    scan = projector.project(np.array([3.0, 8.0]))
+    np.testing.assert_allclose(scan.ends_v, [[3.0 * np.cos(pitch), 0.0]], atol=1e-9)
+    np.testing.assert_array_equal(scan.is_hit, [True])
+
+
+def test_free_space_thinning_keeps_beams_half_a_cell_apart() -> None:
+    start = free_space_start_m(8, np.radians(1.0), 0.05)
+    one = 0.05 / np.radians(1.0)  # 2.86 m: where 1-deg neighbours are a cell apart
+    np.testing.assert_allclose(start, [0.0, one, one / 2, one, one / 4, one, one / 2, one])
+    # a thinned beam still ends with its hit and clears from its start on
+    grids = ParticleGrids(1, 0.1)
+    insert_scan(grids, np.zeros((1, 3)), np.array([0.05, 0.05]), np.array([[0.55, 0.05], [0.2, 0.05]]),
+                np.array([True, True]), 0.9, -0.4, -5.0, 5.0, free_from_m=np.array([0.3, 0.3]))
+    assert _cells(grids.occupancy_grid(0)) == {(3, 0): -0.4, (4, 0): -0.4, (5, 0): 0.9, (2, 0): 0.9}
+
+
+def test_no_return_beams_can_be_left_out() -> None:
+    lidar = LidarModel(num_beams=3, angle_min_rad=-np.pi / 2, angle_increment_rad=np.pi / 2, range_min_m=0.1,
+                       range_max_m=20.0)
+    projector = ScanProjector(lidar, max_range_m=10.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05,
+                              no_return_clear_m=0.0)
+    scan = projector.project(np.array([2.0, np.inf, 15.0]))
+    # the no-return beam is gone; the over-range return still clears to max_range_m
+    np.testing.assert_allclose(scan.ends_v, [[0.0, -2.0], [0.0, 10.0]], atol=1e-12)
+    np.testing.assert_array_equal(scan.is_hit, [True, False])
+    assert len(scan.free_from_m) == 2
