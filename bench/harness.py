@@ -136,6 +136,19 @@ def summarise(case: BenchCase, records: list[dict]) -> dict:
     return finite_or_none(summary)
 
 
+def code_version() -> dict:
+    """The checkout's commit and whether it had uncommitted changes (None outside git)."""
+    def git(*args: str) -> str | None:
+        try:
+            return subprocess.run(["git", *args], cwd=REPO_ROOT, capture_output=True, text=True,
+                                  check=True, timeout=10).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return None
+
+    status = git("status", "--porcelain")
+    return {"commit": git("rev-parse", "HEAD"), "dirty": None if status is None else bool(status)}
+
+
 def default_out_dir() -> Path:
     return RESULTS_ROOT / time.strftime("%Y%m%d-%H%M%S")
 
@@ -146,6 +159,7 @@ def run_benchmark(cases: list[BenchCase], options: BenchOptions,
     (and a copy as ``bench/results/latest.json`` when writing under ``bench/results``) and return it."""
     out_dir = Path(options.out_dir) if options.out_dir is not None else default_out_dir()
     out_dir.mkdir(parents=True, exist_ok=True)
+    load_at_start = list(os.getloadavg())  # other work on the machine disturbs the timings
     runs, summaries = [], []
     for case in cases:
         records = []
@@ -159,7 +173,9 @@ def run_benchmark(cases: list[BenchCase], options: BenchOptions,
     results = {
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                    "cpu_count": os.cpu_count(), "processor": platform.processor()},
+                    "cpu_count": os.cpu_count(), "processor": platform.processor(),
+                    "load_average_at_start": load_at_start, "load_average_at_end": list(os.getloadavg())},
+        "code": code_version(),
         "options": {"seeds": options.seeds, "particles": options.particles, "config": options.config,
                     "loader": options.loader, "runner": options.runner, "timeout_s": options.timeout_s},
         "cases": [case.as_dict() for case in cases],

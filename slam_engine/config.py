@@ -21,7 +21,10 @@ class GridConfig(_Section):
     log_odds_min: float = Field(-5.0, ge=-50.0, lt=0.0, description="Lower clamp.")
     log_odds_max: float = Field(5.0, gt=0.0, le=50.0, description="Upper clamp.")
     max_range_m: float = Field(30.0, gt=0.1, le=200.0, description="Beams are used up to this range [m]; "
-                               "longer or no-return beams clear free space to here but add no hit.")
+                               "longer returns clear free space to here but add no hit.")
+    no_return_clear_m: float = Field(0.0, ge=0.0, le=200.0, description="Beams without a return clear free "
+                                     "space up to this range [m] (0 = not at all: scanners also report no "
+                                     "return for dark or glass surfaces close by).")
 
 
 class MotionNoiseConfig(_Section):
@@ -39,8 +42,11 @@ class MatcherConfig(_Section):
 
     search_xy_m: float = Field(0.3, ge=0.0, le=5.0, description="Half width of the xy search window [m].")
     search_theta_rad: float = Field(0.2, ge=0.0, le=1.5, description="Half width of the heading window [rad].")
-    sigma_m: float = Field(0.05, gt=0.0, le=2.0, description="Std. dev. of the endpoint likelihood [m].")
+    sigma_m: float = Field(0.05, gt=0.0, le=2.0, description="Std. dev. of the endpoint likelihood [m]; an end "
+                           "point's distance to the wall is taken as (1 - M) cells, M = map value in [0, 1].")
     beam_skip: int = Field(1, ge=1, le=50, description="Use every n-th beam for matching.")
+    max_points: int = Field(200, ge=10, le=100000, description="Match with at most this many end points "
+                            "(dense scans are thinned evenly, after beam_skip).")
     independent_beams: float = Field(40.0, gt=0.0, le=10000.0, description="How many independent "
                                      "measurements a scan counts as when weighting particles (beams are "
                                      "correlated; fewer = smoother weights).")
@@ -61,7 +67,9 @@ class LidarFilterConfig(_Section):
 
     ground_z_m: float = Field(0.2, ge=-5.0, le=5.0, description="Points below this height in the vehicle "
                               "frame are ground hits and dropped [m].")
-    ceiling_z_m: float = Field(3.0, ge=-5.0, le=50.0, description="Points above this height are dropped [m].")
+    ceiling_z_m: float = Field(20.0, ge=-5.0, le=50.0, description="Points above this height are dropped [m] "
+                               "(tree tops, overhangs). A tilted LiDAR sees building walls high up: they "
+                               "are kept, projected onto the plane.")
 
 
 class TextureConfig(_Section):

@@ -6,9 +6,11 @@ points below ``ground_z_m`` (ground hits) or above ``ceiling_z_m`` are dropped a
 projected onto the plane. A level LiDAR (rotation about z only) takes a NumPy fast path and no
 height filter (all its points lie at the mounting height).
 
-Beams without a return (``inf``, outside ``[range_min_m, range_max_m]``) and returns beyond the
-grid's ``max_range_m`` stay as free-space-only rays: they clear the cells they cross, up to
-``min(range_max_m, max_range_m)``, and never add a hit or take part in matching.
+Returns beyond the grid's ``max_range_m`` stay as free-space-only rays: they clear the cells they
+cross up to ``max_range_m`` and never add a hit or take part in matching. Beams without a return
+(``inf``, outside ``[range_min_m, range_max_m]``) clear up to ``no_return_clear_m`` (0 = not at
+all): many scanners also report "no return" for dark or glass surfaces close by, and clearing far
+along such beams erases real walls.
 """
 
 from __future__ import annotations
@@ -24,10 +26,12 @@ from slam_engine.poses import is_planar_4x4
 @dataclass(frozen=True)
 class ProjectedScan:
     """One scan in the vehicle frame: ``ends_v`` (K, 2) ray end points [m], ``is_hit`` (K,) False
-    for free-space-only rays, ``hits_v`` (H, 2) the returned end points (for matching)."""
+    for free-space-only rays, ``free_from_m`` (K,) where each ray starts clearing cells [m]
+    (:func:`free_space_start_m`), ``hits_v`` (H, 2) the returned end points (for matching)."""
 
     ends_v: np.ndarray
     is_hit: np.ndarray
+    free_from_m: np.ndarray
 
     @property
     def hits_v(self) -> np.ndarray:
@@ -38,7 +42,8 @@ class ScanProjector:
     """Projects the scans of one LiDAR. ``origin_v`` (2,) is the LiDAR's position in the vehicle
     frame [m], where every ray starts."""
 
-    def __init__(self, lidar: LidarModel, max_range_m: float, ground_z_m: float, ceiling_z_m: float):
+    def __init__(self, lidar: LidarModel, max_range_m: float, ground_z_m: float, ceiling_z_m: float,
+                 resolution_m: float, no_return_clear_m: float | None = None):
         self.lidar = lidar
         self.T = np.asarray(lidar.T_vehicle_from_lidar, dtype=np.float64)
         self.planar = is_planar_4x4(self.T)
@@ -48,8 +53,11 @@ class ScanProjector:
         self.origin_v = self.T[:2, 3].copy()
         self.max_range_m = float(max_range_m)
         self.clear_range_m = float(min(lidar.range_max_m, max_range_m))
+        self.no_return_clear_m = self.clear_range_m if no_return_clear_m is None else \
+            float(min(no_return_clear_m, self.clear_range_m))
         self.ground_z_m = float(ground_z_m)
         self.ceiling_z_m = float(ceiling_z_m)
+        self.free_from_m = free_space_start_m(lidar.num_beams, lidar.angle_increment_rad, resolution_m)
 
     def project(self, ranges_m: np.ndarray) -> ProjectedScan:
         """(num_beams,) ranges [m] -> :class:`ProjectedScan`."""
@@ -59,17 +67,20 @@ class ScanProjector:
                              f"has {self.lidar.num_beams} beams")
         returned = np.isfinite(r) & (r >= self.lidar.range_min_m) & (r <= self.lidar.range_max_m)
         is_hit = returned & (r <= self.max_range_m)
-        length = np.where(is_hit, r, self.clear_range_m)
+        length = np.where(is_hit, r, np.where(returned, self.clear_range_m, self.no_return_clear_m))
+        keep = length > 0
+        if not keep.all():
+            length, is_hit = length[keep], is_hit[keep]
         if self.planar:
-            ends = self.origin_v + self.dirs_v * length[:, None]
-            return ProjectedScan(ends_v=ends, is_hit=is_hit)
-        return self._project_tilted(length, is_hit)
+            ends = self.origin_v + self.dirs_v[keep] * length[:, None]
+            return ProjectedScan(ends_v=ends, is_hit=is_hit, free_from_m=self.free_from_m[keep])
+        return self._project_tilted(length, is_hit, keep)
 
-    def _project_tilted(self, length: np.ndarray, is_hit: np.ndarray) -> ProjectedScan:
+    def _project_tilted(self, length: np.ndarray, is_hit: np.ndarray, beams: np.ndarray) -> ProjectedScan:
         import open3d as o3d
 
         pts_lidar = np.zeros((length.shape[0], 3))
-        pts_lidar[:, :2] = self.dirs_lidar * length[:, None]
+        pts_lidar[:, :2] = self.dirs_lidar[beams] * length[:, None]
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts_lidar))
         cloud.transform(self.T)
         pts_v = np.asarray(cloud.points)
@@ -85,4 +96,18 @@ class ScanProjector:
             limit = np.where(dz < 0, self.ground_z_m, self.ceiling_z_m) - self.T[2, 3]
             frac = np.clip(np.divide(limit, dz, out=np.ones_like(dz), where=dz != 0), 0.0, 1.0)
             ends[free_tilted] = self.origin_v + (ends[free_tilted] - self.origin_v) * frac[:, None]
-        return ProjectedScan(ends_v=ends[keep], is_hit=is_hit[keep])
+        return ProjectedScan(ends_v=ends[keep], is_hit=is_hit[keep], free_from_m=self.free_from_m[beams][keep])
+
+
+def free_space_start_m(n_beams: int, angle_increment_rad: float, resolution_m: float) -> np.ndarray:
+    """(n_beams,) distance [m] from which each beam clears free space. Near the LiDAR neighbouring
+    beams are far less than a cell apart and would clear the same cells over and over: beam i, with
+    ``v`` trailing zero bits in its index, starts at ``resolution / (|increment| * 2**v)``, so that
+    at any distance the beams in use are at most half a cell apart (beam 0 starts at the LiDAR)."""
+    index = np.arange(n_beams)
+    trailing = np.zeros(n_beams, np.int64)
+    for k in range(1, 32):
+        trailing += (index > 0) & (index % (1 << k) == 0)
+    start = resolution_m / (max(abs(angle_increment_rad), 1e-9) * 2.0 ** trailing)
+    start[0] = 0.0
+    return start

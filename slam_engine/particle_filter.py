@@ -54,7 +54,8 @@ class SlamFilter:
         n = config.particles
         g = config.grid
         self.projector = ScanProjector(lidar, g.max_range_m, config.lidar_filter.ground_z_m,
-                                       config.lidar_filter.ceiling_z_m)
+                                       config.lidar_filter.ceiling_z_m, g.resolution_m,
+                                       g.no_return_clear_m)
         self.grids = ParticleGrids(n, g.resolution_m)
         m = config.matcher
         self.matcher = ScanMatcher(m.search_xy_m, m.search_theta_rad, m.min_score, m.beam_skip)
@@ -146,7 +147,7 @@ class SlamFilter:
     def _first_scan(self, scan: ScanMessage, odom: np.ndarray, projected) -> None:
         g = self.config.grid
         insert_scan(self.grids, self.particles[:1], self.projector.origin_v, projected.ends_v, projected.is_hit,
-                    g.log_odds_hit, g.log_odds_miss, g.log_odds_min, g.log_odds_max)
+                    g.log_odds_hit, g.log_odds_miss, g.log_odds_min, g.log_odds_max, projected.free_from_m)
         self.grids.resample(np.zeros(self.config.particles, np.int64))  # every particle shares that map
         self._record_step(scan.t_s, odom)
         self._stats.append((scan.t_s, float(self.config.particles), False, 1.0, False, 0.0))
@@ -159,10 +160,18 @@ class SlamFilter:
         self._last_odom = odom
         self._last_t_s = t_s
 
+    def _match_points(self, projected) -> np.ndarray:
+        """The end points used for matching: returns only, thinned to at most ``max_points``."""
+        hits = projected.hits_v
+        budget = self.config.matcher.max_points
+        if len(hits) > budget:
+            hits = hits[:: int(np.ceil(len(hits) / budget))]
+        return hits
+
     def _process(self, scan: ScanMessage, odom: np.ndarray, projected) -> None:
         n = self.config.particles
         predicted = sample_odometry_motion(self.particles, self._last_odom, odom, self.alphas, self.rng)
-        hits = projected.hits_v
+        hits = self._match_points(projected)
         if len(hits) >= 3:
             poses, sq_residual, score, accepted = self.matcher.match(self.grids, np.arange(n), predicted, hits)
             log_lik = -self.likelihood_gain * sq_residual / len(hits)
@@ -186,7 +195,7 @@ class SlamFilter:
             self._next_parents = ancestors
         g = self.config.grid
         insert_scan(self.grids, self.particles, self.projector.origin_v, projected.ends_v, projected.is_hit,
-                    g.log_odds_hit, g.log_odds_miss, g.log_odds_min, g.log_odds_max)
+                    g.log_odds_hit, g.log_odds_miss, g.log_odds_min, g.log_odds_max, projected.free_from_m)
         self._stats.append((scan.t_s, neff, bool(resampled), float(score[best]), bool(accepted[best]), 0.0))
 
     def _skip(self, scan: ScanMessage, odom: np.ndarray, projected) -> None:
@@ -194,7 +203,7 @@ class SlamFilter:
         current = self.particles[best]  # equals its recorded pose at the last processed step
         predicted = compose(current, relative(self._last_odom, odom))
         pose = predicted
-        hits = projected.hits_v
+        hits = self._match_points(projected)
         if len(hits) >= 3:
             fitted, _, _, accepted = self.matcher.match(self.grids, np.array([best]), predicted[None, :], hits)
             if accepted[0]:

@@ -144,9 +144,10 @@ def _tile_of(tables, refcount, p, tile_x0, tile_y0, gx, gy):
 
 @nb.njit(cache=True, nogil=True)
 def integrate_rays(levels0, levels1, levels2, levels3, tables, refcount, tile_x0, tile_y0, poses, origin_v, ends_v,
-                   is_hit, resolution_m, log_odds_hit, log_odds_miss, log_odds_min, log_odds_max):
+                   is_hit, free_from_m, resolution_m, log_odds_hit, log_odds_miss, log_odds_min, log_odds_max):
     """Apply every beam to every particle's map: misses along the beams first, then the hits, so a
-    wall cell crossed by a grazing beam of the same scan still gains its hit."""
+    wall cell crossed by a grazing beam of the same scan still gains its hit. Beam b clears cells from
+    ``free_from_m[b]`` on (near the LiDAR its neighbours already cover every cell)."""
     mask = TILE - 1
     for p in range(poses.shape[0]):
         c = math.cos(poses[p, 2])
@@ -156,8 +157,15 @@ def integrate_rays(levels0, levels1, levels2, levels3, tables, refcount, tile_x0
         for b in range(ends_v.shape[0]):
             ex = poses[p, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
             ey = poses[p, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
-            gx0 = int(math.floor(ox / resolution_m))
-            gy0 = int(math.floor(oy / resolution_m))
+            length = math.hypot(ex - ox, ey - oy)
+            if free_from_m[b] >= length:
+                if is_hit[b]:
+                    continue
+                frac = 1.0
+            else:
+                frac = free_from_m[b] / length if length > 0 else 0.0
+            gx0 = int(math.floor((ox + frac * (ex - ox)) / resolution_m))
+            gy0 = int(math.floor((oy + frac * (ey - oy)) / resolution_m))
             gx1 = int(math.floor(ex / resolution_m))
             gy1 = int(math.floor(ey / resolution_m))
             # Bresenham from (gx0, gy0) to (gx1, gy1); the end cell is free too for no-return beams
@@ -214,12 +222,15 @@ def insert_scan(
     log_odds_miss: float,
     log_odds_min: float,
     log_odds_max: float,
+    free_from_m: np.ndarray | None = None,
 ) -> int:
     """Insert one scan into every particle's map.
 
-    ``poses`` (P, 3) vehicle poses of particles 0..P-1 in the map frame; ``origin_v`` (2,) the LiDAR's
-    position in the vehicle frame [m]; ``ends_v`` (B, 2) beam end points in the vehicle frame [m]; ``is_hit`` (B,)
-    False for free-space-only beams. Returns the number of (particle, tile) pairs written."""
+    ``poses`` (P, 3) vehicle poses of particles 0..P-1 in the map frame; ``origin_v`` (2,) the
+    LiDAR's position in the vehicle frame [m]; ``ends_v`` (B, 2) beam end points in the vehicle
+    frame [m]; ``is_hit`` (B,) False for free-space-only beams; ``free_from_m`` (B,) where each beam
+    starts clearing [m] (:func:`slam_engine.lidar_points.free_space_start_m`; None: from the LiDAR).
+    Returns the number of (particle, tile) pairs written."""
     poses = np.ascontiguousarray(poses, dtype=np.float64)
     origin_v = np.ascontiguousarray(origin_v, dtype=np.float64)
     ends_v = np.ascontiguousarray(ends_v, dtype=np.float64)
@@ -240,9 +251,10 @@ def insert_scan(
         n = collect_touched_tiles(poses, origin_v, ends_v, grids.resolution_m, grids.tile_x0, grids.tile_y0,
                                   grids._mark, buffer)
     grids.privatize(buffer, n)
+    free_from = np.zeros(len(ends_v)) if free_from_m is None else np.ascontiguousarray(free_from_m, np.float64)
     lv = grids.levels
     integrate_rays(lv[0], lv[1], lv[2], lv[3], grids.tables, grids.refcount, grids.tile_x0, grids.tile_y0, poses,
-                   origin_v, ends_v, is_hit, grids.resolution_m,
+                   origin_v, ends_v, is_hit, free_from, grids.resolution_m,
                    log_odds_hit, log_odds_miss, log_odds_min, log_odds_max)
     clear_marks(grids._mark, buffer, n)
     return n

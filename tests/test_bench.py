@@ -115,6 +115,7 @@ def test_json_records_every_seed_with_consistent_numbers(bench_run):
     root, results, _, _ = bench_run
     written = json.loads((root / "out" / "results.json").read_text())
     assert written["summaries"] == results["summaries"]
+    assert len(written["code"]["commit"]) == 40 and written["machine"]["cpu_count"] >= 1
     runs = written["runs"]
     assert [r["seed"] for r in runs] == [0, 1, 2] and all(r["status"] == "ok" for r in runs)
     for run in runs:

@@ -6,7 +6,7 @@ import numpy as np
 
 from slam_engine.drive_log import LidarModel
 from slam_engine.grid import ParticleGrids
-from slam_engine.lidar_points import ScanProjector
+from slam_engine.lidar_points import ScanProjector, free_space_start_m
 from slam_engine.raycast import insert_scan
 
 
@@ -61,7 +61,7 @@ def test_clamping_and_hits_win_over_same_scan_misses() -> None:
 def test_projector_keeps_no_return_beams_as_free_rays() -> None:
     lidar = LidarModel(num_beams=3, angle_min_rad=-np.pi / 2, angle_increment_rad=np.pi / 2, range_min_m=0.1,
                        range_max_m=20.0)
-    projector = ScanProjector(lidar, max_range_m=10.0, ground_z_m=0.2, ceiling_z_m=3.0)
+    projector = ScanProjector(lidar, max_range_m=10.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05)
     scan = projector.project(np.array([2.0, np.inf, 15.0]))
     np.testing.assert_allclose(scan.ends_v, [[0.0, -2.0], [10.0, 0.0], [0.0, 10.0]], atol=1e-12)
     np.testing.assert_array_equal(scan.is_hit, [True, False, False])
@@ -77,6 +77,30 @@ def test_projector_drops_ground_hits_of_a_tilted_lidar() -> None:
     T[2, 3] = 1.0
     lidar = LidarModel(num_beams=2, angle_min_rad=0.0, angle_increment_rad=0.0, range_min_m=0.1, range_max_m=30.0,
                        T_vehicle_from_lidar=T)
-    scan = ScanProjector(lidar, max_range_m=30.0, ground_z_m=0.2, ceiling_z_m=3.0).project(np.array([3.0, 8.0]))
+    projector = ScanProjector(lidar, max_range_m=30.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05)
+    scan = projector.project(np.array([3.0, 8.0]))
     np.testing.assert_allclose(scan.ends_v, [[3.0 * np.cos(pitch), 0.0]], atol=1e-9)
     np.testing.assert_array_equal(scan.is_hit, [True])
+
+
+def test_free_space_thinning_keeps_beams_half_a_cell_apart() -> None:
+    start = free_space_start_m(8, np.radians(1.0), 0.05)
+    one = 0.05 / np.radians(1.0)  # 2.86 m: where 1-deg neighbours are a cell apart
+    np.testing.assert_allclose(start, [0.0, one, one / 2, one, one / 4, one, one / 2, one])
+    # a thinned beam still ends with its hit and clears from its start on
+    grids = ParticleGrids(1, 0.1)
+    insert_scan(grids, np.zeros((1, 3)), np.array([0.05, 0.05]), np.array([[0.55, 0.05], [0.2, 0.05]]),
+                np.array([True, True]), 0.9, -0.4, -5.0, 5.0, free_from_m=np.array([0.3, 0.3]))
+    assert _cells(grids.occupancy_grid(0)) == {(3, 0): -0.4, (4, 0): -0.4, (5, 0): 0.9, (2, 0): 0.9}
+
+
+def test_no_return_beams_can_be_left_out() -> None:
+    lidar = LidarModel(num_beams=3, angle_min_rad=-np.pi / 2, angle_increment_rad=np.pi / 2, range_min_m=0.1,
+                       range_max_m=20.0)
+    projector = ScanProjector(lidar, max_range_m=10.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05,
+                              no_return_clear_m=0.0)
+    scan = projector.project(np.array([2.0, np.inf, 15.0]))
+    # the no-return beam is gone; the over-range return still clears to max_range_m
+    np.testing.assert_allclose(scan.ends_v, [[0.0, -2.0], [0.0, 10.0]], atol=1e-12)
+    np.testing.assert_array_equal(scan.is_hit, [True, False])
+    assert len(scan.free_from_m) == 2
