@@ -22,6 +22,7 @@ from service.worker import JobContext
 from slam_engine.config import SlamConfig
 from slam_engine.drive_log import DriveLog
 from slam_engine.errors import ConfigError, LogFormatError
+from slam_engine.products import write_trajectory_json
 from slam_engine.result import OccupancyGrid
 
 
@@ -87,6 +88,7 @@ class LiveMap:
         self.live_dir.mkdir(parents=True, exist_ok=True)
         save_grid(snapshot.grid, self.live_dir / GRID_FILE)
         write_atomic(self.live_dir / "occupancy.png", grid_png(snapshot.grid))
+        write_trajectory_json(snapshot.trajectory, self.live_dir / "trajectory.json", frame="map (so far)")
 
 
 def grid_png(grid: OccupancyGrid) -> bytes:
@@ -117,7 +119,8 @@ def run_mapping_job(ctx: JobContext) -> None:
         live.update(progress.latest_snapshot)
 
     result = run_slam(log, config, rng=np.random.default_rng(config.seed), progress=on_progress)
-    ctx.check_cancel()
+    total = len(log.scans) if log.scans is not None else 0
+    ctx.progress(total, total, force=True)
     out_dir = ctx.out_dir
     session = _session_row(ctx)
     geo = None if session["geo"] is None else GeoOrigin(

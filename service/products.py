@@ -22,7 +22,7 @@ MEDIA_TYPES = {
     "map.pgm": "image/x-portable-graymap", "texture.png": "image/png", "texture.tif": "image/tiff",
     "animation.gif": "image/gif", "run.json": "application/json",
 }
-LIVE_FILES = {"occupancy.png": "occupancy.png", "grid.npz": "grid.npz"}
+LIVE_FILES = {"occupancy.png": "occupancy.png", "grid.npz": "grid.npz", "trajectory.json": "trajectory.json"}
 GRID_FILE, TEXTURE_FILE = "grid.npz", "texture.npz"  # the service's own copies for tiles
 
 
@@ -36,6 +36,8 @@ def live_product_names(data: DataDir, job: dict[str, Any]) -> list[str]:
         names.append("occupancy.png")
     if (live / GRID_FILE).exists():
         names.append("tiles/occupancy")
+    if (live / "trajectory.json").exists():
+        names.append("trajectory.json")
     return names
 
 

@@ -39,12 +39,15 @@ def test_upload_map_and_fetch_every_product(tmp_path, dataset) -> None:
 
         # live map while running
         live = wait_for(client, job["id"], {"running"}, timeout_s=300,
-                        condition=lambda j: "occupancy.png" in j["products"])
+                        condition=lambda j: {"occupancy.png", "trajectory.json"} <= set(j["products"]))
         assert 0 < live["scans_done"] < live["scans_total"] == 910
         preview = Image.open(io.BytesIO(client.get(f"/v1/jobs/{job['id']}/occupancy.png").content))
         assert preview.size[0] > 10 and preview.size[1] > 10
         tile = client.get(f"/v1/jobs/{job['id']}/tiles/occupancy/0/0/0.png")
         assert tile.status_code == 200 and Image.open(io.BytesIO(tile.content)).size == (256, 256)
+        partial = client.get(f"/v1/jobs/{job['id']}/trajectory").json()  # the trajectory so far
+        assert 0 < partial["count"] < 910
+        assert partial["poses"][0]["x_m"] == pytest.approx(0.0, abs=1e-6)
 
         # cancelling a real run stops it within about a second
         wait_for(client, doomed["id"], {"running"}, timeout_s=120, condition=lambda j: j["scans_done"] > 0)
@@ -56,6 +59,7 @@ def test_upload_map_and_fetch_every_product(tmp_path, dataset) -> None:
         done = wait_for(client, job["id"], timeout_s=900)
         assert done["status"] == "succeeded", done
         assert done["input"]["summary"]["streams"]["scans"] == 910
+        assert done["scans_done"] == done["scans_total"] == 910
 
         base = f"/v1/jobs/{job['id']}"
         traj = client.get(f"{base}/trajectory").json()
@@ -68,7 +72,7 @@ def test_upload_map_and_fetch_every_product(tmp_path, dataset) -> None:
         dead = Trajectory(t_s=np.array([p["t_s"] for p in dr["poses"]]),
                           poses=np.array([[p["x_m"], p["y_m"], p["theta_rad"]] for p in dr["poses"]]))
         assert relation_errors(dead, relations).all.trans_mean_m == pytest.approx(DEAD_RECKONING_INTEL_M, abs=0.05)
-        assert error_m < DEAD_RECKONING_INTEL_M / 5, f"SLAM relation error {error_m:.2f} m"
+        assert error_m < 0.3, f"SLAM relation error {error_m:.3f} m (dead reckoning {DEAD_RECKONING_INTEL_M} m)"
 
         tum = client.get(f"{base}/trajectory", params={"format": "tum"}).text.splitlines()
         assert len([line for line in tum if not line.startswith("#")]) == 910
