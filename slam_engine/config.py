@@ -22,9 +22,10 @@ class GridConfig(_Section):
     log_odds_max: float = Field(5.0, gt=0.0, le=50.0, description="Upper clamp.")
     max_range_m: float = Field(30.0, gt=0.1, le=200.0, description="Beams are used up to this range [m]; "
                                "longer returns clear free space to here but add no hit.")
-    no_return_clear_m: float = Field(0.0, ge=0.0, le=200.0, description="Beams without a return clear free "
-                                     "space up to this range [m] (0 = not at all: scanners also report no "
-                                     "return for dark or glass surfaces close by).")
+    no_return_clear_m: float = Field(30.0, ge=0.0, le=200.0, description="Beams without a return clear free "
+                                     "space up to this range [m], capped by max_range_m and the sensor's range "
+                                     "(0 = not at all; lower it for scanners that report no return for dark or "
+                                     "glass surfaces close by, e.g. Hokuyo URG-04LX zeros).")
 
 
 class MotionNoiseConfig(_Section):
