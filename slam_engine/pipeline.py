@@ -20,7 +20,7 @@ from slam_engine.errors import ConfigError
 from slam_engine.messages import ScanMessage
 from slam_engine.odometry import dead_reckoning, odometry_source
 from slam_engine.particle_filter import SlamFilter
-from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, SlamResult
+from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, SlamResult, TextureMap, Trajectory
 
 
 @dataclass(frozen=True)
@@ -91,10 +91,13 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
     if len(resampled) > 1 and resampled.mean() > 0.9:
         warnings.append("the particle set was resampled after almost every scan: the map may be unreliable "
                         "(odometry much worse than the motion noise assumes?)")
+    grid = slam.best_grid()
+    texture, texture_status = _ground_texture(log, trajectory, grid, config, warnings)
     return SlamResult(
         trajectory=trajectory,
         dead_reckoning=dr,
-        grid=slam.best_grid(),
+        grid=grid,
+        texture=texture,
         scan_stats=slam.scan_stats(),
         config=config,
         snapshots=slam.snapshots,
@@ -102,5 +105,20 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
         peak_memory_bytes=_peak_rss_bytes(),
         warnings=warnings,
         input_summary={**log.summary(), "grid_memory_bytes": slam.grids.memory_bytes(),
-                       "scans_processed": slam.steps_processed},
+                       "scans_processed": slam.steps_processed, "texture": texture_status},
     )
+
+
+def _ground_texture(log: DriveLog, trajectory: Trajectory, grid: OccupancyGrid, config: SlamConfig,
+                    warnings: list[str]) -> tuple[TextureMap | None, str]:
+    """The ground texture on ``grid``'s cells once the trajectory is known, and a one-line status."""
+    from slam_engine.texture import build_texture_map
+
+    if log.stereo is None and log.rgbd is None:
+        return None, "no texture: the log has no camera data"
+    if not config.texture.enabled:
+        return None, "no texture: disabled in the configuration"
+    texture = build_texture_map(log, trajectory, grid, config, warnings=warnings)
+    if texture is None:
+        return None, "no texture: no camera frame could be used (see warnings)"
+    return texture, f"texture from {int((texture.counts > 0).sum())} observed cells"
