@@ -503,7 +503,8 @@ def safe_url(url: str) -> str:
     if sep and "@" in rest:
         credentials, _, host = rest.rpartition("@")
         user, has_password, _ = credentials.partition(":")
-        rest = f"{user}:***@{host}" if has_password else f"{credentials}@{host}"
+        if has_password:
+            rest = f"{user}:***@{host}" if user else f"***@{host}"
     return re.sub(r"(?i)(password=)[^&]*", r"\1***", f"{scheme}{sep}{rest}")
 
 
