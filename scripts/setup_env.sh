@@ -9,6 +9,8 @@ have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
 have_lib "libusb-1.0.so.0" || need_pkgs+=(libusb-1.0-0)
 if [[ "${LIDARMAP_SETUP_TEST_DEPS:-0}" == "1" ]]; then
     command -v redis-server >/dev/null 2>&1 || need_pkgs+=(redis-server)
+    compgen -G "/usr/lib/postgresql/*/bin/initdb" >/dev/null || command -v initdb >/dev/null 2>&1 \
+        || need_pkgs+=(postgresql)  # the PostgreSQL job store tests start a throw-away server
     command -v chromium >/dev/null 2>&1 || need_pkgs+=(chromium)
 fi
 if ((${#need_pkgs[@]})); then

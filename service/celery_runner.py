@@ -40,7 +40,7 @@ from celery import Celery, signals
 from service.errors import Unavailable
 from service.runner import DEFAULT_JOB_FUNCTION, RunnerHealth
 from service.storage import DataDir
-from service.store import JobStore, open_store
+from service.store import JobStore, open_store, safe_url
 from service.worker import JobContext, JobFunction, execute_job, import_function
 
 logger = logging.getLogger("lidarmap.celery")
@@ -179,7 +179,7 @@ class CeleryRunner:
             with self._app.connection_for_write() as conn:
                 conn.ensure_connection(max_retries=3, interval_start=0.2, interval_step=0.4, interval_max=1.0)
         except Exception as exc:
-            raise RuntimeError(f"the Celery broker at {_safe_url(settings.broker_url)} is unreachable: {exc}") from exc
+            raise RuntimeError(f"the Celery broker at {safe_url(settings.broker_url)} is unreachable: {exc}") from exc
         self._stopping = threading.Event()
         self._health: tuple[float, RunnerHealth] | None = None
         self._reaper = threading.Thread(target=self._reap_loop, name="lidarmap-reaper", daemon=True)
@@ -191,7 +191,7 @@ class CeleryRunner:
         try:
             self._app.send_task(TASK_NAME, args=[job_id], task_id=job_id, queue=self._settings.queue)
         except Exception as exc:
-            reason = f"could not queue the job: the broker at {_safe_url(self._settings.broker_url)} is unreachable"
+            reason = f"could not queue the job: the broker at {safe_url(self._settings.broker_url)} is unreachable"
             self._store.finish(job_id, "failed", reason)
             raise Unavailable(reason, {"job_id": job_id}) from exc
 
@@ -231,13 +231,3 @@ class CeleryRunner:
                                    self._settings.worker_lost_s)
             except Exception:  # the reaper must survive a locked database
                 logger.exception("reaper pass failed")
-
-
-def _safe_url(url: str) -> str:
-    """The broker URL without its password."""
-    scheme, sep, rest = url.partition("://")
-    if sep and "@" in rest:
-        credentials, _, host = rest.rpartition("@")
-        user = credentials.split(":", 1)[0]
-        return f"{scheme}://{user}:***@{host}" if user else f"{scheme}://***@{host}"
-    return url

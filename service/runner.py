@@ -156,7 +156,7 @@ class LocalProcessRunner:
         inbox = self._ctx.Queue()
         process = self._ctx.Process(
             target=_worker_entry, name=f"lidarmap-worker-{index}", daemon=True,
-            args=(str(self._data.root), self._job_function, index, inbox, self._outbox))
+            args=(str(self._data.root), self._store, self._job_function, index, inbox, self._outbox))
         process.start()
         return _Slot(index=index, process=process, inbox=inbox, started_s=time.monotonic())
 
@@ -234,10 +234,10 @@ class LocalProcessRunner:
             slot.inbox.put(job_id)
 
 
-def _worker_entry(data_root: str, job_function: str, slot: int, inbox: Any, outbox: Any) -> None:
+def _worker_entry(data_root: str, store: JobStore, job_function: str, slot: int, inbox: Any, outbox: Any) -> None:
     from service.worker import worker_main
 
-    worker_main(data_root, job_function, slot, inbox, outbox)
+    worker_main(data_root, store, job_function, slot, inbox, outbox)
 
 
 def create_runner(settings: Any, data: DataDir, store: JobStore, job_function: str | None = None) -> JobRunner:

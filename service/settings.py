@@ -22,8 +22,9 @@ class Settings(BaseSettings):
     broker_url: str = Field("redis://127.0.0.1:6379/0", description="Celery broker (runner 'celery').")
     queue: str = Field("lidarmap", min_length=1, max_length=200, pattern=r"^[A-Za-z0-9_.:-]+$",
                        description="Celery queue the API sends jobs to and workers consume by default.")
-    database_url: str = Field("", description="Job store: empty = SQLite in the data folder, or "
-                              "sqlite:////absolute/path.sqlite3 (one host only).")
+    database_url: str = Field("", description="Job store: empty = SQLite in the data folder (one host), "
+                              "sqlite:////absolute/path.sqlite3, or postgresql://user:password@host:5432/db "
+                              "(API and workers on several hosts).", repr=False)
     heartbeat_s: float = Field(5.0, ge=0.1, le=300.0, description="How often a Celery worker's job "
                                "writes its heartbeat to the store.")
     worker_lost_s: float = Field(60.0, ge=1.0, le=86_400.0, description="A running Celery job whose "

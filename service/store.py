@@ -1,46 +1,70 @@
-"""The job store: sessions, uploaded logs, streamed chunks and jobs in one SQLite file (WAL).
+"""The job store: sessions, uploaded logs, streamed chunks and jobs, in SQLite (the default: one
+file in WAL mode) or PostgreSQL (``LIDARMAP_DATABASE_URL=postgresql://...``, for several hosts).
 
-Both the API process and the worker processes open it; each operation uses its own short-lived
-connection, so no connection crosses a thread or process. Times are Unix seconds (float).
+Both backends run the same SQL through one :class:`JobStore`; a backend only opens a transaction
+on a fresh connection and says its placeholder style (queries are written with ``?``). The API
+process and every worker process open the store; each operation is one transaction on its own
+short-lived connection, so no connection crosses a thread or a process. Times are Unix seconds
+(float, stored as DOUBLE PRECISION).
+
+Atomicity: SQLite's ``BEGIN IMMEDIATE`` runs transactions one after another. PostgreSQL runs them
+concurrently (READ COMMITTED), so every check-then-write is one conditional statement (the
+queued -> running claim is ``UPDATE ... WHERE status = 'queued'``: a concurrent claimer waits for
+the row lock, re-reads the row and updates nothing) and chunk inserts use ``ON CONFLICT``.
 """
 
 from __future__ import annotations
 
 import json
+import re
 import sqlite3
 import time
 import uuid
-from collections.abc import Iterator
+import zlib
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from urllib.parse import unquote
+
+from service.errors import Unavailable
 
 ACTIVE_STATUSES = ("queued", "running")
 TERMINAL_STATUSES = ("succeeded", "failed", "cancelled")
+POSTGRES_CONNECT_TIMEOUT_S = 10
 
+# Portable DDL: SQLite gives DOUBLE PRECISION and BIGINT columns REAL (8-byte float) and INTEGER
+# (8-byte) affinity; PostgreSQL's REAL would be a 4-byte float (timestamps off by minutes).
+# logs.upload_no numbers a session's uploads 1, 2, ... ("newest" must not depend on clock ties).
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS sessions (
     id TEXT PRIMARY KEY, owner TEXT NOT NULL, name TEXT NOT NULL, vehicle_preset TEXT,
-    calibration_json TEXT, geo_json TEXT, created_at REAL NOT NULL);
+    calibration_json TEXT, geo_json TEXT, created_at DOUBLE PRECISION NOT NULL);
 CREATE TABLE IF NOT EXISTS logs (
-    id TEXT PRIMARY KEY, session_id TEXT NOT NULL, filename TEXT NOT NULL, size_bytes INTEGER NOT NULL,
+    id TEXT PRIMARY KEY, session_id TEXT NOT NULL, filename TEXT NOT NULL, size_bytes BIGINT NOT NULL,
     sha256 TEXT NOT NULL, archive INTEGER NOT NULL, format TEXT NOT NULL, summary_json TEXT NOT NULL,
-    stored_path TEXT NOT NULL, created_at REAL NOT NULL);
+    stored_path TEXT NOT NULL, created_at DOUBLE PRECISION NOT NULL, upload_no BIGINT NOT NULL DEFAULT 0);
 CREATE INDEX IF NOT EXISTS logs_session ON logs(session_id, created_at);
 CREATE TABLE IF NOT EXISTS chunks (
-    session_id TEXT NOT NULL, seq INTEGER NOT NULL, sha256 TEXT NOT NULL, messages INTEGER NOT NULL,
-    t_first_s REAL NOT NULL, t_last_s REAL NOT NULL, created_at REAL NOT NULL,
+    session_id TEXT NOT NULL, seq BIGINT NOT NULL, sha256 TEXT NOT NULL, messages BIGINT NOT NULL,
+    t_first_s DOUBLE PRECISION NOT NULL, t_last_s DOUBLE PRECISION NOT NULL, created_at DOUBLE PRECISION NOT NULL,
     PRIMARY KEY (session_id, seq));
 CREATE TABLE IF NOT EXISTS jobs (
     id TEXT PRIMARY KEY, session_id TEXT NOT NULL, owner TEXT NOT NULL, source TEXT NOT NULL, log_id TEXT,
-    config_json TEXT NOT NULL, status TEXT NOT NULL, progress REAL NOT NULL DEFAULT 0,
-    scans_done INTEGER NOT NULL DEFAULT 0, scans_total INTEGER, error TEXT,
+    config_json TEXT NOT NULL, status TEXT NOT NULL, progress DOUBLE PRECISION NOT NULL DEFAULT 0,
+    scans_done BIGINT NOT NULL DEFAULT 0, scans_total BIGINT, error TEXT,
     cancel_requested INTEGER NOT NULL DEFAULT 0, input_json TEXT, products_json TEXT,
-    worker_pid INTEGER, created_at REAL NOT NULL, started_at REAL, finished_at REAL, heartbeat_at REAL);
+    worker_pid BIGINT, created_at DOUBLE PRECISION NOT NULL, started_at DOUBLE PRECISION,
+    finished_at DOUBLE PRECISION, heartbeat_at DOUBLE PRECISION);
 CREATE INDEX IF NOT EXISTS jobs_session ON jobs(session_id, created_at);
 CREATE INDEX IF NOT EXISTS jobs_status ON jobs(status);
 """
+SCHEMA_STATEMENTS = [s.strip() for s in SCHEMA.split(";") if s.strip()]
+
+
+class StoreUnavailable(Unavailable):
+    """The database cannot be reached (503); the message never contains a password."""
 
 
 def new_id() -> str:
@@ -55,16 +79,29 @@ class ChunkOutcome:
     conflict: bool
 
 
-class JobStore:
-    """SQLite-backed persistence; every method is one transaction."""
+# ---- backends -----------------------------------------------------------------------------------
+
+
+class SqliteBackend:
+    """One SQLite file in WAL mode, on a disk of this host (its locking is unsafe on network file
+    systems). ``BEGIN IMMEDIATE`` makes every transaction take the write lock at once."""
+
+    placeholder = "?"
 
     def __init__(self, path: Path):
         self.path = Path(path)
 
+    def __repr__(self) -> str:
+        return f"SqliteBackend({str(self.path)!r})"
+
+    @property
+    def errors(self) -> tuple[type[Exception], ...]:
+        return (sqlite3.Error,)
+
     @contextmanager
-    def _tx(self) -> Iterator[sqlite3.Connection]:
+    def transaction(self) -> Iterator[sqlite3.Connection]:
         conn = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
-        conn.row_factory = sqlite3.Row
+        conn.row_factory = _dict_row
         try:
             conn.execute("PRAGMA busy_timeout = 30000")
             conn.execute("BEGIN IMMEDIATE")
@@ -77,55 +114,150 @@ class JobStore:
         finally:
             conn.close()
 
-    def initialise(self) -> None:
-        """Create the file and tables (idempotent) and switch the file to WAL."""
+    def create_schema(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         conn = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
         try:
             conn.execute("PRAGMA journal_mode = WAL")
-            conn.executescript(SCHEMA)
+            for statement in SCHEMA_STATEMENTS:
+                conn.execute(statement)
+            if "upload_no" not in {row[1] for row in conn.execute("PRAGMA table_info(logs)")}:
+                conn.execute("ALTER TABLE logs ADD COLUMN upload_no BIGINT NOT NULL DEFAULT 0")  # older files
         finally:
             conn.close()
+
+
+class PostgresBackend:
+    """A PostgreSQL database (psycopg 3) that the API and the workers of every host reach."""
+
+    placeholder = "%s"
+    _SCHEMA_LOCK = zlib.crc32(b"lidarmap job store schema")  # serialises concurrent schema creation
+
+    def __init__(self, url: str):
+        self.url = url
+
+    def __repr__(self) -> str:
+        return f"PostgresBackend({safe_url(self.url)!r})"
+
+    @property
+    def errors(self) -> tuple[type[Exception], ...]:
+        return (_psycopg().Error, StoreUnavailable)
+
+    @contextmanager
+    def transaction(self) -> Iterator[Any]:
+        psycopg = _psycopg()
+        from psycopg.rows import dict_row
+
+        try:
+            conn = psycopg.connect(self.url, row_factory=dict_row, connect_timeout=POSTGRES_CONNECT_TIMEOUT_S,
+                                   application_name="lidarmap")
+        except psycopg.Error as exc:
+            raise self._unavailable(exc) from None
+        try:
+            with conn:  # commits when the block succeeds, rolls back when it raises; then closes
+                yield conn
+        except psycopg.OperationalError as exc:  # the server went away mid-transaction
+            raise self._unavailable(exc) from None
+
+    def create_schema(self) -> None:
+        with self.transaction() as conn:
+            conn.execute("SELECT pg_advisory_xact_lock(%s)", (self._SCHEMA_LOCK,))
+            for statement in SCHEMA_STATEMENTS:
+                conn.execute(statement)
+
+    def _unavailable(self, exc: Exception) -> StoreUnavailable:
+        reason = str(exc).strip()
+        for secret in _url_secrets(self.url):
+            reason = reason.replace(secret, "***")
+        return StoreUnavailable(f"the job store at {safe_url(self.url)} is unavailable: {reason}")
+
+
+def _psycopg() -> Any:
+    try:
+        import psycopg
+    except ImportError as exc:
+        raise RuntimeError("LIDARMAP_DATABASE_URL names PostgreSQL but psycopg is not installed: "
+                           "pip install 'lidarmap[distributed]'") from exc
+    return psycopg
+
+
+def _dict_row(cursor: sqlite3.Cursor, row: tuple) -> dict[str, Any]:
+    return {column[0]: value for column, value in zip(cursor.description, row, strict=True)}
+
+
+class _Transaction:
+    """An open transaction that takes ``?`` placeholders whatever the backend."""
+
+    def __init__(self, conn: Any, placeholder: str):
+        self._conn, self._placeholder = conn, placeholder
+
+    def execute(self, sql: str, params: Sequence[Any] = ()) -> Any:
+        if self._placeholder != "?":
+            sql = sql.replace("?", self._placeholder)
+        return self._conn.execute(sql, tuple(params)) if params else self._conn.execute(sql)
+
+
+Backend = SqliteBackend | PostgresBackend
+
+
+class JobStore:
+    """The service's persistence; every method is one transaction. ``JobStore(path)`` is SQLite
+    at ``path``; pass a :class:`PostgresBackend` for PostgreSQL (or use :func:`open_store`)."""
+
+    def __init__(self, backend: Backend | Path):
+        self.backend = backend if isinstance(backend, SqliteBackend | PostgresBackend) else SqliteBackend(backend)
+
+    def __repr__(self) -> str:
+        return f"JobStore({self.backend!r})"
+
+    @contextmanager
+    def _tx(self) -> Iterator[_Transaction]:
+        with self.backend.transaction() as conn:
+            yield _Transaction(conn, self.backend.placeholder)
+
+    def initialise(self) -> None:
+        """Create the tables (idempotent; SQLite: the file too, in WAL mode)."""
+        self.backend.create_schema()
 
     def ping(self) -> bool:
         """True when the database answers a query."""
         try:
-            with self._tx() as conn:
-                conn.execute("SELECT count(*) FROM jobs").fetchone()
+            with self._tx() as tx:
+                tx.execute("SELECT count(*) AS n FROM jobs").fetchone()
             return True
-        except sqlite3.Error:
+        except self.backend.errors:
             return False
 
     # ---- sessions -------------------------------------------------------------------------------
 
     def create_session(self, owner: str, name: str, vehicle_preset: str | None,
                        calibration: dict | None, geo: dict | None) -> dict[str, Any]:
-        row = {"id": new_id(), "owner": owner, "name": name, "vehicle_preset": vehicle_preset,
-               "calibration_json": _dump(calibration), "geo_json": _dump(geo), "created_at": time.time()}
-        with self._tx() as conn:
-            conn.execute("INSERT INTO sessions VALUES (:id, :owner, :name, :vehicle_preset, "
-                         ":calibration_json, :geo_json, :created_at)", row)
-        return self.get_session(row["id"], owner)  # type: ignore[return-value]
+        session_id = new_id()
+        with self._tx() as tx:
+            tx.execute("INSERT INTO sessions (id, owner, name, vehicle_preset, calibration_json, geo_json, "
+                       "created_at) VALUES (?, ?, ?, ?, ?, ?, ?)",
+                       (session_id, owner, name, vehicle_preset, _dump(calibration), _dump(geo), time.time()))
+        return self.get_session(session_id, owner)  # type: ignore[return-value]
 
     def get_session(self, session_id: str, owner: str) -> dict[str, Any] | None:
-        with self._tx() as conn:
-            row = conn.execute(_SESSION_SELECT + " WHERE s.id = ? AND s.owner = ?", (session_id, owner)).fetchone()
+        with self._tx() as tx:
+            row = tx.execute(_SESSION_SELECT + " WHERE s.id = ? AND s.owner = ?", (session_id, owner)).fetchone()
         return None if row is None else _session(row)
 
     def list_sessions(self, owner: str, limit: int, offset: int) -> tuple[list[dict[str, Any]], int]:
-        with self._tx() as conn:
-            rows = conn.execute(_SESSION_SELECT + " WHERE s.owner = ? ORDER BY s.created_at DESC LIMIT ? OFFSET ?",
-                                (owner, limit, offset)).fetchall()
-            count = conn.execute("SELECT count(*) FROM sessions WHERE owner = ?", (owner,)).fetchone()[0]
+        with self._tx() as tx:
+            rows = tx.execute(_SESSION_SELECT + " WHERE s.owner = ? ORDER BY s.created_at DESC LIMIT ? OFFSET ?",
+                              (owner, limit, offset)).fetchall()
+            count = tx.execute("SELECT count(*) AS n FROM sessions WHERE owner = ?", (owner,)).fetchone()["n"]
         return [_session(r) for r in rows], int(count)
 
     def delete_session(self, session_id: str) -> list[str]:
         """Delete the session with its logs, chunks and jobs; returns the deleted job ids."""
-        with self._tx() as conn:
-            job_ids = [r[0] for r in conn.execute("SELECT id FROM jobs WHERE session_id = ?", (session_id,))]
+        with self._tx() as tx:
+            job_ids = [r["id"] for r in tx.execute("SELECT id FROM jobs WHERE session_id = ?", (session_id,))]
             for table in ("logs", "chunks", "jobs"):
-                conn.execute(f"DELETE FROM {table} WHERE session_id = ?", (session_id,))
-            conn.execute("DELETE FROM sessions WHERE id = ?", (session_id,))
+                tx.execute(f"DELETE FROM {table} WHERE session_id = ?", (session_id,))
+            tx.execute("DELETE FROM sessions WHERE id = ?", (session_id,))
         return job_ids
 
     # ---- logs -----------------------------------------------------------------------------------
@@ -136,60 +268,59 @@ class JobStore:
         row = {"id": log_id, "session_id": session_id, "filename": filename, "size_bytes": size_bytes,
                "sha256": sha256, "archive": int(archive), "format": summary.get("format", "unknown"),
                "summary_json": _dump(summary), "stored_path": stored_path, "created_at": time.time()}
-        with self._tx() as conn:
-            conn.execute("INSERT INTO logs VALUES (:id, :session_id, :filename, :size_bytes, :sha256, :archive, "
-                         ":format, :summary_json, :stored_path, :created_at)", row)
+        with self._tx() as tx:
+            tx.execute(f"INSERT INTO logs ({', '.join(row)}, upload_no) VALUES ({', '.join('?' * len(row))}, "
+                       "(SELECT coalesce(max(upload_no), 0) + 1 FROM logs WHERE session_id = ?))",
+                       (*row.values(), session_id))
         return _log(row)
 
     def get_log(self, log_id: str, session_id: str) -> dict[str, Any] | None:
-        with self._tx() as conn:
-            row = conn.execute("SELECT * FROM logs WHERE id = ? AND session_id = ?", (log_id, session_id)).fetchone()
-        return None if row is None else _log(dict(row))
+        with self._tx() as tx:
+            row = tx.execute("SELECT * FROM logs WHERE id = ? AND session_id = ?", (log_id, session_id)).fetchone()
+        return None if row is None else _log(row)
 
     def list_logs(self, session_id: str) -> list[dict[str, Any]]:
         """Logs of a session, newest first."""
-        with self._tx() as conn:
-            rows = conn.execute("SELECT * FROM logs WHERE session_id = ? ORDER BY created_at DESC, rowid DESC",
-                                (session_id,)).fetchall()
-        return [_log(dict(r)) for r in rows]
+        with self._tx() as tx:
+            rows = tx.execute("SELECT * FROM logs WHERE session_id = ? ORDER BY upload_no DESC, created_at DESC",
+                              (session_id,)).fetchall()
+        return [_log(r) for r in rows]
 
     # ---- chunks ---------------------------------------------------------------------------------
 
     def put_chunk(self, session_id: str, seq: int, sha256: str, messages: int,
                   t_first_s: float, t_last_s: float) -> ChunkOutcome:
         """Record chunk ``seq`` once: a retry with the same hash is a duplicate, another hash a conflict."""
-        with self._tx() as conn:
-            old = conn.execute("SELECT * FROM chunks WHERE session_id = ? AND seq = ?", (session_id, seq)).fetchone()
-            if old is not None:
-                return ChunkOutcome(dict(old), duplicate=old["sha256"] == sha256, conflict=old["sha256"] != sha256)
-            row = {"session_id": session_id, "seq": seq, "sha256": sha256, "messages": messages,
-                   "t_first_s": t_first_s, "t_last_s": t_last_s, "created_at": time.time()}
-            conn.execute("INSERT INTO chunks VALUES (:session_id, :seq, :sha256, :messages, :t_first_s, "
-                         ":t_last_s, :created_at)", row)
-        return ChunkOutcome(row, duplicate=False, conflict=False)
+        row = {"session_id": session_id, "seq": seq, "sha256": sha256, "messages": messages,
+               "t_first_s": t_first_s, "t_last_s": t_last_s, "created_at": time.time()}
+        with self._tx() as tx:
+            inserted = tx.execute(f"INSERT INTO chunks ({', '.join(row)}) VALUES ({', '.join('?' * len(row))}) "
+                                  "ON CONFLICT (session_id, seq) DO NOTHING", tuple(row.values())).rowcount
+            if inserted == 1:
+                return ChunkOutcome(row, duplicate=False, conflict=False)
+            old = tx.execute("SELECT * FROM chunks WHERE session_id = ? AND seq = ?", (session_id, seq)).fetchone()
+        return ChunkOutcome(old, duplicate=old["sha256"] == sha256, conflict=old["sha256"] != sha256)
 
     def chunk_rows(self, session_id: str) -> list[dict[str, Any]]:
         """All chunks of a session in seq order."""
-        with self._tx() as conn:
-            rows = conn.execute("SELECT * FROM chunks WHERE session_id = ? ORDER BY seq", (session_id,)).fetchall()
-        return [dict(r) for r in rows]
+        with self._tx() as tx:
+            return tx.execute("SELECT * FROM chunks WHERE session_id = ? ORDER BY seq", (session_id,)).fetchall()
 
     # ---- jobs -----------------------------------------------------------------------------------
 
     def create_job(self, session_id: str, owner: str, source: str, log_id: str | None,
                    config: dict) -> dict[str, Any]:
-        row = {"id": new_id(), "session_id": session_id, "owner": owner, "source": source, "log_id": log_id,
-               "config_json": _dump(config), "status": "queued", "created_at": time.time()}
-        with self._tx() as conn:
-            conn.execute("INSERT INTO jobs (id, session_id, owner, source, log_id, config_json, status, created_at) "
-                         "VALUES (:id, :session_id, :owner, :source, :log_id, :config_json, :status, :created_at)",
-                         row)
-        return self.get_job(row["id"])  # type: ignore[return-value]
+        job_id = new_id()
+        with self._tx() as tx:
+            tx.execute("INSERT INTO jobs (id, session_id, owner, source, log_id, config_json, status, created_at) "
+                       "VALUES (?, ?, ?, ?, ?, ?, 'queued', ?)",
+                       (job_id, session_id, owner, source, log_id, _dump(config), time.time()))
+        return self.get_job(job_id)  # type: ignore[return-value]
 
     def get_job(self, job_id: str, owner: str | None = None) -> dict[str, Any] | None:
         """The job, or None when unknown (or owned by someone else when ``owner`` is given)."""
-        with self._tx() as conn:
-            row = conn.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        with self._tx() as tx:
+            row = tx.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         if row is None or (owner is not None and row["owner"] != owner):
             return None
         return _job(row)
@@ -204,102 +335,108 @@ class JobStore:
             where.append("status = ?")
             args.append(status)
         clause = " AND ".join(where)
-        with self._tx() as conn:
-            rows = conn.execute(f"SELECT * FROM jobs WHERE {clause} ORDER BY created_at DESC LIMIT ? OFFSET ?",
-                                (*args, limit, offset)).fetchall()
-            count = conn.execute(f"SELECT count(*) FROM jobs WHERE {clause}", args).fetchone()[0]
+        with self._tx() as tx:
+            rows = tx.execute(f"SELECT * FROM jobs WHERE {clause} ORDER BY created_at DESC LIMIT ? OFFSET ?",
+                              (*args, limit, offset)).fetchall()
+            count = tx.execute(f"SELECT count(*) AS n FROM jobs WHERE {clause}", args).fetchone()["n"]
         return [_job(r) for r in rows], int(count)
 
     def jobs_with_status(self, *statuses: str) -> list[str]:
-        marks = ",".join("?" * len(statuses))
-        with self._tx() as conn:
-            rows = conn.execute(f"SELECT id FROM jobs WHERE status IN ({marks}) ORDER BY created_at", statuses)
-            return [r[0] for r in rows]
+        marks = ", ".join("?" * len(statuses))
+        with self._tx() as tx:
+            rows = tx.execute(f"SELECT id FROM jobs WHERE status IN ({marks}) ORDER BY created_at", statuses)
+            return [r["id"] for r in rows]
 
     def mark_running(self, job_id: str, worker_pid: int) -> bool:
-        """queued -> running; False when the job is no longer queued (cancelled meanwhile)."""
+        """The claim, queued -> running in one conditional update; False when the job is no longer
+        queued (another worker claimed it, or it was cancelled meanwhile)."""
         now = time.time()
-        with self._tx() as conn:
-            cur = conn.execute("UPDATE jobs SET status = 'running', started_at = ?, heartbeat_at = ?, "
-                               "worker_pid = ? WHERE id = ? AND status = 'queued' AND cancel_requested = 0",
-                               (now, now, worker_pid, job_id))
+        with self._tx() as tx:
+            cur = tx.execute("UPDATE jobs SET status = 'running', started_at = ?, heartbeat_at = ?, "
+                             "worker_pid = ? WHERE id = ? AND status = 'queued' AND cancel_requested = 0",
+                             (now, now, worker_pid, job_id))
             return cur.rowcount == 1
 
     def set_input(self, job_id: str, input_description: dict) -> None:
-        with self._tx() as conn:
-            conn.execute("UPDATE jobs SET input_json = ? WHERE id = ?", (_dump(input_description), job_id))
+        with self._tx() as tx:
+            tx.execute("UPDATE jobs SET input_json = ? WHERE id = ?", (_dump(input_description), job_id))
 
     def update_progress(self, job_id: str, scans_done: int, scans_total: int | None) -> bool:
         """Record progress and heartbeat; returns whether a cancel was requested."""
         progress = 0.0 if not scans_total else min(1.0, max(0.0, scans_done / scans_total))
-        with self._tx() as conn:
-            conn.execute("UPDATE jobs SET scans_done = ?, scans_total = ?, progress = ?, heartbeat_at = ? "
-                         "WHERE id = ? AND status = 'running'",
-                         (scans_done, scans_total, progress, time.time(), job_id))
-            row = conn.execute("SELECT cancel_requested FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return row is None or bool(row[0])
+        with self._tx() as tx:
+            tx.execute("UPDATE jobs SET scans_done = ?, scans_total = ?, progress = ?, heartbeat_at = ? "
+                       "WHERE id = ? AND status = 'running'",
+                       (scans_done, scans_total, progress, time.time(), job_id))
+            row = tx.execute("SELECT cancel_requested FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return row is None or bool(row["cancel_requested"])
 
     def cancel_requested(self, job_id: str) -> bool:
-        with self._tx() as conn:
-            row = conn.execute("SELECT cancel_requested FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return row is None or bool(row[0])
+        with self._tx() as tx:
+            row = tx.execute("SELECT cancel_requested FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return row is None or bool(row["cancel_requested"])
 
     def set_products(self, job_id: str, products: dict[str, str]) -> None:
         """Product name -> file name inside the job's artifact folder."""
-        with self._tx() as conn:
-            conn.execute("UPDATE jobs SET products_json = ? WHERE id = ?", (_dump(products), job_id))
+        with self._tx() as tx:
+            tx.execute("UPDATE jobs SET products_json = ? WHERE id = ?", (_dump(products), job_id))
 
     def finish(self, job_id: str, status: str, error: str | None = None) -> bool:
         """An active job -> a terminal status (first writer wins); False when already terminal."""
         assert status in TERMINAL_STATUSES
-        with self._tx() as conn:
+        with self._tx() as tx:
             extra = ", progress = 1.0" if status == "succeeded" else ""
-            cur = conn.execute(f"UPDATE jobs SET status = ?, error = ?, finished_at = ?{extra} "
-                               "WHERE id = ? AND status IN ('queued', 'running')",
-                               (status, error, time.time(), job_id))
+            cur = tx.execute(f"UPDATE jobs SET status = ?, error = ?, finished_at = ?{extra} "
+                             "WHERE id = ? AND status IN ('queued', 'running')",
+                             (status, error, time.time(), job_id))
             return cur.rowcount == 1
 
     def request_cancel(self, job_id: str) -> str:
         """Ask a job to stop: a queued job is cancelled at once, a running one is flagged for its
         worker. Returns the status afterwards."""
-        with self._tx() as conn:
-            conn.execute("UPDATE jobs SET cancel_requested = 1 WHERE id = ? AND status IN ('queued', 'running')",
-                         (job_id,))
-            conn.execute("UPDATE jobs SET status = 'cancelled', error = 'cancelled by request', finished_at = ? "
-                         "WHERE id = ? AND status = 'queued'", (time.time(), job_id))
-            row = conn.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return "" if row is None else row[0]
+        with self._tx() as tx:
+            tx.execute("UPDATE jobs SET cancel_requested = 1 WHERE id = ? AND status IN ('queued', 'running')",
+                       (job_id,))
+            tx.execute("UPDATE jobs SET status = 'cancelled', error = 'cancelled by request', finished_at = ? "
+                       "WHERE id = ? AND status = 'queued'", (time.time(), job_id))
+            row = tx.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return "" if row is None else row["status"]
 
     def heartbeat(self, job_id: str) -> bool:
         """A running job's worker is alive; returns whether the job should stop (cancel requested,
         or no longer running because it was failed meanwhile)."""
-        with self._tx() as conn:
-            conn.execute("UPDATE jobs SET heartbeat_at = ? WHERE id = ? AND status = 'running'", (time.time(), job_id))
-            row = conn.execute("SELECT status, cancel_requested FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return row is None or row[0] != "running" or bool(row[1])
+        with self._tx() as tx:
+            tx.execute("UPDATE jobs SET heartbeat_at = ? WHERE id = ? AND status = 'running'", (time.time(), job_id))
+            row = tx.execute("SELECT status, cancel_requested FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return row is None or row["status"] != "running" or bool(row["cancel_requested"])
 
     def fail_lost(self, silent_s: float) -> list[str]:
         """Running jobs whose heartbeat is older than ``silent_s`` -> failed 'worker lost' (their
-        cancel flag is set too, so a worker that was only slow stops at its next progress report)."""
+        cancel flag is set too, so a worker that was only slow stops at its next progress report).
+        Each update re-checks the heartbeat: one that arrives meanwhile keeps its job running."""
         now = time.time()
-        with self._tx() as conn:
-            rows = conn.execute("SELECT id, heartbeat_at, worker_pid FROM jobs WHERE status = 'running' "
-                                "AND coalesce(heartbeat_at, started_at, 0) < ?", (now - silent_s,)).fetchall()
-            for job_id, heartbeat_at, pid in rows:
-                silence = f"{now - heartbeat_at:.0f} s" if heartbeat_at else "ever"
-                conn.execute("UPDATE jobs SET status = 'failed', cancel_requested = 1, finished_at = ?, error = ? "
-                             "WHERE id = ? AND status = 'running'",
-                             (now, f"worker lost: no heartbeat for {silence} (worker pid {pid}): its process "
-                              "or machine stopped", job_id))
-        return [r[0] for r in rows]
+        silent = "status = 'running' AND coalesce(heartbeat_at, started_at, 0) < ?"
+        failed = []
+        with self._tx() as tx:
+            rows = tx.execute(f"SELECT id, heartbeat_at, worker_pid FROM jobs WHERE {silent}",
+                              (now - silent_s,)).fetchall()
+            for row in rows:
+                silence = f"{now - row['heartbeat_at']:.0f} s" if row["heartbeat_at"] else "ever"
+                reason = (f"worker lost: no heartbeat for {silence} (worker pid {row['worker_pid']}): its process "
+                          "or machine stopped")
+                cur = tx.execute(f"UPDATE jobs SET status = 'failed', cancel_requested = 1, finished_at = ?, "
+                                 f"error = ? WHERE id = ? AND {silent}", (now, reason, row["id"], now - silent_s))
+                if cur.rowcount == 1:
+                    failed.append(row["id"])
+        return failed
 
     def fail_interrupted(self) -> list[str]:
         """At start-up: jobs left 'running' by a previous process cannot resume -> failed 'interrupted'."""
-        with self._tx() as conn:
-            ids = [r[0] for r in conn.execute("SELECT id FROM jobs WHERE status = 'running'")]
-            conn.execute("UPDATE jobs SET status = 'failed', finished_at = ?, error = 'interrupted: the service "
-                         "stopped while the job was running' WHERE status = 'running'", (time.time(),))
-        return ids
+        with self._tx() as tx:
+            rows = tx.execute("UPDATE jobs SET status = 'failed', finished_at = ?, error = 'interrupted: the "
+                              "service stopped while the job was running' WHERE status = 'running' RETURNING id",
+                              (time.time(),)).fetchall()
+        return [r["id"] for r in rows]
 
 
 _SESSION_SELECT = (
@@ -317,22 +454,21 @@ def _load(text: str | None) -> Any:
     return None if text is None else json.loads(text)
 
 
-def _session(row: sqlite3.Row) -> dict[str, Any]:
-    d = dict(row)
+def _session(d: dict[str, Any]) -> dict[str, Any]:
     return {"id": d["id"], "owner": d["owner"], "name": d["name"], "vehicle_preset": d["vehicle_preset"],
             "calibration": _load(d["calibration_json"]), "geo": _load(d["geo_json"]),
             "created_at": d["created_at"], "logs": d["n_logs"], "chunks": d["n_chunks"], "jobs": d["n_jobs"]}
 
 
 def _log(d: dict[str, Any]) -> dict[str, Any]:
-    out = {k: v for k, v in d.items() if k not in ("summary_json", "format")}
+    out = {k: v for k, v in d.items() if k not in ("summary_json", "format", "upload_no")}
     out["archive"] = bool(d["archive"])
     out["summary"] = _load(d["summary_json"])
     return out
 
 
-def _job(row: sqlite3.Row) -> dict[str, Any]:
-    d = dict(row)
+def _job(d: dict[str, Any]) -> dict[str, Any]:
+    d = dict(d)
     d["config"] = _load(d.pop("config_json"))
     d["input"] = _load(d.pop("input_json"))
     d["products"] = _load(d.pop("products_json")) or {}
@@ -340,13 +476,43 @@ def _job(row: sqlite3.Row) -> dict[str, Any]:
     return d
 
 
+# ---- LIDARMAP_DATABASE_URL ----------------------------------------------------------------------
+
+
 def open_store(database_url: str, default_path: Path) -> JobStore:
-    """The job store that ``LIDARMAP_DATABASE_URL`` names: empty = SQLite at ``default_path``,
-    ``sqlite:////abs/path.sqlite3`` (or ``sqlite:///relative/path``) = SQLite there."""
+    """The job store that ``LIDARMAP_DATABASE_URL`` names: empty = SQLite at ``default_path``;
+    ``sqlite:////abs/path.sqlite3`` (or ``sqlite:///relative/path``) = SQLite there;
+    ``postgresql://user:password@host:5432/dbname`` (or ``postgres://``, with libpq's query
+    parameters such as ``?sslmode=require``) = PostgreSQL."""
     if not database_url:
         return JobStore(default_path)
     scheme, sep, rest = database_url.partition("://")
     if sep and scheme == "sqlite" and rest.startswith("/") and len(rest) > 1:
         return JobStore(Path(rest[1:]))
-    raise ValueError(f"unsupported LIDARMAP_DATABASE_URL {database_url!r}: use sqlite:////absolute/path.sqlite3 "
-                     "(or leave it empty for SQLite in the data folder)")
+    if sep and scheme in ("postgresql", "postgres") and rest:
+        return JobStore(PostgresBackend(database_url))
+    raise ValueError(f"unsupported LIDARMAP_DATABASE_URL {safe_url(database_url)!r}: use "
+                     "postgresql://user:password@host:5432/dbname, sqlite:////absolute/path.sqlite3, "
+                     "or leave it empty for SQLite in the data folder")
+
+
+def safe_url(url: str) -> str:
+    """``url`` for messages and logs: its password (``user:PASSWORD@host``, ``password=`` query
+    parameter) replaced by ``***``."""
+    scheme, sep, rest = url.partition("://")
+    if sep and "@" in rest:
+        credentials, _, host = rest.rpartition("@")
+        user, has_password, _ = credentials.partition(":")
+        if has_password:
+            rest = f"{user}:***@{host}" if user else f"***@{host}"
+    return re.sub(r"(?i)(password=)[^&]*", r"\1***", f"{scheme}{sep}{rest}")
+
+
+def _url_secrets(url: str) -> list[str]:
+    """The passwords in ``url``, as written and percent-decoded (to scrub them from driver messages)."""
+    secrets = re.findall(r"(?i)password=([^&]+)", url)
+    _, sep, rest = url.partition("://")
+    if sep and "@" in rest:
+        secrets.append(rest.rpartition("@")[0].partition(":")[2])
+    secrets += [unquote(s) for s in secrets]
+    return sorted({s for s in secrets if s}, key=len, reverse=True)

@@ -99,12 +99,12 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
     return "succeeded"
 
 
-def worker_main(data_root: str, job_function: str, slot: int, inbox: Any, outbox: Any) -> None:
-    """Entry point of a spawned worker process: take job ids from ``inbox`` until ``None``."""
+def worker_main(data_root: str, store: JobStore, job_function: str, slot: int, inbox: Any, outbox: Any) -> None:
+    """Entry point of a spawned worker process: take job ids from ``inbox`` until ``None``.
+    ``store`` is the server's (it holds only where the database is, no connection)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which shuts us down
     logging.basicConfig(level=logging.INFO)
     data = DataDir(Path(data_root))
-    store = JobStore(data.database)
     try:
         function = import_function(job_function)
     except Exception as exc:  # fail each job with the reason instead of dying (and being respawned) in a loop

@@ -327,6 +327,7 @@ def test_unreachable_broker_and_bad_settings_are_clear_errors(tmp_path) -> None:
         CeleryRunner(Settings(runner="celery", broker_url=f"redis://:secret@127.0.0.1:{_free_port()}/0"), None, None)
     with pytest.raises(ValidationError, match="worker_lost_s .* must be at least twice heartbeat_s"):
         Settings(heartbeat_s=5, worker_lost_s=6)
-    assert open_store(f"sqlite:///{tmp_path}/jobs.sqlite3", tmp_path / "default").path == tmp_path / "jobs.sqlite3"
+    chosen = open_store(f"sqlite:///{tmp_path}/jobs.sqlite3", tmp_path / "default")
+    assert chosen.backend.path == tmp_path / "jobs.sqlite3"
     with pytest.raises(ValueError, match="unsupported LIDARMAP_DATABASE_URL 'mysql://db/x'"):
         open_store("mysql://db/x", tmp_path / "default")
