@@ -161,6 +161,22 @@ def read_ground_truth(path: str | Path) -> Trajectory:
     return Trajectory(t_s=table[:, 0].copy(), poses=np.ascontiguousarray(table[:, 1:4]))
 
 
+def files_beside_log(log_path: str | Path) -> tuple[Path | None, Path | None]:
+    """(relations, ground truth) files that come with a log file or log folder, None where absent:
+    ``NAME.relations`` (else the only ``*.relations`` in the folder) and ``NAME.gt.txt`` or
+    ``ground_truth.txt``, where NAME is the file name without extensions (a folder: its name) and
+    the folder is the log's own folder (a folder log: itself)."""
+    log_path = Path(log_path)
+    folder = log_path if log_path.is_dir() else log_path.parent
+    name = log_path.name.split(".", 1)[0] if log_path.is_file() else log_path.name
+    relations: Path | None = folder / f"{name}.relations"
+    if not relations.exists():
+        candidates = sorted(folder.glob("*.relations"))
+        relations = candidates[0] if len(candidates) == 1 else None
+    truth = next((p for p in (folder / f"{name}.gt.txt", folder / "ground_truth.txt") if p.exists()), None)
+    return relations, truth
+
+
 # ------------------------------------------------------------------------------------------- maths
 
 
