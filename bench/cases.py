@@ -7,6 +7,8 @@ import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from slam_engine.evaluation import files_beside_log
+
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
 # Logs without ground truth whose maps a person should look at (paths inside the datasets folder).
@@ -44,17 +46,11 @@ def _stem(path: Path) -> str:
 
 
 def case_for_log(log_path: Path) -> BenchCase:
-    """A case for one log file (or log folder), with ``NAME.relations`` and ``NAME.gt.txt`` /
-    ``ground_truth.txt`` beside it when they exist (NAME = file name without extensions); in a
-    folder holding exactly one ``*.relations`` file, that one is used."""
+    """A case for one log file (or log folder), with its relations and ground truth when they exist
+    (:func:`slam_engine.evaluation.files_beside_log`)."""
     log_path = Path(log_path).resolve()
-    folder = log_path.parent if log_path.is_file() else log_path
     name = _stem(log_path)
-    relations = folder / f"{name}.relations"
-    if not relations.exists():
-        candidates = sorted(folder.glob("*.relations"))
-        relations = candidates[0] if len(candidates) == 1 else None
-    truth = next((p for p in (folder / f"{name}.gt.txt", folder / "ground_truth.txt") if p.exists()), None)
+    relations, truth = files_beside_log(log_path)
     return BenchCase(name=name, log_path=str(log_path),
                      relations_path=None if relations is None else str(relations),
                      ground_truth_path=None if truth is None else str(truth))

@@ -1,4 +1,4 @@
-"""Map numbers for logs without ground truth, and a PNG a person can look at.
+"""Map numbers for logs without ground truth (the map PNG comes from slam_engine.products.rendering).
 
 - ``wall_thickness_m``: 2 x occupied area / occupied-free boundary length of the final grid. A
   straight one-cell wall scores about one cell; blurred or doubled walls score more.
@@ -12,10 +12,7 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
-from PIL import Image, ImageDraw
 from scipy import ndimage
 
 from slam_engine.drive_log import DriveLog
@@ -122,23 +119,3 @@ def map_quality(grid: OccupancyGrid, log: DriveLog | None = None, trajectory: Tr
             and len(log.scans) and len(trajectory):
         numbers.update(half_agreement(scan_endpoints_world(log, trajectory, max_range_m)))
     return numbers
-
-
-def save_map_png(grid: OccupancyGrid, path: Path, trajectory: Trajectory | None = None,
-                 ground_truth: Trajectory | None = None) -> Path:
-    """Probability map as a grayscale PNG (white free, black occupied, grey unknown, north up), with
-    the trajectory in red and, when given, the ground truth in blue."""
-    gray = np.round(255.0 * (1.0 - grid.probability())).astype(np.uint8)
-    image = Image.fromarray(np.flipud(gray), mode="L").convert("RGB")
-    draw = ImageDraw.Draw(image)
-    height = gray.shape[0]
-    for track, colour in ((ground_truth, (40, 90, 255)), (trajectory, (230, 30, 30))):
-        if track is None or len(track) < 2:
-            continue
-        ix = (track.poses[:, 0] - grid.origin_x_m) / grid.resolution_m
-        iy = height - (track.poses[:, 1] - grid.origin_y_m) / grid.resolution_m
-        draw.line(list(zip(ix.tolist(), iy.tolist(), strict=True)), fill=colour, width=1)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    image.save(path)
-    return path

@@ -69,9 +69,10 @@ def dead_reckoning_agreement(log, dead_reckoning, config) -> dict | None:
 
 def run_job(job: dict) -> dict:
     """Run one (case, seed) job and return its JSON-ready record (see module docstring)."""
-    from bench.map_quality import map_quality, save_map_png
+    from bench.map_quality import map_quality
     from slam_engine.config import SlamConfig
     from slam_engine.evaluation import align_rigid_2d, read_ground_truth, read_relations
+    from slam_engine.products.rendering import occupancy_with_trajectories
     from slam_engine.result import Trajectory
 
     case, seed = job["case"], int(job["seed"])
@@ -108,7 +109,8 @@ def run_job(job: dict) -> dict:
             heading = math.atan2(rotation[1, 0], rotation[0, 0])
             truth_in_map = Trajectory(ground_truth.t_s.copy(), np.column_stack(
                 [ground_truth.poses[:, :2] @ rotation.T + shift, ground_truth.poses[:, 2] + heading]))
-    png = save_map_png(result.grid, out_dir / f"{case['name']}_seed{seed}.png", result.trajectory, truth_in_map)
+    png = out_dir / f"{case['name']}_seed{seed}.png"
+    occupancy_with_trajectories(result.grid, result.trajectory, truth_in_map).save(png)
     record = {
         "case": case["name"], "log_path": case["log_path"], "scored": bool(case.get("relations_path")),
         "seed": seed, "particles": config.particles, "status": "ok",

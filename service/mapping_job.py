@@ -7,7 +7,6 @@ Input: an uploaded log (loaded again with ``load_log``) or the session's streame
 
 from __future__ import annotations
 
-import io
 import shutil
 from pathlib import Path
 from typing import Any
@@ -23,7 +22,7 @@ from slam_engine.config import SlamConfig
 from slam_engine.drive_log import DriveLog
 from slam_engine.errors import ConfigError, LogFormatError
 from slam_engine.products import write_trajectory_json
-from slam_engine.result import OccupancyGrid
+from slam_engine.products.rendering import occupancy_image, png_bytes
 
 
 def slam_config(job_config: dict[str, Any]) -> SlamConfig:
@@ -87,21 +86,8 @@ class LiveMap:
         self._last_scan_index = snapshot.scan_index
         self.live_dir.mkdir(parents=True, exist_ok=True)
         save_grid(snapshot.grid, self.live_dir / GRID_FILE)
-        write_atomic(self.live_dir / "occupancy.png", grid_png(snapshot.grid))
+        write_atomic(self.live_dir / "occupancy.png", png_bytes(occupancy_image(snapshot.grid)))
         write_trajectory_json(snapshot.trajectory, self.live_dir / "trajectory.json", frame="map (so far)")
-
-
-def grid_png(grid: OccupancyGrid) -> bytes:
-    """A quick grayscale PNG of a grid, north up (occupied black, free white, unknown grey)."""
-    from PIL import Image
-
-    p = grid.probability()
-    image = np.full(p.shape, 205, dtype=np.uint8)
-    known = grid.known()
-    image[known] = np.round(255.0 * (1.0 - p[known])).astype(np.uint8)
-    buffer = io.BytesIO()
-    Image.fromarray(image[::-1]).save(buffer, format="PNG")
-    return buffer.getvalue()
 
 
 def run_mapping_job(ctx: JobContext) -> None:

@@ -13,6 +13,7 @@ import numpy as np
 
 from service.errors import NotFound, NotReady
 from service.storage import DataDir
+from slam_engine.products.files import atomic_path
 from slam_engine.result import OccupancyGrid, TextureMap
 
 MEDIA_TYPES = {
@@ -86,17 +87,15 @@ _cache = _GridCache()
 
 def save_grid(grid: OccupancyGrid, path: Path) -> None:
     """Write a grid as .npz atomically (the tile source)."""
-    tmp = path.with_name(f".{path.name}.tmp.npz")
-    np.savez(tmp, log_odds=grid.log_odds, resolution_m=grid.resolution_m, origin_x_m=grid.origin_x_m,
-             origin_y_m=grid.origin_y_m)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        np.savez(tmp, log_odds=grid.log_odds, resolution_m=grid.resolution_m, origin_x_m=grid.origin_x_m,
+                 origin_y_m=grid.origin_y_m)
 
 
 def save_texture(texture: TextureMap, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp.npz")
-    np.savez(tmp, colors=texture.colors, counts=texture.counts, resolution_m=texture.resolution_m,
-             origin_x_m=texture.origin_x_m, origin_y_m=texture.origin_y_m)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        np.savez(tmp, colors=texture.colors, counts=texture.counts, resolution_m=texture.resolution_m,
+                 origin_x_m=texture.origin_x_m, origin_y_m=texture.origin_y_m)
 
 
 def _load_grid(path: Path) -> OccupancyGrid:

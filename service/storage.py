@@ -11,11 +11,12 @@ names, never from client input (except the members of an uploaded zip, which upl
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
 import uuid
 from pathlib import Path
+
+from slam_engine.products.files import write_bytes_atomic
 
 
 class DataDir:
@@ -82,12 +83,4 @@ def _checked_id(value: str) -> str:
 
 def write_atomic(path: Path, data: bytes) -> None:
     """Write ``data`` so readers see the old file or the new one, never a partial one."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=path.suffix)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_bytes_atomic(path, data)

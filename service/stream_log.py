@@ -16,51 +16,35 @@ from slam_engine.drive_log import (
     EncoderStream,
     GyroStream,
     LidarModel,
-    MotionModelKind,
     OdometryStream,
     ScanStream,
     VehicleModel,
 )
 from slam_engine.errors import LogFormatError
+from slam_engine.formats.drivelog import lidar_from_json, lidar_to_json, vehicle_from_json, vehicle_to_json
 
 
 def vehicle_from_calibration(vehicle: dict[str, Any]) -> VehicleModel:
-    return VehicleModel(
-        kind=MotionModelKind(vehicle["kind"]),
-        ticks_per_revolution=vehicle.get("ticks_per_revolution"),
-        wheel_diameters_m=None if vehicle.get("wheel_diameters_m") is None else tuple(vehicle["wheel_diameters_m"]),
-        wheel_names=tuple(vehicle.get("wheel_names") or ()),
-        track_width_m=vehicle.get("track_width_m"),
-        gyro_lowpass_hz=vehicle.get("gyro_lowpass_hz"),
-        T_vehicle_from_gyro=_matrix(vehicle.get("T_vehicle_from_gyro")),
-        name=vehicle.get("name", "vehicle"),
-    )
+    """VehicleModel from a session's calibration (the .drivelog manifest's ``vehicle`` object;
+    a null ``T_vehicle_from_gyro`` is the identity)."""
+    return vehicle_from_json(_identity_if_null(vehicle, "T_vehicle_from_gyro"))
 
 
 def lidar_from_calibration(lidar: dict[str, Any] | None) -> LidarModel | None:
-    if lidar is None:
-        return None
-    return LidarModel(num_beams=lidar["num_beams"], angle_min_rad=lidar["angle_min_rad"],
-                      angle_increment_rad=lidar["angle_increment_rad"], range_min_m=lidar["range_min_m"],
-                      range_max_m=lidar["range_max_m"], T_vehicle_from_lidar=_matrix(lidar.get("T_vehicle_from_lidar")),
-                      name=lidar.get("name", "lidar"))
+    """LidarModel from a session's calibration (None without a LiDAR; a null mounting is the identity)."""
+    return None if lidar is None else lidar_from_json(_identity_if_null(lidar, "T_vehicle_from_lidar"))
 
 
 def calibration_from_log(log: DriveLog) -> dict[str, Any]:
     """The calibration JSON of a DriveLog (what a client sends when it streams that log)."""
-    v, lidar = log.vehicle, log.lidar
-    out: dict[str, Any] = {"vehicle": {
-        "kind": v.kind.value, "ticks_per_revolution": v.ticks_per_revolution,
-        "wheel_diameters_m": None if v.wheel_diameters_m is None else list(v.wheel_diameters_m),
-        "wheel_names": list(v.wheel_names), "track_width_m": v.track_width_m, "gyro_lowpass_hz": v.gyro_lowpass_hz,
-        "T_vehicle_from_gyro": np.asarray(v.T_vehicle_from_gyro, dtype=float).tolist(), "name": v.name}}
-    if lidar is not None:
-        out["lidar"] = {"num_beams": lidar.num_beams, "angle_min_rad": lidar.angle_min_rad,
-                        "angle_increment_rad": lidar.angle_increment_rad, "range_min_m": lidar.range_min_m,
-                        "range_max_m": lidar.range_max_m,
-                        "T_vehicle_from_lidar": np.asarray(lidar.T_vehicle_from_lidar, dtype=float).tolist(),
-                        "name": lidar.name}
+    out: dict[str, Any] = {"vehicle": vehicle_to_json(log.vehicle)}
+    if log.lidar is not None:
+        out["lidar"] = lidar_to_json(log.lidar)
     return out
+
+
+def _identity_if_null(section: dict[str, Any], key: str) -> dict[str, Any]:
+    return {**section, key: np.eye(4).tolist()} if section.get(key) is None else section
 
 
 def drive_log_from_messages(calibration: dict[str, Any], messages: Iterable[dict[str, Any]],
@@ -123,12 +107,3 @@ def messages_of_log(log: DriveLog) -> list[dict[str, Any]]:
         elif isinstance(m, OdometryMessage):
             out.append({"type": "odometry", "t_s": m.t_s, "x_m": m.x_m, "y_m": m.y_m, "theta_rad": m.theta_rad})
     return out
-
-
-def _matrix(value: Any) -> np.ndarray:
-    if value is None:
-        return np.eye(4)
-    matrix = np.asarray(value, dtype=np.float64)
-    if matrix.shape != (4, 4):
-        raise LogFormatError(f"a transform must be 4x4, got shape {matrix.shape}", location="calibration")
-    return matrix

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from slam_engine.errors import LogFormatError
+from slam_engine.poses import relative, wrap_angle
 from slam_engine.result import Trajectory
 
 DEFAULT_TIME_TOLERANCE_S = 0.1
@@ -160,12 +161,23 @@ def read_ground_truth(path: str | Path) -> Trajectory:
     return Trajectory(t_s=table[:, 0].copy(), poses=np.ascontiguousarray(table[:, 1:4]))
 
 
+def files_beside_log(log_path: str | Path) -> tuple[Path | None, Path | None]:
+    """(relations, ground truth) files that come with a log file or log folder, None where absent:
+    ``NAME.relations`` (else the only ``*.relations`` in the folder) and ``NAME.gt.txt`` or
+    ``ground_truth.txt``, where NAME is the file name without extensions (a folder: its name) and
+    the folder is the log's own folder (a folder log: itself)."""
+    log_path = Path(log_path)
+    folder = log_path if log_path.is_dir() else log_path.parent
+    name = log_path.name.split(".", 1)[0] if log_path.is_file() else log_path.name
+    relations: Path | None = folder / f"{name}.relations"
+    if not relations.exists():
+        candidates = sorted(folder.glob("*.relations"))
+        relations = candidates[0] if len(candidates) == 1 else None
+    truth = next((p for p in (folder / f"{name}.gt.txt", folder / "ground_truth.txt") if p.exists()), None)
+    return relations, truth
+
+
 # ------------------------------------------------------------------------------------------- maths
-
-
-def wrap_angle(angle_rad: np.ndarray) -> np.ndarray:
-    """Angles wrapped into [-pi, pi)."""
-    return (np.asarray(angle_rad) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def match_times(t_s: np.ndarray, query_s: np.ndarray,
@@ -182,15 +194,6 @@ def match_times(t_s: np.ndarray, query_s: np.ndarray,
     left = np.clip(right - 1, 0, t_s.size - 1)
     nearest = np.where(np.abs(t_s[left] - query_s) <= np.abs(t_s[right] - query_s), left, right)
     return np.where(np.abs(t_s[nearest] - query_s) <= time_tolerance_s, nearest, -1).astype(np.int64)
-
-
-def relative_motion(poses_from: np.ndarray, poses_to: np.ndarray) -> np.ndarray:
-    """(N, 3) motion [x_m, y_m, dtheta_rad] of ``poses_to`` expressed in the frame of ``poses_from``."""
-    dx = poses_to[:, 0] - poses_from[:, 0]
-    dy = poses_to[:, 1] - poses_from[:, 1]
-    cos_t, sin_t = np.cos(poses_from[:, 2]), np.sin(poses_from[:, 2])
-    return np.stack([cos_t * dx + sin_t * dy, -sin_t * dx + cos_t * dy,
-                     wrap_angle(poses_to[:, 2] - poses_from[:, 2])], axis=1)
 
 
 def _stats(trans_m: np.ndarray, rot_deg: np.ndarray, failed: np.ndarray) -> RelationStats:
@@ -219,7 +222,7 @@ def relation_errors(trajectory: Trajectory, relations: Relations,
     if poses.shape[0] == 0:
         estimated = np.zeros((len(relations), 3))
     else:
-        estimated = relative_motion(poses[np.maximum(i1, 0)], poses[np.maximum(i2, 0)])
+        estimated = relative(poses[np.maximum(i1, 0)], poses[np.maximum(i2, 0)])
     trans_m = np.hypot(estimated[:, 0] - relations.motion[:, 0], estimated[:, 1] - relations.motion[:, 1])
     rot_deg = np.degrees(np.abs(wrap_angle(estimated[:, 2] - relations.motion[:, 2])))
     trans_m[failed] = np.nan

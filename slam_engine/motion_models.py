@@ -61,10 +61,15 @@ def skid_steer_increments(
     Each side is the mean of its two wheels; the heading change is the IMU's ``delta_yaw_rad``
     (integrated, low-pass filtered yaw rate) when given, else the sides' difference over the
     *effective* track width (which absorbs the skidding)."""
-    wheels_m = np.asarray(wheels_m, dtype=np.float64)
-    right = 0.5 * (wheels_m[..., 0] + wheels_m[..., 2])
-    left = 0.5 * (wheels_m[..., 1] + wheels_m[..., 3])
+    left, right = skid_steer_sides(wheels_m)
     return differential_drive_increments(left, right, effective_track_width_m, delta_yaw_rad)
+
+
+def skid_steer_sides(wheels_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(left, right) side distances [m] of a skid steer: the mean of each side's two wheels
+    from (..., 4) wheel distances ordered FR, FL, RR, RL."""
+    wheels_m = np.asarray(wheels_m, dtype=np.float64)
+    return 0.5 * (wheels_m[..., 1] + wheels_m[..., 3]), 0.5 * (wheels_m[..., 0] + wheels_m[..., 2])
 
 
 def lowpass_alpha(dt_s: float, cutoff_hz: float | None) -> float:

@@ -1,5 +1,6 @@
 """Dead reckoning: turn a drive log's odometry sources (wheel encoders, gyro, logged odometry) into
-one odometry pose track, streamed message by message or for a whole log at its scan times.
+one odometry pose track, streamed message by message or for a whole log at its scan times (and
+for format writers, at the odometry stamps).
 
 The odometry frame is arbitrary; only its increments matter. Which source drives the track:
 logged odometry for ``MotionModelKind.ODOMETRY`` (or when a log has no encoders), otherwise the
@@ -10,13 +11,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam_engine.drive_log import DriveLog, MotionModelKind, VehicleModel
+from slam_engine.drive_log import DriveLog, MotionModelKind, OdometryStream, VehicleModel
 from slam_engine.errors import ConfigError
 from slam_engine.messages import EncoderMessage, GyroMessage, Message, OdometryMessage
 from slam_engine.motion_models import (
     differential_drive_increments,
     lowpass_alpha,
     skid_steer_increments,
+    skid_steer_sides,
     wheel_distances_m,
 )
 from slam_engine.poses import compose, interpolate, relative
@@ -190,3 +192,37 @@ def dead_reckoning(log: DriveLog) -> Trajectory:
     else:
         t_query, poses = track.t_s, track.poses
     return Trajectory(t_s=t_query.copy(), poses=relative(poses[0], poses))
+
+
+def odometry_poses(log: DriveLog) -> OdometryStream:
+    """The log's own odometry poses, else poses dead-reckoned from its encoders (and gyro) at
+    the encoder stamps, starting at the origin: what a format that stores odometry writes."""
+    if log.odometry is not None and len(log.odometry) > 0:
+        return log.odometry
+    track = odometry_track(log)
+    return OdometryStream(t_s=track.t_s, poses=track.poses)
+
+
+def side_distances_m(vehicle: VehicleModel, ticks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cumulative (left, right) travelled distance [m] from (N, n_wheels) cumulative ticks; a skid
+    steer's side is the mean of its two wheels."""
+    skid = vehicle.kind == MotionModelKind.SKID_STEER
+    n_wheels = 4 if skid else 2
+    if not vehicle.ticks_per_revolution or not vehicle.wheel_diameters_m:
+        raise ConfigError(f"vehicle {vehicle.name!r}: wheel distances need ticks_per_revolution and "
+                          "wheel_diameters_m")
+    order = _wheel_order(vehicle, n_wheels)
+    diameters = np.broadcast_to(np.asarray(vehicle.wheel_diameters_m, dtype=np.float64), (n_wheels,))[order]
+    metres = wheel_distances_m(np.asarray(ticks)[:, order], vehicle.ticks_per_revolution, diameters)
+    if skid:
+        return skid_steer_sides(metres)
+    return metres[:, 0], metres[:, 1]
+
+
+def integrate_yaw_rate(t_s: np.ndarray, yaw_rate_rad_s: np.ndarray, at_t_s: np.ndarray) -> np.ndarray:
+    """Heading [rad] (unwrapped, 0 at the first gyro sample) at ``at_t_s`` by trapezoidal
+    integration of the raw yaw rate (no low-pass, no mounting sign)."""
+    t_s = np.asarray(t_s, dtype=np.float64)
+    rate = np.asarray(yaw_rate_rad_s, dtype=np.float64)
+    heading = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t_s))])
+    return np.interp(at_t_s, t_s, heading)

@@ -1,6 +1,7 @@
 """Shared fixtures: where the shared datasets are, and how their absence is handled.
 
-Datasets are found through ``LIDARMAP_DATASETS`` or ``../shared/datasets`` beside the checkout.
+Datasets are found as the benchmark finds them (``bench.cases.datasets_root``): ``LIDARMAP_DATASETS``
+or ``../shared/datasets`` beside the checkout.
 When missing, tests that need them skip with the reason; with ``CI=true`` they fail instead, so CI
 never silently skips the real-data tests.
 """
@@ -12,13 +13,7 @@ from pathlib import Path
 
 import pytest
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
-
-
-def datasets_root() -> Path:
-    """The datasets folder (may not exist)."""
-    override = os.environ.get("LIDARMAP_DATASETS")
-    return Path(override) if override else REPO_ROOT.parent / "shared" / "datasets"
+from bench.cases import datasets_root
 
 
 def require_dataset(relative: str) -> Path:

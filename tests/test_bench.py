@@ -18,8 +18,9 @@ from bench.harness import BenchOptions, run_benchmark
 from bench.map_quality import half_agreement, occupied_with_neighbour, wall_thickness_m
 from bench.report import print_report
 from slam_engine.drive_log import DriveLog, LidarModel, MotionModelKind, OdometryStream, ScanStream, VehicleModel
-from slam_engine.evaluation import Relations, read_relations, relation_errors, relative_motion
+from slam_engine.evaluation import Relations, read_relations, relation_errors
 from slam_engine.formats import load_log, write_log
+from slam_engine.poses import relative
 from slam_engine.result import OccupancyGrid, Trajectory
 
 N_SCANS = 12
@@ -74,7 +75,7 @@ def write_case(folder, with_truth: bool = True):
     write_log(log, "carmen", folder)
     if with_truth:
         pairs = np.array([(k, k + 1) for k in range(N_SCANS - 1)] + [(0, N_SCANS - 1)])
-        motion = relative_motion(truth.poses[pairs[:, 0]], truth.poses[pairs[:, 1]])
+        motion = relative(truth.poses[pairs[:, 0]], truth.poses[pairs[:, 1]])
         rows = np.column_stack([truth.t_s[pairs[:, 0]], truth.t_s[pairs[:, 1]], motion[:, :2],
                                 np.zeros((len(pairs), 3)), motion[:, 2]])
         np.savetxt(folder / "log.relations", rows, fmt="%.9f")

@@ -13,7 +13,6 @@ import contextlib
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -24,6 +23,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from bench.throughput import free_port, redis_server
 from service.app import create_app
 from service.settings import Settings
 from service.store import JobStore
@@ -42,39 +42,14 @@ def _require(condition: bool, reason: str) -> None:
         pytest.skip(reason)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def redis_url(tmp_path_factory):
     """A throw-away redis-server on a free loopback port (no persistence)."""
-    server = shutil.which("redis-server") or "/usr/bin/redis-server"
-    _require(Path(server).exists(), "redis-server not installed (Debian package redis-server): the Celery "
-             "runner tests need a real Redis")
+    _require(shutil.which("redis-server") is not None, "redis-server not installed (Debian package redis-server): "
+             "the Celery runner tests need a real Redis")
     _require(_importable("celery") and _importable("redis"), "celery/redis not installed: pip install '.[distributed]'")
-    folder = tmp_path_factory.mktemp("redis")
-    port = _free_port()
-    process = subprocess.Popen([server, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly",
-                                "no", "--dir", str(folder)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + 10
-        while True:
-            try:
-                with socket.create_connection(("127.0.0.1", port), timeout=0.2) as s:
-                    s.sendall(b"PING\r\n")
-                    if s.recv(16).startswith(b"+PONG"):
-                        break
-            except OSError:
-                pass
-            assert process.poll() is None and time.monotonic() < deadline, "redis-server did not start"
-            time.sleep(0.05)
-        yield f"redis://127.0.0.1:{port}/0"
-    finally:
-        process.terminate()
-        process.wait(timeout=10)
+    with redis_server(tmp_path_factory.mktemp("redis")) as url:
+        yield url
 
 
 def _importable(name: str) -> bool:
@@ -324,7 +299,7 @@ def test_unreachable_broker_and_bad_settings_are_clear_errors(tmp_path) -> None:
 
     _require(_importable("celery"), "celery not installed: pip install '.[distributed]'")
     with pytest.raises(RuntimeError, match=r"broker at redis://\*\*\*@127.0.0.1:\d+/0 is unreachable"):
-        CeleryRunner(Settings(runner="celery", broker_url=f"redis://:secret@127.0.0.1:{_free_port()}/0"), None, None)
+        CeleryRunner(Settings(runner="celery", broker_url=f"redis://:secret@127.0.0.1:{free_port()}/0"), None, None)
     with pytest.raises(ValidationError, match="worker_lost_s .* must be at least twice heartbeat_s"):
         Settings(heartbeat_s=5, worker_lost_s=6)
     chosen = open_store(f"sqlite:///{tmp_path}/jobs.sqlite3", tmp_path / "default")

@@ -14,8 +14,8 @@ from slam_engine.evaluation import (
     read_ground_truth,
     read_relations,
     relation_errors,
-    relative_motion,
 )
+from slam_engine.poses import relative
 from slam_engine.result import Trajectory
 
 # Ground truth: three poses, the last one 39 s after the second (so relations to it are "loop").
@@ -26,7 +26,7 @@ GT = Trajectory(t_s=np.array([0.0, 1.0, 40.0]),
 def relations_of(truth: Trajectory, pairs: list[tuple[int, int]]) -> Relations:
     i1, i2 = np.array(pairs).T
     return Relations(t1_s=truth.t_s[i1], t2_s=truth.t_s[i2],
-                     motion=relative_motion(truth.poses[i1], truth.poses[i2]))
+                     motion=relative(truth.poses[i1], truth.poses[i2]))
 
 
 RELATIONS = relations_of(GT, [(0, 1), (1, 2), (0, 2)])

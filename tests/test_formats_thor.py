@@ -12,8 +12,8 @@ import pytest
 from slam_engine.drive_log import MotionModelKind
 from slam_engine.errors import LogFormatError
 from slam_engine.formats import detect_format, load_log
-from slam_engine.formats._odometry import dead_reckon
 from slam_engine.formats.thor import EFFECTIVE_TRACK_M, estimate_effective_track_width
+from slam_engine.odometry import odometry_track
 
 ESE650 = {20: ("train", 4956, 12187), 21: ("train", 4789, 11730), 22: ("test", 5247, 12929),
           23: ("train", 3809, 9416), 24: ("test", 3881, 8808)}
@@ -36,7 +36,7 @@ def test_ese650_sets_load_and_dead_reckon_back_near_their_start(dataset, number)
     assert np.all(np.diff(log.encoders.t_s) > 0)
     # Wheel-only dead reckoning with the effective track width: every set returns near its start.
     wheels_only = replace(log, gyro=None)
-    odometry = dead_reckon(wheels_only)
+    odometry = odometry_track(wheels_only)
     length = np.hypot(*np.diff(odometry.poses[:, :2], axis=0).T).sum()
     assert 70.0 < length < 100.0
     assert np.hypot(*odometry.poses[-1, :2]) < 4.5
@@ -71,7 +71,7 @@ def test_effective_track_width_agrees_across_sets(dataset) -> None:
 
 
 def test_npz_gyro_dead_reckoning_closes_set_20(dataset) -> None:
-    odometry = dead_reckon(load_log(dataset("ece276a-thor-npz/Encoders20.npz")))
+    odometry = odometry_track(load_log(dataset("ece276a-thor-npz/Encoders20.npz")))
     assert np.hypot(*odometry.poses[-1, :2]) < 3.5  # 96.6 m driven
 
 

@@ -11,7 +11,8 @@ from typer.testing import CliRunner
 
 from slam_engine.errors import ConfigError
 from slam_engine.formats import load_log
-from slam_engine.formats._odometry import dead_reckon, relative_se2
+from slam_engine.odometry import odometry_track
+from slam_engine.poses import relative
 from slam_engine.simulation import relations, simulate, write_simulated
 from slam_engine.simulation.world import office
 
@@ -71,14 +72,14 @@ def test_scans_hit_the_walls_where_ground_truth_says(office_drive) -> None:
 
 def test_wheel_and_gyro_errors_are_realistic(office_drive) -> None:
     log, truth = office_drive.log, office_drive.ground_truth
-    odometry = dead_reckon(log)  # encoders + gyro
+    odometry = odometry_track(log)  # encoders + gyro
     length = np.hypot(*np.diff(odometry.poses[:, :2], axis=0).T).sum()
     assert length == pytest.approx(office_drive.motion.s_m[-1], rel=0.02)  # ~0.2 % scale error
     at_scans = np.column_stack([np.interp(truth.t_s, odometry.t_s, odometry.poses[:, i]) for i in range(2)])
     start_offset = truth.poses[0, :2]
     error = np.hypot(*(at_scans[-1] + start_offset - truth.poses[-1, :2]))
     assert 0.05 < error < 3.0  # drifts, but not absurdly
-    wheels_only = dead_reckon(replace(log, gyro=None))
+    wheels_only = odometry_track(replace(log, gyro=None))
     heading_error = abs(np.unwrap(wheels_only.poses[:, 2])[-1] - (office_drive.motion.theta_rad[-1]
                                                                     - office_drive.motion.theta_rad[0]))
     assert heading_error > np.radians(2.0)  # wheel scale error and slip bend the heading
@@ -89,7 +90,7 @@ def test_relations_are_true_relative_motions(office_drive) -> None:
     rel = relations(truth, np.random.default_rng(1), max_loop=10)
     index = {t: i for i, t in enumerate(truth.t_s)}
     i, j = index[rel[-1, 0]], index[rel[-1, 1]]
-    np.testing.assert_allclose(rel[-1, 2:], relative_se2(truth.poses[[i]], truth.poses[[j]])[0])
+    np.testing.assert_allclose(rel[-1, 2:], relative(truth.poses[[i]], truth.poses[[j]])[0])
 
 
 def test_written_folder_has_truth_relations_and_loads(tmp_path) -> None:

@@ -8,10 +8,11 @@ import pytest
 from slam_engine.config import TextureConfig
 from slam_engine.drive_log import DriveLog, MotionModelKind, RgbdStream, VehicleModel
 from slam_engine.errors import LogFormatError
+from slam_engine.poses import to_matrix_4x4
 from slam_engine.result import OccupancyGrid, Trajectory
 from slam_engine.texture import TextureAccumulator, build_texture_map
 from slam_engine.texture.calibration import thor_kinect_calibration
-from slam_engine.texture.projection import T_world_from_vehicle, interpolate_poses, transform_points
+from slam_engine.texture.projection import interpolate_poses, transform_points
 from slam_engine.texture.rgbd import kinect_depth_m, kinect_rgb_pixel, rgbd_frame_points
 
 
@@ -65,7 +66,7 @@ def test_interpolated_poses_wrap_the_heading():
 def test_open3d_transform_matches_the_matrix():
     rng = np.random.default_rng(0)
     points = rng.normal(size=(50, 3))
-    T = T_world_from_vehicle(np.array([1.0, -2.0, 0.7])) @ thor_kinect_calibration().T_vehicle_from_camera
+    T = to_matrix_4x4(np.array([1.0, -2.0, 0.7])) @ thor_kinect_calibration().T_vehicle_from_camera
     np.testing.assert_allclose(transform_points(points, T), points @ T[:3, :3].T + T[:3, 3], atol=1e-12)
 
 

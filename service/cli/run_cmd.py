@@ -1,8 +1,8 @@
 """``lidarmap run LOG --out DIR``: SLAM on a drive log, every map product into DIR.
 
-A relations file beside the log (``NAME.relations``, or the one ``*.relations`` in a log folder) and a
+A relations file beside the log (``NAME.relations``, or the one ``*.relations`` in its folder) and a
 ground-truth file (``NAME.gt.txt`` / ``ground_truth.txt``) are used automatically for run.json's
-accuracy figures.
+accuracy figures (``slam_engine.evaluation.files_beside_log``, as the benchmark finds them).
 """
 
 from __future__ import annotations
@@ -47,23 +47,6 @@ def load_config(path: Path | None, particles: int | None = None, seed: int | Non
         where = f"{path}" if path is not None else "command line"
         details = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in error.errors())
         raise ConfigError(f"{where}: bad config: {details}") from None
-
-
-def file_beside(log: Path, suffixes: tuple[str, ...], folder_names: tuple[str, ...]) -> Path | None:
-    """``NAME<suffix>`` next to a log file, or inside a log folder one of ``folder_names`` or the only
-    file ending in the first suffix."""
-    if log.is_dir():
-        for name in folder_names:
-            if (log / name).is_file():
-                return log / name
-        matches = sorted(log.glob(f"*{suffixes[0]}"))
-        return matches[0] if len(matches) == 1 else None
-    stem = log.name.split(".")[0]
-    for suffix in suffixes:
-        candidate = log.with_name(stem + suffix)
-        if candidate.is_file():
-            return candidate
-    return None
 
 
 def geo_origin(lat: float | None, lon: float | None, heading: float | None):
@@ -174,8 +157,9 @@ def register(app: typer.Typer) -> None:
         with bad_input_exits(verbose):
             geo = geo_origin(lat, lon, heading)
             slam_config = load_config(config, particles, seed, resolution, snapshot_every)
-            relations = relations or file_beside(log, (".relations",), ())
-            ground_truth = ground_truth or file_beside(log, (".gt.txt",), ("ground_truth.txt",))
+            relations_beside, truth_beside = evaluation.files_beside_log(log)
+            relations = relations or relations_beside
+            ground_truth = ground_truth or truth_beside
             # Read the side files before the long run, so a bad one fails in seconds.
             relation_table = None if relations is None else evaluation.read_relations(relations)
             truth = None if ground_truth is None else evaluation.read_ground_truth(ground_truth)

@@ -31,14 +31,8 @@ import numpy as np
 from slam_engine.drive_log import DriveLog, LidarModel, MotionModelKind, OdometryStream, ScanStream, VehicleModel
 from slam_engine.errors import LogFormatError
 from slam_engine.formats._checks import clean_ranges, head_lines, is_number, open_text, time_order
-from slam_engine.formats._odometry import (
-    compose_se2,
-    dead_reckon,
-    interpolate_poses,
-    planar_part,
-    relative_se2,
-    se2_matrix,
-)
+from slam_engine.odometry import odometry_poses
+from slam_engine.poses import compose, interpolate, is_planar_4x4, planar_from_4x4, relative, to_matrix_4x4
 
 DEFAULT_NO_RETURN_M = 80.0
 # A single range value filling this share of all beams, at >= SATURATION_MIN_M, is a no-return code.
@@ -277,11 +271,10 @@ def _mounting(path: Path, side: str, laser: _Laser, params: dict[str, str]) -> n
         x, y, yaw = (_param_float(params, name, path) if name in params else 0.0 for name in names)
         if side == "rear" and names[2] not in params:
             yaw = np.pi
-        return se2_matrix(x, y, yaw)
+        return to_matrix_4x4(np.array([x, y, yaw]))
     if laser.laser_pose:
-        offset = relative_se2(np.array([laser.robot_pose[0]]), np.array([laser.laser_pose[0]]))[0]
-        return se2_matrix(*offset)
-    return se2_matrix(0.0, 0.0, np.pi if side == "rear" else 0.0)
+        return to_matrix_4x4(relative(np.array(laser.robot_pose[0]), np.array(laser.laser_pose[0])))
+    return to_matrix_4x4(np.array([0.0, 0.0, np.pi if side == "rear" else 0.0]))
 
 
 # ---------------------------------------------------------------------------------------------- writing
@@ -297,16 +290,16 @@ def write(log: DriveLog, out_dir: Path, name: str = "log") -> Path:
     """Write ``out_dir/<name>.clf``: PARAM lines, ODOM lines at the odometry stamps (dead-reckoned
     from the encoders when the log has no odometry), and one FLASER (or ROBOTLASER1 when the beams
     do not follow the FLASER convention) per scan. Ranges in mm precision, poses in micrometres."""
-    odometry = dead_reckon(log)
+    odometry = odometry_poses(log)
     path = Path(out_dir) / f"{name}.clf"
     lines = [f"# written by lidarmap from a {log.source_format} log",
              "# ODOM x y theta tv rv accel ts host logger_ts; FLASER/ROBOTLASER1 see CARMEN docs"]
     if log.scans is not None and log.lidar is not None:
         lidar = log.lidar
-        mount = planar_part(lidar.T_vehicle_from_lidar)
-        if mount is None:
+        if not is_planar_4x4(lidar.T_vehicle_from_lidar):
             raise LogFormatError("CARMEN cannot store a tilted LiDAR (its mounting has roll or pitch)",
                                  path=str(path))
+        mount = planar_from_4x4(lidar.T_vehicle_from_lidar)
         lines.append(f"PARAM robot_frontlaser_offset {mount[0]:.6f} lidarmap 0")
         lines.append(f"PARAM robot_frontlaser_side_offset {mount[1]:.6f} lidarmap 0")
         lines.append(f"PARAM robot_frontlaser_angular_offset {mount[2]:.9f} lidarmap 0")
@@ -323,10 +316,10 @@ def write(log: DriveLog, out_dir: Path, name: str = "log") -> Path:
 
 
 def _laser_lines(log: DriveLog, odometry: OdometryStream,
-                 mount: tuple[float, float, float]) -> list[tuple[float, int, str]]:
+                 mount: np.ndarray) -> list[tuple[float, int, str]]:
     lidar, scans = log.lidar, log.scans
-    robot = interpolate_poses(odometry.t_s, odometry.poses, scans.t_s)
-    laser = compose_se2(robot, np.tile(np.array(mount), (len(robot), 1)))
+    robot = interpolate(odometry.t_s, odometry.poses, scans.t_s)
+    laser = compose(robot, mount)
     no_return = max(lidar.range_max_m, DEFAULT_NO_RETURN_M) + 1.91
     flaser = _flaser_geometry(lidar)
     out = []

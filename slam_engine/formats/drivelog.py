@@ -270,31 +270,42 @@ def _stream(kind: str, columns: dict[str, np.ndarray], count: int, lidar: LidarM
 
 # ---------------------------------------------------------------------------------------------- writing
 
+def vehicle_to_json(vehicle: VehicleModel) -> dict[str, Any]:
+    """The manifest's ``vehicle`` object (plain JSON types); :func:`vehicle_from_json` reads it."""
+    return {
+        "kind": vehicle.kind.value,
+        "ticks_per_revolution": vehicle.ticks_per_revolution,
+        "wheel_diameters_m": None if vehicle.wheel_diameters_m is None else list(vehicle.wheel_diameters_m),
+        "wheel_names": list(vehicle.wheel_names),
+        "track_width_m": vehicle.track_width_m,
+        "gyro_lowpass_hz": vehicle.gyro_lowpass_hz,
+        "T_vehicle_from_gyro": np.asarray(vehicle.T_vehicle_from_gyro, dtype=np.float64).tolist(),
+        "name": vehicle.name,
+    }
+
+
+def lidar_to_json(lidar: LidarModel | None) -> dict[str, Any] | None:
+    """The manifest's ``lidar`` object (None without a LiDAR); :func:`lidar_from_json` reads it."""
+    if lidar is None:
+        return None
+    return {
+        "num_beams": lidar.num_beams, "angle_min_rad": lidar.angle_min_rad,
+        "angle_increment_rad": lidar.angle_increment_rad, "range_min_m": lidar.range_min_m,
+        "range_max_m": lidar.range_max_m,
+        "T_vehicle_from_lidar": np.asarray(lidar.T_vehicle_from_lidar, dtype=np.float64).tolist(),
+        "name": lidar.name,
+    }
+
+
 def manifest_for(log: DriveLog, columns: dict[str, dict[str, str]]) -> dict:
     """The manifest (plain JSON types) describing ``log`` with the given stream columns."""
-    vehicle = log.vehicle
-    lidar = log.lidar
     counts = log.streams()
     omitted = [name for name in counts if name not in STREAM_COLUMNS]
     return {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
-        "vehicle": {
-            "kind": vehicle.kind.value,
-            "ticks_per_revolution": vehicle.ticks_per_revolution,
-            "wheel_diameters_m": None if vehicle.wheel_diameters_m is None else list(vehicle.wheel_diameters_m),
-            "wheel_names": list(vehicle.wheel_names),
-            "track_width_m": vehicle.track_width_m,
-            "gyro_lowpass_hz": vehicle.gyro_lowpass_hz,
-            "T_vehicle_from_gyro": np.asarray(vehicle.T_vehicle_from_gyro).tolist(),
-            "name": vehicle.name,
-        },
-        "lidar": None if lidar is None else {
-            "num_beams": lidar.num_beams, "angle_min_rad": lidar.angle_min_rad,
-            "angle_increment_rad": lidar.angle_increment_rad, "range_min_m": lidar.range_min_m,
-            "range_max_m": lidar.range_max_m, "T_vehicle_from_lidar": np.asarray(lidar.T_vehicle_from_lidar).tolist(),
-            "name": lidar.name,
-        },
+        "vehicle": vehicle_to_json(log.vehicle),
+        "lidar": lidar_to_json(log.lidar),
         "streams": [{"kind": kind, "count": counts[kind], "columns": cols} for kind, cols in columns.items()],
         "omitted_streams": omitted,
         "source": {"format": log.source_format, "path": log.source_path},

@@ -28,7 +28,7 @@ from slam_engine.drive_log import (
 )
 from slam_engine.errors import LogFormatError
 from slam_engine.formats._checks import time_order
-from slam_engine.formats._odometry import dead_reckon
+from slam_engine.odometry import odometry_poses
 
 SCAN = "sensor_msgs/msg/LaserScan"
 ODOMETRY = "nav_msgs/msg/Odometry"
@@ -220,7 +220,7 @@ def write(log: DriveLog, out_dir: Path, name: str = "log") -> Path:
         raise LogFormatError("bag folder exists already", path=str(path))
     store = get_typestore(Stores.ROS2_HUMBLE)
     types = store.types
-    odometry = dead_reckon(log) if (log.odometry is not None or log.encoders is not None) else None
+    odometry = odometry_poses(log) if (log.odometry is not None or log.encoders is not None) else None
 
     def header(t: float, frame: str):
         sec = int(np.floor(t))

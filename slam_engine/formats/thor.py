@@ -41,6 +41,7 @@ from slam_engine.drive_log import (
 )
 from slam_engine.errors import LogFormatError
 from slam_engine.formats._checks import clean_ranges, time_order
+from slam_engine.odometry import integrate_yaw_rate, side_distances_m
 from slam_engine.texture.calibration import thor_kinect_calibration
 
 # Effective track width [m] (skid included). Fitting the wheel-distance difference to the ECE276A .npz
@@ -334,11 +335,9 @@ def estimate_effective_track_width(log: DriveLog, window_s: float = 0.5, min_tur
     The gyro bias is taken from windows where the wheels stand still; windows turning less than
     ``min_turn_rad`` are left out.
     """
-    from slam_engine.formats._odometry import integrate_yaw_rate, wheel_distances_m
-
     if log.encoders is None or log.gyro is None:
         raise LogFormatError("estimating the track width needs encoders and a gyro")
-    left, right = wheel_distances_m(log.vehicle, log.encoders.ticks)
+    left, right = side_distances_m(log.vehicle, log.encoders.ticks)
     start = max(log.encoders.t_s[0], log.gyro.t_s[0]) + 1.0
     stop = min(log.encoders.t_s[-1], log.gyro.t_s[-1]) - 1.0
     grid = np.arange(start, stop, window_s)

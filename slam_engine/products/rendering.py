@@ -6,6 +6,8 @@ image of a grid is its ``log_odds`` flipped upside down; cell (ix, iy) is pixel 
 
 from __future__ import annotations
 
+import io
+
 import numpy as np
 from PIL import Image, ImageDraw
 
@@ -15,7 +17,7 @@ OCCUPIED_THRESHOLD = 0.65  # probability above which a cell counts as occupied (
 FREE_THRESHOLD = 0.196  # probability below which a cell counts as free (also map.yaml)
 UNKNOWN_GRAY = 205  # grey level of never-observed cells (the ROS map_saver convention)
 TRAJECTORY_RGB = (220, 30, 30)
-DEAD_RECKONING_RGB = (30, 90, 230)
+REFERENCE_RGB = (30, 90, 230)  # dead reckoning or ground truth
 START_RGB = (20, 160, 40)
 
 
@@ -59,17 +61,25 @@ def map_pixels(grid: OccupancyGrid, poses: np.ndarray) -> np.ndarray:
 
 
 def occupancy_with_trajectories(grid: OccupancyGrid, trajectory: Trajectory,
-                                dead_reckoning: Trajectory | None = None) -> Image.Image:
-    """RGB map image with dead reckoning (blue), the SLAM trajectory (red) on top and a green start dot."""
+                                reference: Trajectory | None = None) -> Image.Image:
+    """RGB map image with a reference track (dead reckoning or ground truth, blue), the SLAM
+    trajectory (red) on top and a green start dot."""
     image = occupancy_image(grid).convert("RGB")
     draw = ImageDraw.Draw(image)
-    for traj, rgb in ((dead_reckoning, DEAD_RECKONING_RGB), (trajectory, TRAJECTORY_RGB)):
+    for traj, rgb in ((reference, REFERENCE_RGB), (trajectory, TRAJECTORY_RGB)):
         if traj is not None and len(traj) > 1:
             draw.line([tuple(p) for p in map_pixels(grid, traj.poses)], fill=rgb, width=1)
     if len(trajectory):
         c, r = map_pixels(grid, trajectory.poses[:1])[0]
         draw.ellipse([c - 2, r - 2, c + 2, r + 2], fill=START_RGB)
     return image
+
+
+def png_bytes(image: Image.Image) -> bytes:
+    """``image`` encoded as a PNG file, in memory."""
+    buffer = io.BytesIO()
+    image.save(buffer, format="PNG")
+    return buffer.getvalue()
 
 
 def _pad_to_blocks(array: np.ndarray, factor: int, fill) -> np.ndarray:

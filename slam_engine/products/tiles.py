@@ -20,7 +20,6 @@ Texture tiles: mean colour of the seen cells, transparent where the ground was n
 
 from __future__ import annotations
 
-import io
 import math
 import threading
 from collections import OrderedDict
@@ -32,7 +31,7 @@ from PIL import Image
 
 from slam_engine.errors import ConfigError, TileOutOfRangeError
 from slam_engine.products.georeference import Georeference, _transformer
-from slam_engine.products.rendering import occupancy_gray, pool_occupancy, pool_texture
+from slam_engine.products.rendering import occupancy_gray, png_bytes, pool_occupancy, pool_texture
 from slam_engine.result import OccupancyGrid, TextureMap
 
 TILE_SIZE = 256
@@ -169,9 +168,7 @@ def render_tile(source: MapSource, z: int, x: int, y: int, layer: str | None = N
         if cached is not None:
             return cached
     rgba = _simple_tile(source, z, x, y) if scheme == "simple" else _web_mercator_tile(source, georef, z, x, y)
-    buffer = io.BytesIO()
-    Image.fromarray(rgba).save(buffer, format="PNG")
-    png = buffer.getvalue()
+    png = png_bytes(Image.fromarray(rgba))
     if key is not None:
         _CACHE.put(key, png)
     return png

@@ -18,7 +18,7 @@ import numpy as np
 from slam_engine.drive_log import DriveLog
 from slam_engine.errors import ConfigError
 from slam_engine.formats import write_log
-from slam_engine.formats._odometry import relative_se2, wrap_angle
+from slam_engine.poses import relative, wrap_angle
 from slam_engine.result import Trajectory
 from slam_engine.simulation.motion import Motion, drive_route
 from slam_engine.simulation.rigs import FORMAT_RIGS, RIGS, Rig
@@ -125,7 +125,7 @@ def relations(ground_truth: Trajectory, rng: np.random.Generator, max_loop: int 
     pairs += list(zip(i.tolist(), j.tolist(), strict=True))
     first = np.array([p[0] for p in pairs])
     second = np.array([p[1] for p in pairs])
-    motion = relative_se2(poses[first], poses[second])
+    motion = relative(poses[first], poses[second])
     return np.column_stack([t[first], t[second], motion])
 
 

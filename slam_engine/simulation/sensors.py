@@ -16,6 +16,7 @@ from slam_engine.drive_log import (
     OdometryStream,
     ScanStream,
 )
+from slam_engine.poses import wrap_angle
 from slam_engine.simulation.motion import Motion
 from slam_engine.simulation.rigs import Rig
 from slam_engine.simulation.world import World
@@ -78,7 +79,7 @@ def odometry_stream(motion: Motion, t_s: np.ndarray, rig: Rig, rng: np.random.Ge
     mid = heading - 0.5 * (d_right - d_left) / rig.true_track_m
     x = motion.x_m[0] + np.cumsum(d_centre * np.cos(mid))
     y = motion.y_m[0] + np.cumsum(d_centre * np.sin(mid))
-    return OdometryStream(t_s=t_s, poses=np.column_stack([x, y, (heading + np.pi) % (2 * np.pi) - np.pi]))
+    return OdometryStream(t_s=t_s, poses=np.column_stack([x, y, wrap_angle(heading)]))
 
 
 def scan_stream(world: World, motion: Motion, t_s: np.ndarray, rig: Rig, rng: np.random.Generator) -> ScanStream:

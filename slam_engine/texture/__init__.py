@@ -16,10 +16,10 @@ import numpy as np
 
 from slam_engine.config import SlamConfig, TextureConfig
 from slam_engine.drive_log import DriveLog
+from slam_engine.poses import to_matrix_4x4
 from slam_engine.result import OccupancyGrid, TextureMap, Trajectory
 from slam_engine.texture.images import read_frame
 from slam_engine.texture.projection import (
-    T_world_from_vehicle,
     estimate_ground_z,
     ground_mask,
     interpolate_poses,
@@ -84,7 +84,7 @@ def build_texture_map(log: DriveLog, trajectory: Trajectory, grid: OccupancyGrid
         if frame is None or len(frame.points_camera) == 0:
             continue
         pose, _ = interpolate_poses(trajectory, np.array([t_s]), cfg.max_time_gap_s)
-        T_world_from_camera = T_world_from_vehicle(pose[0]) @ frame.T_vehicle_from_camera
+        T_world_from_camera = to_matrix_4x4(pose[0]) @ frame.T_vehicle_from_camera
         points_world = transform_points(frame.points_camera, T_world_from_camera)
         on_ground = ground_mask(points_world, ground_z_m, cfg.ground_band_m)
         if accumulator is None:

@@ -1,4 +1,4 @@
-"""Camera points into the world: ``T_world_from_vehicle(t) @ T_vehicle_from_camera`` with Open3D
+"""Camera points into the world: ``to_matrix_4x4(pose(t)) @ T_vehicle_from_camera`` with Open3D
 point clouds, the trajectory interpolated at the image timestamp, and ground selection by height.
 
 The trajectory is planar (SE(2)), so the world frame's z is the vehicle frame's z: heights are
@@ -10,29 +10,18 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
+from slam_engine.poses import interpolate
 from slam_engine.result import Trajectory
 
 
 def interpolate_poses(trajectory: Trajectory, t_s: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Poses (N, 3) [x_m, y_m, theta_rad] at times ``t_s`` (linear in x, y and unwrapped theta) and
+    """Poses (N, 3) [x_m, y_m, theta_rad] at times ``t_s`` (:func:`slam_engine.poses.interpolate`) and
     a (N,) bool mask of the times within ``max_gap_s`` of the trajectory's span (outside it the
     nearest end pose is returned)."""
     t_s = np.asarray(t_s, dtype=np.float64)
     traj_t = np.asarray(trajectory.t_s, dtype=np.float64)
-    poses = np.asarray(trajectory.poses, dtype=np.float64)
-    theta = np.unwrap(poses[:, 2])
-    out = np.stack([np.interp(t_s, traj_t, poses[:, 0]),
-                    np.interp(t_s, traj_t, poses[:, 1]),
-                    np.interp(t_s, traj_t, theta)], axis=-1)
     valid = (t_s >= traj_t[0] - max_gap_s) & (t_s <= traj_t[-1] + max_gap_s)
-    return out, valid
-
-
-def T_world_from_vehicle(pose: np.ndarray) -> np.ndarray:
-    """4x4 transform of a planar pose [x_m, y_m, theta_rad]."""
-    x, y, theta = (float(v) for v in pose)
-    c, s = np.cos(theta), np.sin(theta)
-    return np.array([[c, -s, 0.0, x], [s, c, 0.0, y], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    return interpolate(traj_t, trajectory.poses, t_s), valid
 
 
 def transform_points(points: np.ndarray, T_to_from: np.ndarray) -> np.ndarray:
