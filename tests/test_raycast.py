@@ -129,3 +129,16 @@ def test_insertion_into_shared_tiles_writes_every_cell_a_private_map_gets() -> N
     insert_scan(private, pose, origin, cover, np.zeros(len(cover), bool), 0.9, -0.4, -5, 5)
     insert_scan(private, pose, origin, ends, is_hit, 0.9, -0.4, -5, 5, free_from)
     np.testing.assert_array_equal(shared.occupancy_grid(0).log_odds, private.occupancy_grid(0).log_odds)
+
+
+def test_no_return_beams_of_a_short_range_scanner_clear_nothing() -> None:
+    """A URG-04LX (5.6 m) reports no return for dark surfaces within range: those beams clear nothing;
+    a long-range scanner's no-return beams clear up to ``no_return_clear_m``."""
+    ranges = np.array([2.0, np.inf, np.inf])
+    for range_max_m, expected_rays in ((5.6, 1), (30.0, 3)):
+        lidar = LidarModel(num_beams=3, angle_min_rad=-0.1, angle_increment_rad=0.1, range_min_m=0.02,
+                           range_max_m=range_max_m)
+        projector = ScanProjector(lidar, max_range_m=30.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05,
+                                  no_return_clear_m=30.0, no_return_min_sensor_range_m=10.0)
+        projected = projector.project(ranges)
+        assert len(projected.ends_v) == expected_rays and projected.is_hit.sum() == 1
