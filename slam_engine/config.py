@@ -26,6 +26,11 @@ class GridConfig(_Section):
                                      "space up to this range [m], capped by max_range_m and the sensor's range "
                                      "(0 = not at all; lower it for scanners that report no return for dark or "
                                      "glass surfaces close by, e.g. Hokuyo URG-04LX zeros).")
+    no_return_min_sensor_range_m: float = Field(10.0, ge=0.0, le=200.0, description="No-return beams of "
+                                                "scanners whose maximum range is below this [m] clear "
+                                                "nothing: short-range scanners (Hokuyo URG-04LX, 5.6 m) "
+                                                "report no return for dark or glass surfaces well within "
+                                                "range, and clearing along those beams erases walls.")
 
 
 class MotionNoiseConfig(_Section):

@@ -9,7 +9,8 @@ height filter (all its points lie at the mounting height).
 Returns beyond the grid's ``max_range_m`` stay as free-space-only rays: they clear the cells they
 cross up to ``max_range_m`` and never add a hit or take part in matching. Beams without a return
 (``inf``, outside ``[range_min_m, range_max_m]``) clear up to ``no_return_clear_m`` (0 = not at
-all): many scanners also report "no return" for dark or glass surfaces close by, and clearing far
+all; nothing for scanners whose ``range_max_m`` is below ``no_return_min_sensor_range_m``): many
+scanners also report "no return" for dark or glass surfaces close by, and clearing far
 along such beams erases real walls.
 """
 
@@ -43,7 +44,8 @@ class ScanProjector:
     frame [m], where every ray starts."""
 
     def __init__(self, lidar: LidarModel, max_range_m: float, ground_z_m: float, ceiling_z_m: float,
-                 resolution_m: float, no_return_clear_m: float | None = None):
+                 resolution_m: float, no_return_clear_m: float | None = None,
+                 no_return_min_sensor_range_m: float = 0.0):
         self.lidar = lidar
         self.T = np.asarray(lidar.T_vehicle_from_lidar, dtype=np.float64)
         self.planar = is_planar_4x4(self.T)
@@ -55,6 +57,8 @@ class ScanProjector:
         self.clear_range_m = float(min(lidar.range_max_m, max_range_m))
         self.no_return_clear_m = self.clear_range_m if no_return_clear_m is None else \
             float(min(no_return_clear_m, self.clear_range_m))
+        if lidar.range_max_m < no_return_min_sensor_range_m:
+            self.no_return_clear_m = 0.0
         self.ground_z_m = float(ground_z_m)
         self.ceiling_z_m = float(ceiling_z_m)
         self.free_from_m = free_space_start_m(lidar.num_beams, lidar.angle_increment_rad, resolution_m)

@@ -55,7 +55,7 @@ class SlamFilter:
         g = config.grid
         self.projector = ScanProjector(lidar, g.max_range_m, config.lidar_filter.ground_z_m,
                                        config.lidar_filter.ceiling_z_m, g.resolution_m,
-                                       g.no_return_clear_m)
+                                       g.no_return_clear_m, g.no_return_min_sensor_range_m)
         self.grids = ParticleGrids(n, g.resolution_m)
         m = config.matcher
         self.matcher = ScanMatcher(m.search_xy_m, m.search_theta_rad, m.min_score, m.beam_skip)
@@ -186,6 +186,7 @@ class SlamFilter:
         resampled = neff < self.config.resample_threshold * n
         # the history holds the poses before resampling; the next step's parents say who survived
         self._record_step(scan.t_s, odom)
+        clones_of = None
         if resampled:
             ancestors = low_variance_resample(weights, self.rng)
             self.particles = self.particles[ancestors]
@@ -193,10 +194,26 @@ class SlamFilter:
             self.log_weights = np.zeros(n)
             self.grids.resample(ancestors)
             self._next_parents = ancestors
-        g = self.config.grid
-        insert_scan(self.grids, self.particles, self.projector.origin_v, projected.ends_v, projected.is_hit,
-                    g.log_odds_hit, g.log_odds_miss, g.log_odds_min, g.log_odds_max, projected.free_from_m)
+            clones_of = ancestors
+        self._insert(projected, clones_of)
         self._stats.append((scan.t_s, neff, bool(resampled), float(score[best]), bool(accepted[best]), 0.0))
+
+    def _insert(self, projected, clones_of: np.ndarray | None) -> None:
+        """Insert the scan into every particle's map. Particles with the same ``clones_of`` entry
+        (copies of one ancestor after resampling: same pose, same map) get one insertion, into the
+        first of them, whose map the others then share: the same maps as inserting into each."""
+        g = self.config.grid
+        particles = None
+        if clones_of is not None:
+            _, first, inverse = np.unique(clones_of, return_index=True, return_inverse=True)
+            if len(first) < len(clones_of):
+                particles = first
+        poses = self.particles if particles is None else self.particles[particles]
+        insert_scan(self.grids, poses, self.projector.origin_v, projected.ends_v, projected.is_hit,
+                    g.log_odds_hit, g.log_odds_miss, g.log_odds_min, g.log_odds_max, projected.free_from_m,
+                    particles=particles)
+        if particles is not None:
+            self.grids.resample(particles[inverse])
 
     def _skip(self, scan: ScanMessage, odom: np.ndarray, projected) -> None:
         best = self.best_particle()

@@ -30,57 +30,78 @@ def _mark(mark, out, count, p, tx, ty):
     return count
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _mark_segment(mark, out, count, p, x0, y0, x1, y1, tile_x0, tile_y0):
+    """Mark every tile the segment (x0, y0)-(x1, y1) [tile units] crosses (grid traversal)."""
+    tx = int(math.floor(x0))
+    ty = int(math.floor(y0))
+    tx_end = int(math.floor(x1))
+    ty_end = int(math.floor(y1))
+    count = _mark(mark, out, count, p, tx - tile_x0, ty - tile_y0)
+    dx = x1 - x0
+    dy = y1 - y0
+    step_x = 1 if dx > 0 else -1
+    step_y = 1 if dy > 0 else -1
+    t_delta_x = abs(1.0 / dx) if dx != 0 else 1e30
+    t_delta_y = abs(1.0 / dy) if dy != 0 else 1e30
+    t_max_x = ((tx + 1 - x0) if dx > 0 else (x0 - tx)) * t_delta_x if dx != 0 else 1e30
+    t_max_y = ((ty + 1 - y0) if dy > 0 else (y0 - ty)) * t_delta_y if dy != 0 else 1e30
+    guard = abs(tx_end - tx) + abs(ty_end - ty) + 2
+    while (tx != tx_end or ty != ty_end) and guard > 0:
+        guard -= 1
+        if abs(t_max_x - t_max_y) < 1e-9:  # through a corner: mark both neighbours
+            count = _mark(mark, out, count, p, tx + step_x - tile_x0, ty - tile_y0)
+            count = _mark(mark, out, count, p, tx - tile_x0, ty + step_y - tile_y0)
+            tx += step_x
+            ty += step_y
+            t_max_x += t_delta_x
+            t_max_y += t_delta_y
+        elif t_max_x < t_max_y:
+            tx += step_x
+            t_max_x += t_delta_x
+        else:
+            ty += step_y
+            t_max_y += t_delta_y
+        count = _mark(mark, out, count, p, tx - tile_x0, ty - tile_y0)
+    return _mark(mark, out, count, p, tx_end - tile_x0, ty_end - tile_y0)
+
+
+# Bresenham cells between two cell centres lie on the tiles of the line between them, but a beam
+# that starts clearing part-way (``free_from_m``) runs from a cell up to about a cell off that line:
+# the tiles of the lines shifted by this many cells across the beam cover every cell it writes.
+_SPREAD_CELLS = 1.0
+
+
 @nb.njit(cache=True, nogil=True)
-def collect_touched_tiles(poses, origin_v, ends_v, resolution_m, tile_x0, tile_y0, mark, out):
-    """Mark (in ``mark``, list in ``out``) every tile a beam of each particle crosses
-    (grid traversal of the segment between cell centres, in tile units). Returns the number of
-    distinct (particle, tile) pairs; when it exceeds ``len(out)`` the caller grows ``out``, clears
-    ``mark`` and calls again."""
+def collect_touched_tiles(particles, poses, origin_v, ends_v, resolution_m, tile_x0, tile_y0, mark, out):
+    """Mark (in ``mark``, list in ``out``) every tile a beam of each particle ``particles[k]`` (at
+    ``poses[k]``) writes: the tiles crossed by the segment between the cell centres of the LiDAR and
+    the beam's end and by that segment shifted ``_SPREAD_CELLS`` either way along its minor axis.
+    Returns the number of distinct (particle, tile) pairs; when it exceeds ``len(out)`` the caller
+    grows ``out``, clears ``mark`` and calls again."""
     count = 0
     tile = float(TILE)
-    for p in range(poses.shape[0]):
-        c = math.cos(poses[p, 2])
-        s = math.sin(poses[p, 2])
-        ox = poses[p, 0] + c * origin_v[0] - s * origin_v[1]
-        oy = poses[p, 1] + s * origin_v[0] + c * origin_v[1]
+    spread = _SPREAD_CELLS / tile
+    for k in range(poses.shape[0]):
+        p = particles[k]
+        c = math.cos(poses[k, 2])
+        s = math.sin(poses[k, 2])
+        ox = poses[k, 0] + c * origin_v[0] - s * origin_v[1]
+        oy = poses[k, 1] + s * origin_v[0] + c * origin_v[1]
         x0 = (math.floor(ox / resolution_m) + 0.5) / tile
         y0 = (math.floor(oy / resolution_m) + 0.5) / tile
         for b in range(ends_v.shape[0]):
-            ex = poses[p, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
-            ey = poses[p, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
+            ex = poses[k, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
+            ey = poses[k, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
             x1 = (math.floor(ex / resolution_m) + 0.5) / tile
             y1 = (math.floor(ey / resolution_m) + 0.5) / tile
-            tx = int(math.floor(x0))
-            ty = int(math.floor(y0))
-            tx_end = int(math.floor(x1))
-            ty_end = int(math.floor(y1))
-            count = _mark(mark, out, count, p, tx - tile_x0, ty - tile_y0)
-            dx = x1 - x0
-            dy = y1 - y0
-            step_x = 1 if dx > 0 else -1
-            step_y = 1 if dy > 0 else -1
-            t_delta_x = abs(1.0 / dx) if dx != 0 else 1e30
-            t_delta_y = abs(1.0 / dy) if dy != 0 else 1e30
-            t_max_x = ((tx + 1 - x0) if dx > 0 else (x0 - tx)) * t_delta_x if dx != 0 else 1e30
-            t_max_y = ((ty + 1 - y0) if dy > 0 else (y0 - ty)) * t_delta_y if dy != 0 else 1e30
-            guard = abs(tx_end - tx) + abs(ty_end - ty) + 2
-            while (tx != tx_end or ty != ty_end) and guard > 0:
-                guard -= 1
-                if abs(t_max_x - t_max_y) < 1e-9:  # through a corner: mark both neighbours
-                    count = _mark(mark, out, count, p, tx + step_x - tile_x0, ty - tile_y0)
-                    count = _mark(mark, out, count, p, tx - tile_x0, ty + step_y - tile_y0)
-                    tx += step_x
-                    ty += step_y
-                    t_max_x += t_delta_x
-                    t_max_y += t_delta_y
-                elif t_max_x < t_max_y:
-                    tx += step_x
-                    t_max_x += t_delta_x
-                else:
-                    ty += step_y
-                    t_max_y += t_delta_y
-                count = _mark(mark, out, count, p, tx - tile_x0, ty - tile_y0)
-            count = _mark(mark, out, count, p, tx_end - tile_x0, ty_end - tile_y0)
+            count = _mark_segment(mark, out, count, p, x0, y0, x1, y1, tile_x0, tile_y0)
+            if abs(x1 - x0) >= abs(y1 - y0):
+                count = _mark_segment(mark, out, count, p, x0, y0 - spread, x1, y1 - spread, tile_x0, tile_y0)
+                count = _mark_segment(mark, out, count, p, x0, y0 + spread, x1, y1 + spread, tile_x0, tile_y0)
+            else:
+                count = _mark_segment(mark, out, count, p, x0 - spread, y0, x1 - spread, y1, tile_x0, tile_y0)
+                count = _mark_segment(mark, out, count, p, x0 + spread, y0, x1 + spread, y1, tile_x0, tile_y0)
     return count
 
 
@@ -143,20 +164,23 @@ def _tile_of(tables, refcount, p, tile_x0, tile_y0, gx, gy):
 
 
 @nb.njit(cache=True, nogil=True)
-def integrate_rays(levels0, levels1, levels2, levels3, tables, refcount, tile_x0, tile_y0, poses, origin_v, ends_v,
-                   is_hit, free_from_m, resolution_m, log_odds_hit, log_odds_miss, log_odds_min, log_odds_max):
-    """Apply every beam to every particle's map: misses along the beams first, then the hits, so a
-    wall cell crossed by a grazing beam of the same scan still gains its hit. Beam b clears cells from
-    ``free_from_m[b]`` on (near the LiDAR its neighbours already cover every cell)."""
+def integrate_rays(levels0, levels1, levels2, levels3, tables, refcount, tile_x0, tile_y0, particles, poses,
+                   origin_v, ends_v, is_hit, free_from_m, resolution_m, log_odds_hit, log_odds_miss, log_odds_min,
+                   log_odds_max):
+    """Apply every beam to the map of each particle ``particles[k]`` at ``poses[k]``: misses along
+    the beams first, then the hits, so a wall cell crossed by a grazing beam of the same scan still gains
+    its hit. Beam b clears cells from ``free_from_m[b]`` on (near the LiDAR its neighbours already cover
+    every cell)."""
     mask = TILE - 1
-    for p in range(poses.shape[0]):
-        c = math.cos(poses[p, 2])
-        s = math.sin(poses[p, 2])
-        ox = poses[p, 0] + c * origin_v[0] - s * origin_v[1]
-        oy = poses[p, 1] + s * origin_v[0] + c * origin_v[1]
+    for k in range(poses.shape[0]):
+        p = particles[k]
+        c = math.cos(poses[k, 2])
+        s = math.sin(poses[k, 2])
+        ox = poses[k, 0] + c * origin_v[0] - s * origin_v[1]
+        oy = poses[k, 1] + s * origin_v[0] + c * origin_v[1]
         for b in range(ends_v.shape[0]):
-            ex = poses[p, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
-            ey = poses[p, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
+            ex = poses[k, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
+            ey = poses[k, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
             length = math.hypot(ex - ox, ey - oy)
             if free_from_m[b] >= length:
                 if is_hit[b]:
@@ -202,8 +226,8 @@ def integrate_rays(levels0, levels1, levels2, levels3, tables, refcount, tile_x0
         for b in range(ends_v.shape[0]):
             if not is_hit[b]:
                 continue
-            ex = poses[p, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
-            ey = poses[p, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
+            ex = poses[k, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
+            ey = poses[k, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
             x = int(math.floor(ex / resolution_m))
             y = int(math.floor(ey / resolution_m))
             t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
@@ -223,10 +247,11 @@ def insert_scan(
     log_odds_min: float,
     log_odds_max: float,
     free_from_m: np.ndarray | None = None,
+    particles: np.ndarray | None = None,
 ) -> int:
-    """Insert one scan into every particle's map.
+    """Insert one scan into the maps of ``particles`` (indices; None = 0..P-1).
 
-    ``poses`` (P, 3) vehicle poses of particles 0..P-1 in the map frame; ``origin_v`` (2,) the
+    ``poses`` (P, 3) vehicle poses of those particles in the map frame; ``origin_v`` (2,) the
     LiDAR's position in the vehicle frame [m]; ``ends_v`` (B, 2) beam end points in the vehicle
     frame [m]; ``is_hit`` (B,) False for free-space-only beams; ``free_from_m`` (B,) where each beam
     starts clearing [m] (:func:`slam_engine.lidar_points.free_space_start_m`; None: from the LiDAR).
@@ -237,24 +262,26 @@ def insert_scan(
     is_hit = np.ascontiguousarray(is_hit, dtype=np.bool_)
     if ends_v.shape[0] == 0:
         return 0
+    particles = np.arange(poses.shape[0]) if particles is None else particles
+    particles = np.ascontiguousarray(particles, dtype=np.int64)
     # grow the tile tables to cover every beam of every particle
     reach = float(np.hypot(*np.vstack([ends_v, origin_v[None, :]]).T).max())
     grids.ensure_extent(poses[:, 0].min() - reach, poses[:, 1].min() - reach,
                         poses[:, 0].max() + reach, poses[:, 1].max() + reach)
     buffer = grids.touched_buffer(poses.shape[0] * 64)
-    n = collect_touched_tiles(poses, origin_v, ends_v, grids.resolution_m, grids.tile_x0, grids.tile_y0,
+    n = collect_touched_tiles(particles, poses, origin_v, ends_v, grids.resolution_m, grids.tile_x0, grids.tile_y0,
                               grids._mark, buffer)
     if n > buffer.shape[0]:
         clear_marks(grids._mark, buffer, buffer.shape[0])
         grids._mark[:] = 0
         buffer = grids.touched_buffer(n)
-        n = collect_touched_tiles(poses, origin_v, ends_v, grids.resolution_m, grids.tile_x0, grids.tile_y0,
+        n = collect_touched_tiles(particles, poses, origin_v, ends_v, grids.resolution_m, grids.tile_x0, grids.tile_y0,
                                   grids._mark, buffer)
     grids.privatize(buffer, n)
     free_from = np.zeros(len(ends_v)) if free_from_m is None else np.ascontiguousarray(free_from_m, np.float64)
     lv = grids.levels
-    integrate_rays(lv[0], lv[1], lv[2], lv[3], grids.tables, grids.refcount, grids.tile_x0, grids.tile_y0, poses,
-                   origin_v, ends_v, is_hit, free_from, grids.resolution_m,
+    integrate_rays(lv[0], lv[1], lv[2], lv[3], grids.tables, grids.refcount, grids.tile_x0, grids.tile_y0, particles,
+                   poses, origin_v, ends_v, is_hit, free_from, grids.resolution_m,
                    log_odds_hit, log_odds_miss, log_odds_min, log_odds_max)
     clear_marks(grids._mark, buffer, n)
     return n

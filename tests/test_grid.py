@@ -43,16 +43,17 @@ def test_grids_grow_with_the_drive_and_keep_what_they_hold() -> None:
 
 def test_resampled_particles_share_tiles_until_one_writes() -> None:
     grids = ParticleGrids(3, 0.05)
-    _one_beam(grids, np.zeros((3, 3)), (2.0, 0.0))
+    start = np.tile([0.5, 0.5, 0.0], (3, 1))  # inside the tile [0, 3.2 m)^2, away from its borders
+    _one_beam(grids, start, (2.0, 0.0))
     grids.resample(np.array([0, 0, 0]))
     assert grids.tiles_in_use() == 1  # one tile, three readers
     assert np.all(grids.refcount[grids.tables[:, grids.tables[0] >= 0][:, 0]] == 3)
     # particle 0 alone (poses of particles 0..P-1 are given) sees a wall at y = 1 m: it gets a private
     # copy, the others keep reading the shared tile
-    insert_scan(grids, np.zeros((1, 3)), np.zeros(2), np.array([[0.5, 1.0]]), np.array([True]), 0.9, -0.4, -5, 5)
+    insert_scan(grids, start[:1], np.zeros(2), np.array([[0.5, 1.0]]), np.array([True]), 0.9, -0.4, -5, 5)
     assert grids.tiles_in_use() == 2
     g0, g2 = grids.occupancy_grid(0), grids.occupancy_grid(2)
-    ix, iy = g0.world_to_cell(0.525, 1.025)
+    ix, iy = g0.world_to_cell(1.025, 1.525)
     assert g0.log_odds[iy, ix] == np.float32(0.9) and g2.log_odds[iy, ix] == 0.0
     np.testing.assert_array_equal(grids.occupancy_grid(1).log_odds, g2.log_odds)
 

@@ -94,3 +94,26 @@ def test_log_without_odometry_is_a_config_error() -> None:
     log.odometry = None
     with pytest.raises(ConfigError, match="no odometry source"):
         run_slam(log, SlamConfig(particles=3))
+
+
+def test_clones_after_resampling_share_one_insertion_with_identical_results(monkeypatch) -> None:
+    """Inserting the scan once per ancestor after resampling (clones share that map) gives bit-identical
+    trajectories and maps to inserting it into every particle."""
+    from slam_engine.particle_filter import SlamFilter
+
+    log, _ = room_log(odometry_bias=0.1)
+    config = SlamConfig(particles=12, seed=3, resample_threshold=0.9)
+    calls: list[int | None] = []
+    original = SlamFilter._insert
+
+    def counting(self, projected, clones_of):
+        calls.append(None if clones_of is None else len(np.unique(clones_of)))
+        original(self, projected, clones_of)
+
+    monkeypatch.setattr(SlamFilter, "_insert", counting)
+    shared = run_slam(log, config)
+    assert any(c is not None and c < config.particles for c in calls)  # clones existed and were shared
+    monkeypatch.setattr(SlamFilter, "_insert", lambda self, projected, clones_of: original(self, projected, None))
+    unshared = run_slam(log, config)
+    np.testing.assert_array_equal(shared.trajectory.poses, unshared.trajectory.poses)
+    np.testing.assert_array_equal(shared.grid.log_odds, unshared.grid.log_odds)

@@ -104,3 +104,41 @@ def test_no_return_beams_can_be_left_out() -> None:
     np.testing.assert_allclose(scan.ends_v, [[0.0, -2.0], [0.0, 10.0]], atol=1e-12)
     np.testing.assert_array_equal(scan.is_hit, [True, False])
     assert len(scan.free_from_m) == 2
+
+
+def test_insertion_into_shared_tiles_writes_every_cell_a_private_map_gets() -> None:
+    """Writing into tiles shared after resampling copies exactly the tiles the rays reach: no cell update
+    is lost at tile borders (Bresenham cells stray from the exact line; beams start part-way)."""
+    rng = np.random.default_rng(1)
+    angles = np.linspace(-np.pi, np.pi, 720, endpoint=False)
+    cover = 20.0 * np.stack([np.cos(angles), np.sin(angles)], axis=1)  # no-return rays: every tile near by
+    n = 3000
+    theta = rng.uniform(-np.pi, np.pi, n)
+    ends = rng.uniform(0.5, 15.0, n)[:, None] * np.stack([np.cos(theta), np.sin(theta)], axis=1)
+    is_hit = rng.random(n) < 0.7
+    free_from = rng.uniform(0.0, 2.0, n)
+    pose = np.array([[0.37, -0.81, 0.3]])
+    origin = np.array([0.12, 0.05])
+
+    shared = ParticleGrids(2, 0.05)
+    insert_scan(shared, np.repeat(pose, 2, axis=0), origin, cover, np.zeros(len(cover), bool), 0.9, -0.4, -5, 5)
+    shared.resample(np.array([0, 0]))
+    insert_scan(shared, pose, origin, ends, is_hit, 0.9, -0.4, -5, 5, free_from, particles=np.array([0]))
+
+    private = ParticleGrids(1, 0.05)
+    insert_scan(private, pose, origin, cover, np.zeros(len(cover), bool), 0.9, -0.4, -5, 5)
+    insert_scan(private, pose, origin, ends, is_hit, 0.9, -0.4, -5, 5, free_from)
+    np.testing.assert_array_equal(shared.occupancy_grid(0).log_odds, private.occupancy_grid(0).log_odds)
+
+
+def test_no_return_beams_of_a_short_range_scanner_clear_nothing() -> None:
+    """A URG-04LX (5.6 m) reports no return for dark surfaces within range: those beams clear nothing;
+    a long-range scanner's no-return beams clear up to ``no_return_clear_m``."""
+    ranges = np.array([2.0, np.inf, np.inf])
+    for range_max_m, expected_rays in ((5.6, 1), (30.0, 3)):
+        lidar = LidarModel(num_beams=3, angle_min_rad=-0.1, angle_increment_rad=0.1, range_min_m=0.02,
+                           range_max_m=range_max_m)
+        projector = ScanProjector(lidar, max_range_m=30.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05,
+                                  no_return_clear_m=30.0, no_return_min_sensor_range_m=10.0)
+        projected = projector.project(ranges)
+        assert len(projected.ends_v) == expected_rays and projected.is_hit.sum() == 1
