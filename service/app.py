@@ -11,6 +11,7 @@ from fastapi import FastAPI
 from service.errors import install_error_handlers
 from service.inspection import LogInspector
 from service.limits import BodyLimitMiddleware
+from service.openapi_errors import document_errors
 from service.routers import chunks, formats, health, jobs, logs, products, sessions
 from service.runner import create_runner
 from service.settings import Settings, get_settings
@@ -68,4 +69,5 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
         app.include_router(module.router)
     app.include_router(jobs.session_jobs)
     app.include_router(jobs.router)
+    document_errors(app)
     return app

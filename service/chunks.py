@@ -7,6 +7,7 @@ import json
 from typing import Any
 
 from api_schemas.chunks import ChunkCreate, StreamState
+from service.disk_space import disk_full_error
 from service.errors import Conflict, InvalidInput
 from service.storage import DataDir, write_atomic
 from service.store import JobStore
@@ -75,7 +76,12 @@ def store_chunk(store: JobStore, data: DataDir, session_id: str, chunk: ChunkCre
                        {"seq": chunk.seq, "stored_sha256": outcome.row["sha256"], "sent_sha256": digest})
     path = data.chunk_file(session_id, chunk.seq)
     if not outcome.duplicate or not path.exists():  # a retry after a crash between row and file heals it
-        write_atomic(path, body)
+        try:
+            write_atomic(path, body)
+        except OSError as exc:
+            if not outcome.duplicate:  # no row without its file: the client's retry will store both
+                store.delete_chunk(session_id, chunk.seq)
+            raise disk_full_error(exc, f"chunk {chunk.seq}") or exc from None
     return outcome.row, outcome.duplicate
 
 

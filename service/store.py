@@ -168,6 +168,11 @@ class JobStore:
                          ":t_last_s, :created_at)", row)
         return ChunkOutcome(row, duplicate=False, conflict=False)
 
+    def delete_chunk(self, session_id: str, seq: int) -> None:
+        """Forget chunk ``seq`` (its file could not be written)."""
+        with self._tx() as conn:
+            conn.execute("DELETE FROM chunks WHERE session_id = ? AND seq = ?", (session_id, seq))
+
     def chunk_rows(self, session_id: str) -> list[dict[str, Any]]:
         """All chunks of a session in seq order."""
         with self._tx() as conn:
