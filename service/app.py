@@ -35,6 +35,7 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         data = DataDir(settings.data_dir)
         data.create()
+        data.remove_stale_temp_files()
         store = JobStore(data.database)
         store.initialise()
         interrupted = store.fail_interrupted()

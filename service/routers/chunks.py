@@ -6,7 +6,7 @@ from fastapi import APIRouter, Request, Response
 
 from api_schemas.chunks import ChunkCreate, ChunkPublic, StreamState
 from api_schemas.errors import ErrorResponse
-from service.chunks import store_chunk, stream_state
+from service.chunks import store_chunk, stream_state_in_store
 from service.deps import DataDep, SessionRow, SettingsDep, StoreDep
 from service.disk_space import ensure_free_space
 from service.routers.convert import utc
@@ -31,10 +31,10 @@ def post_chunk(body: ChunkCreate, session: SessionRow, store: StoreDep, data: Da
         response.status_code = 200
     return ChunkPublic(session_id=session["id"], seq=row["seq"], sha256=row["sha256"], messages=row["messages"],
                        t_first_s=row["t_first_s"], t_last_s=row["t_last_s"], duplicate=duplicate,
-                       created_at=utc(row["created_at"]), stream=stream_state(store.chunk_rows(session["id"])))
+                       created_at=utc(row["created_at"]), stream=stream_state_in_store(store, session["id"]))
 
 
 @router.get("", response_model=StreamState)
 def get_stream(session: SessionRow, store: StoreDep) -> StreamState:
     """The stream's state: chunks received, the contiguous prefix, the gaps."""
-    return stream_state(store.chunk_rows(session["id"]))
+    return stream_state_in_store(store, session["id"])
