@@ -154,24 +154,40 @@ def upload(client, sid: str, name: str, content: bytes):
     return client.post(f"/v1/sessions/{sid}/logs", files={"file": (name, content)})
 
 
+def multipart_stream(name: str, content: bytes, piece: int = 64 * 1024):
+    """A multipart body sent chunked (no Content-Length): the server learns its size only by writing it."""
+    body = (b'--xyzzy\r\nContent-Disposition: form-data; name="file"; filename="' + name.encode() + b'"\r\n'
+            b"Content-Type: application/octet-stream\r\n\r\n" + content + b"\r\n--xyzzy--\r\n")
+    return (body[i:i + piece] for i in range(0, len(body), piece))
+
+
 def test_a_full_disk_answers_507_stores_nothing_and_recovers(small_disk, dataset) -> None:
-    intel = dataset("benchmark/intel.clf").read_bytes()[:1_500_000]  # parses (the cut is mid-record: 422)
+    intel = dataset("benchmark/intel.clf").read_bytes()  # 1.1 MB
     filler = small_disk / "filler.bin"
     with service_client(small_disk / "data", min_free_bytes=0, max_upload_bytes=8 * 1024**2) as client:
         sid = new_session(client)
         free = DataDir(small_disk).free_bytes()
-        filler.write_bytes(b"\0" * (free - 1_000_000))  # leave ~1 MB: the upload cannot fit
+        filler.write_bytes(b"\0" * (free - 600_000))  # leave ~0.6 MB: the upload cannot fit
+
+        # declared size: refused before a byte is written
         err = assert_error(upload(client, sid, "intel.clf", intel), 507, "insufficient_storage")
-        assert "disk is full" in err["message"]
+        assert "not enough disk space" in err["message"]
+        # size unknown (chunked): the write itself fails with ENOSPC half way
+        response = client.post(f"/v1/sessions/{sid}/logs", content=multipart_stream("intel.clf", intel),
+                               headers={"content-type": "multipart/form-data; boundary=xyzzy"})
+        err = assert_error(response, 507, "insufficient_storage")
+        assert "disk is full while writing the upload" in err["message"]
         assert client.get(f"/v1/sessions/{sid}/logs").json()["count"] == 0  # no half upload registered
-        assert not any((small_disk / "data" / "tmp").iterdir()) and not any((small_disk / "data" / "uploads").iterdir())
+        data_dir = small_disk / "data"
+        assert not any((data_dir / "tmp").iterdir()) and not any((data_dir / "uploads").iterdir())
         assert client.get("/readyz").status_code == 200
 
-        filler.unlink()  # space returns
-        small = "\n".join(intel.decode(errors="replace").splitlines()[:2000]) + "\n"
-        response = upload(client, sid, "intel.clf", small.encode())
+        filler.unlink()  # space returns: the same upload goes through
+        response = client.post(f"/v1/sessions/{sid}/logs", content=multipart_stream("intel.clf", intel),
+                               headers={"content-type": "multipart/form-data; boundary=xyzzy"})
         assert response.status_code == 201, response.text
-        assert response.json()["sha256"] == hashlib.sha256(small.encode()).hexdigest()
+        assert response.json()["sha256"] == hashlib.sha256(intel).hexdigest()
+        assert response.json()["summary"]["streams"]["scans"] == 910
 
 
 def test_the_free_space_reserve_refuses_uploads_and_chunks(tmp_path, monkeypatch) -> None:
