@@ -4,7 +4,7 @@ STAMP := $(VENV)/.installed
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: serve test lint bench setup clean
+.PHONY: serve test lint bench stress setup clean
 
 $(STAMP): pyproject.toml scripts/setup_env.sh
 	bash scripts/setup_env.sh
@@ -23,6 +23,11 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(VENV)/bin/python -m bench
+
+stress:  ## fuzz (1000 schema-generated requests), then load (50 uploads + jobs, 10 000 streamed chunks)
+	LIDARMAP_SETUP_TEST_DEPS=1 bash scripts/setup_env.sh
+	$(VENV)/bin/python -m tests.stress.fuzz_service --cases 1000
+	$(VENV)/bin/python -m tests.stress.load_service
 
 clean:
 	rm -rf $(VENV) .pytest_cache bench/results

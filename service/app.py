@@ -11,6 +11,7 @@ from fastapi import FastAPI
 from service.errors import install_error_handlers
 from service.inspection import LogInspector
 from service.limits import BodyLimitMiddleware
+from service.openapi_errors import document_errors
 from service.routers import chunks, formats, health, jobs, logs, products, sessions
 from service.routers.tile_schemes import router as tile_schemes_router
 from service.routers.viewer import register_viewer
@@ -36,6 +37,7 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         data = DataDir(settings.data_dir)
         data.create()
+        data.remove_stale_temp_files()
         store = open_store(settings.database_url, data.database)
         store.initialise()
         if settings.runner == "local":  # Celery workers outlive the API: their jobs go on (the reaper watches them)
@@ -73,4 +75,5 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
     app.include_router(jobs.router)
     app.include_router(tile_schemes_router)
     register_viewer(app)
+    document_errors(app)
     return app

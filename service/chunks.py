@@ -7,6 +7,7 @@ import json
 from typing import Any
 
 from api_schemas.chunks import ChunkCreate, StreamState
+from service.disk_space import disk_full_error
 from service.errors import Conflict, InvalidInput
 from service.storage import DataDir, write_atomic
 from service.store import JobStore
@@ -59,12 +60,27 @@ def stream_state(rows: list[dict[str, Any]]) -> StreamState:
                        missing_seqs=missing, messages=messages)
 
 
+def stream_state_in_store(store: JobStore, session_id: str) -> StreamState:
+    """:func:`stream_state` of the session's chunks, computed by the store without reading every row."""
+    figures = store.stream_figures(session_id)
+    k, after = figures["contiguous_through"], figures["after"]
+    present, missing = set(after), []
+    last = figures["highest"] if len(after) < 5000 else (after[-1] if after else k)
+    for seq in range(k + 1, last):
+        if seq not in present:
+            missing.append(seq)
+            if len(missing) == MAX_MISSING_LISTED:
+                break
+    return StreamState(received=figures["received"], contiguous_through=k, next_expected_seq=k + 1,
+                       missing_seqs=missing, messages=figures["messages"])
+
+
 def store_chunk(store: JobStore, data: DataDir, session_id: str, chunk: ChunkCreate) -> tuple[dict, bool]:
     """Record and save a chunk once. Returns (row, duplicate); 409 when ``seq`` exists with other content."""
     check_time_order(chunk)
     body = canonical_messages(chunk)
     digest = hashlib.sha256(body).hexdigest()
-    rows = store.chunk_rows(session_id)
+    rows = store.chunk_rows_near(session_id, chunk.seq)
     known = next((r for r in rows if r["seq"] == chunk.seq), None)
     if known is None:
         check_neighbours(chunk, rows)
@@ -75,7 +91,12 @@ def store_chunk(store: JobStore, data: DataDir, session_id: str, chunk: ChunkCre
                        {"seq": chunk.seq, "stored_sha256": outcome.row["sha256"], "sent_sha256": digest})
     path = data.chunk_file(session_id, chunk.seq)
     if not outcome.duplicate or not path.exists():  # a retry after a crash between row and file heals it
-        write_atomic(path, body)
+        try:
+            write_atomic(path, body)
+        except OSError as exc:
+            if not outcome.duplicate:  # no row without its file: the client's retry will store both
+                store.delete_chunk(session_id, chunk.seq)
+            raise disk_full_error(exc, f"chunk {chunk.seq}") or exc from None
     return outcome.row, outcome.duplicate
 
 

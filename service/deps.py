@@ -16,6 +16,7 @@ from service.storage import DataDir
 from service.store import JobStore
 
 ANONYMOUS = ""
+MAX_OFFSET = 2**31 - 1  # list offsets beyond any real count (SQLite integers are 64-bit)
 
 _api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False, description="An API key (when keys are set).")
 _bearer = HTTPBearer(auto_error=False, description="An API key as a bearer token (when keys are set).")

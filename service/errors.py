@@ -7,7 +7,9 @@ Unexpected exceptions become a 500 with no internals in the body (they are logge
 
 from __future__ import annotations
 
+import errno
 import logging
+import sqlite3
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -68,6 +70,12 @@ class InvalidInput(ServiceError):
     status_code, code = 422, "invalid_input"
 
 
+class InsufficientStorage(ServiceError):
+    """The disk is full (or below the configured reserve): nothing was stored."""
+
+    status_code, code = 507, "insufficient_storage"
+
+
 class Unavailable(ServiceError):
     status_code, code = 503, "unavailable"
 
@@ -99,6 +107,13 @@ def engine_error_to_service(exc: SlamEngineError) -> ServiceError:
     return InvalidInput(str(exc))
 
 
+def is_disk_full(exc: BaseException) -> bool:
+    """An OSError ENOSPC/EDQUOT, or SQLite's 'database or disk is full'."""
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    return isinstance(exc, sqlite3.OperationalError) and "full" in str(exc)
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Route every exception to the JSON error body."""
 
@@ -121,9 +136,19 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:
-        codes = {404: "not_found", 405: "method_not_allowed", 401: "unauthorized", 413: "payload_too_large"}
+        codes = {400: "bad_request", 404: "not_found", 405: "method_not_allowed", 401: "unauthorized",
+                 413: "payload_too_large"}
         return error_response(exc.status_code, codes.get(exc.status_code, "http_error"), str(exc.detail),
                               headers=getattr(exc, "headers", None))
+
+    @app.exception_handler(OSError)
+    @app.exception_handler(sqlite3.OperationalError)
+    async def _disk_full(request: Request, exc: Exception) -> JSONResponse:
+        if not is_disk_full(exc):
+            raise exc  # to the 500 handler below
+        logger.error("disk full on %s %s: %s", request.method, request.url.path, exc)
+        return error_response(507, "insufficient_storage", "the server's disk is full: nothing was stored; "
+                              "retry later")
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

@@ -107,6 +107,9 @@ def run_mapping_job(ctx: JobContext) -> None:
     result = run_slam(log, config, rng=np.random.default_rng(config.seed), progress=on_progress)
     total = len(log.scans) if log.scans is not None else 0
     ctx.progress(total, total, force=True)
+    peak = ctx.peak_memory_bytes()
+    if peak:  # this job's own peak (the engine's getrusage figure spans the worker's whole life)
+        result.peak_memory_bytes = peak
     out_dir = ctx.out_dir
     session = _session_row(ctx)
     geo = None if session["geo"] is None else GeoOrigin(

@@ -85,8 +85,9 @@ class LocalProcessRunner:
     """A fixed number of long-lived worker processes (spawn start method) on this machine."""
 
     def __init__(self, data: DataDir, store: JobStore, workers: int, cancel_grace_s: float = 5.0,
-                 job_function: str = DEFAULT_JOB_FUNCTION, poll_s: float = 0.05):
+                 job_function: str = DEFAULT_JOB_FUNCTION, poll_s: float = 0.05, memory_limit_mb: int = 0):
         self._data = data
+        self._memory_limit_mb = memory_limit_mb
         self._store = store
         self._job_function = job_function
         self._cancel_grace_s = cancel_grace_s
@@ -156,7 +157,8 @@ class LocalProcessRunner:
         inbox = self._ctx.Queue()
         process = self._ctx.Process(
             target=_worker_entry, name=f"lidarmap-worker-{index}", daemon=True,
-            args=(str(self._data.root), self._store, self._job_function, index, inbox, self._outbox))
+            args=(str(self._data.root), self._store, self._job_function, index, inbox, self._outbox,
+                  self._memory_limit_mb))
         process.start()
         return _Slot(index=index, process=process, inbox=inbox, started_s=time.monotonic())
 
@@ -234,17 +236,19 @@ class LocalProcessRunner:
             slot.inbox.put(job_id)
 
 
-def _worker_entry(data_root: str, store: JobStore, job_function: str, slot: int, inbox: Any, outbox: Any) -> None:
+def _worker_entry(data_root: str, store: JobStore, job_function: str, slot: int, inbox: Any, outbox: Any,
+                  memory_limit_mb: int = 0) -> None:
     from service.worker import worker_main
 
-    worker_main(data_root, store, job_function, slot, inbox, outbox)
+    worker_main(data_root, store, job_function, slot, inbox, outbox, memory_limit_mb)
 
 
 def create_runner(settings: Any, data: DataDir, store: JobStore, job_function: str | None = None) -> JobRunner:
     """The runner the settings ask for."""
     if settings.runner == "local":
         return LocalProcessRunner(data, store, settings.workers, settings.cancel_grace_s,
-                                  job_function or DEFAULT_JOB_FUNCTION)
+                                  job_function or DEFAULT_JOB_FUNCTION,
+                                  memory_limit_mb=getattr(settings, "job_memory_limit_mb", 0))
     if settings.runner == "celery":
         from service.celery_runner import CeleryRunner  # celery is an optional dependency
 

@@ -36,6 +36,10 @@ class Settings(BaseSettings):
     max_chunk_bytes: int = Field(64 * 1024**2, ge=1024, le=1024**3, description="Largest streamed chunk body.")
     cancel_grace_s: float = Field(5.0, ge=0.1, le=600.0, description="A running job that ignores a cancel "
                                   "this long has its worker process terminated.")
+    min_free_bytes: int = Field(256 * 1024**2, ge=0, le=1024**4, description="Disk space kept free: an "
+                                "upload or chunk that would leave less answers 507 and stores nothing.")
+    job_memory_limit_mb: int = Field(0, ge=0, le=1024**2, description="A job whose worker grows past this "
+                                     "much memory [MB] is stopped with that reason; 0 = no limit.")
     api_keys: str = Field("", description="Comma-separated API keys; empty = no authentication.")
 
     @model_validator(mode="after")

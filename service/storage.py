@@ -65,6 +65,18 @@ class DataDir:
     def remove(self, path: Path) -> None:
         shutil.rmtree(path, ignore_errors=True)
 
+    def remove_stale_temp_files(self) -> int:
+        """Delete what tmp/ holds (partial uploads of a service that stopped mid-upload); call only at
+        start-up, before uploads arrive. Returns how many entries were removed."""
+        removed = 0
+        for entry in self.tmp.iterdir() if self.tmp.is_dir() else []:
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink(missing_ok=True)
+            removed += 1
+        return removed
+
     def writable(self) -> bool:
         try:
             with tempfile.NamedTemporaryFile(dir=self.tmp):

@@ -301,6 +301,38 @@ class JobStore:
             old = tx.execute("SELECT * FROM chunks WHERE session_id = ? AND seq = ?", (session_id, seq)).fetchone()
         return ChunkOutcome(old, duplicate=old["sha256"] == sha256, conflict=old["sha256"] != sha256)
 
+    def delete_chunk(self, session_id: str, seq: int) -> None:
+        """Forget chunk ``seq`` (its file could not be written)."""
+        with self._tx() as conn:
+            conn.execute("DELETE FROM chunks WHERE session_id = ? AND seq = ?", (session_id, seq))
+
+    def chunk_rows_near(self, session_id: str, seq: int) -> list[dict[str, Any]]:
+        """Chunks seq-1, seq and seq+1 (what a new chunk is checked against), without reading the rest."""
+        with self._tx() as conn:
+            rows = conn.execute("SELECT * FROM chunks WHERE session_id = ? AND seq BETWEEN ? AND ? ORDER BY seq",
+                                (session_id, seq - 1, seq + 1)).fetchall()
+        return [dict(r) for r in rows]
+
+    def stream_figures(self, session_id: str, max_after: int = 5000) -> dict[str, Any]:
+        """The stream's state computed in SQL (cheap for long streams): chunks received, the end of
+        the contiguous run from seq 0 (-1: none), the messages in it, the highest seq, and the
+        seqs received beyond the run (at most ``max_after``, ascending)."""
+        with self._tx() as conn:
+            totals = conn.execute("SELECT count(*) AS received, max(seq) AS highest FROM chunks "
+                                  "WHERE session_id = ?", (session_id,)).fetchone()
+            received, highest = totals["received"], totals["highest"]
+            k = conn.execute(
+                "SELECT CASE WHEN EXISTS (SELECT 1 FROM chunks WHERE session_id = ? AND seq = 0) THEN "
+                "(SELECT min(c.seq) FROM chunks c WHERE c.session_id = ? AND NOT EXISTS "
+                "(SELECT 1 FROM chunks d WHERE d.session_id = ? AND d.seq = c.seq + 1)) ELSE -1 END AS k",
+                (session_id, session_id, session_id)).fetchone()["k"]
+            messages = conn.execute("SELECT coalesce(sum(messages), 0) AS n FROM chunks WHERE session_id = ? "
+                                    "AND seq <= ?", (session_id, k)).fetchone()["n"]
+            after = [r["seq"] for r in conn.execute("SELECT seq FROM chunks WHERE session_id = ? AND seq > ? "
+                                                    "ORDER BY seq LIMIT ?", (session_id, k, max_after))]
+        return {"received": int(received), "contiguous_through": int(k), "messages": int(messages),
+                "highest": -1 if highest is None else int(highest), "after": after}
+
     def chunk_rows(self, session_id: str) -> list[dict[str, Any]]:
         """All chunks of a session in seq order."""
         with self._tx() as tx:

@@ -10,6 +10,7 @@ import shutil
 import stat
 import tempfile
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -18,6 +19,7 @@ from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
+from service.disk_space import CHECK_EVERY_BYTES, disk_full_error
 from service.errors import BadRequest, InvalidInput, PayloadTooLarge, UnsupportedFormat
 
 MULTIPART_OVERHEAD_BYTES = 64 * 1024  # headers and boundaries around the file part
@@ -53,9 +55,11 @@ class ReceivedFile:
 class _PartCollector:
     """python-multipart callbacks: the file part goes to a temp file, small text fields to memory."""
 
-    def __init__(self, tmp_dir: Path, max_bytes: int):
+    def __init__(self, tmp_dir: Path, max_bytes: int, space: Callable[[int], None] | None = None):
         self.tmp_dir = tmp_dir
         self.max_bytes = max_bytes
+        self.space = space  # raises 507 when this many more bytes would eat into the disk reserve
+        self._checked_at = 0
         self.fields: dict[str, str] = {}
         self.file: ReceivedFile | None = None
         self._handle: Any = None
@@ -109,8 +113,14 @@ class _PartCollector:
             if self.file.size_bytes > self.max_bytes:
                 raise PayloadTooLarge(f"upload larger than the limit of {self.max_bytes} bytes",
                                       {"limit_bytes": self.max_bytes})
+            if self.space is not None and self.file.size_bytes - self._checked_at >= CHECK_EVERY_BYTES:
+                self._checked_at = self.file.size_bytes
+                self.space(CHECK_EVERY_BYTES)
             self._hash.update(piece)
-            self._handle.write(piece)
+            try:
+                self._handle.write(piece)
+            except OSError as exc:
+                raise disk_full_error(exc, "the upload") or exc from None
         else:
             self._field_buf += data[start:end]
             if len(self._field_buf) > MAX_FIELD_BYTES:
@@ -118,7 +128,11 @@ class _PartCollector:
 
     def _part_end(self) -> None:
         if self._is_file:
-            self._handle.close()
+            try:
+                self._handle.close()  # flushes the last buffered bytes
+            except OSError as exc:
+                self._handle = None
+                raise disk_full_error(exc, "the upload") or exc from None
             self._handle = None
             self.file.sha256 = self._hash.hexdigest()
         elif self._name:
@@ -131,8 +145,11 @@ class _PartCollector:
             self.file.path.unlink(missing_ok=True)
 
 
-async def receive_upload(request: Request, tmp_dir: Path, max_bytes: int) -> ReceivedFile:
-    """Stream a multipart body's ``file`` part to ``tmp_dir`` (413 as soon as it passes ``max_bytes``)."""
+async def receive_upload(request: Request, tmp_dir: Path, max_bytes: int,
+                         space: Callable[[int], None] | None = None) -> ReceivedFile:
+    """Stream a multipart body's ``file`` part to ``tmp_dir`` (413 as soon as it passes ``max_bytes``).
+    ``space(n)`` raises (507) when ``n`` more bytes would not fit: called with the declared length
+    first, then every few MB as the body arrives; a full disk while writing is a 507 too."""
     content_type, params = parse_options_header(request.headers.get("content-type", ""))
     if content_type != b"multipart/form-data" or b"boundary" not in params:
         raise UnsupportedFormat("send the log as multipart/form-data in the form field 'file'",
@@ -141,7 +158,9 @@ async def receive_upload(request: Request, tmp_dir: Path, max_bytes: int) -> Rec
     if declared and declared.isdigit() and int(declared) > max_bytes + MULTIPART_OVERHEAD_BYTES:
         raise PayloadTooLarge(f"upload of {declared} bytes is larger than the limit of {max_bytes} bytes",
                               {"limit_bytes": max_bytes})
-    collector = _PartCollector(tmp_dir, max_bytes)
+    if space is not None:
+        space(int(declared) if declared and declared.isdigit() else 0)
+    collector = _PartCollector(tmp_dir, max_bytes, space)
     parser = MultipartParser(params[b"boundary"], collector.callbacks())
     try:
         async for piece in request.stream():

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from service.job_memory import MemoryGuard, limit_reason
 from service.storage import DataDir
 from service.store import JobStore
 from slam_engine.errors import Cancelled, LogFormatError, SlamEngineError
@@ -39,7 +40,12 @@ class JobContext:
     job: dict[str, Any]
     store: JobStore
     data: DataDir
+    memory: MemoryGuard | None = field(default=None, repr=False)
     _last_write_s: float = field(default=0.0, repr=False)
+
+    def peak_memory_bytes(self) -> int | None:
+        """The job's peak resident memory so far [bytes] (None when not measured)."""
+        return None if self.memory is None else self.memory.peak_bytes()
 
     @property
     def out_dir(self) -> Path:
@@ -71,16 +77,24 @@ def import_function(dotted: str) -> JobFunction:
     return getattr(importlib.import_module(module_name), name)
 
 
-def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFunction) -> str:
-    """Run one job to a terminal status; returns that status. Never raises for the job's own errors."""
+def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFunction,
+                memory_limit_mb: int = 0) -> str:
+    """Run one job to a terminal status; returns that status. Never raises for the job's own errors.
+    Its peak memory is measured; past ``memory_limit_mb`` (0 = no limit) it fails with that reason."""
     if not store.mark_running(job_id, os.getpid()):
         return "skipped"  # cancelled (or deleted) while queued
     job = store.get_job(job_id)
     if job is None:
         return "skipped"
-    ctx = JobContext(job_id=job_id, job=job, store=store, data=data)
+    guard = MemoryGuard(memory_limit_mb, on_exceeded=lambda reason: store.finish(job_id, "failed", reason))
+    ctx = JobContext(job_id=job_id, job=job, store=store, data=data, memory=guard)
     try:
-        function(ctx)
+        with guard:
+            function(ctx)
+    except MemoryError:
+        reason = limit_reason(memory_limit_mb) if memory_limit_mb else "out of memory"
+        store.finish(job_id, "failed", f"{reason} (an allocation was refused)")
+        return "failed"
     except Cancelled:
         store.finish(job_id, "cancelled", "cancelled by request")
         return "cancelled"
@@ -99,7 +113,8 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
     return "succeeded"
 
 
-def worker_main(data_root: str, store: JobStore, job_function: str, slot: int, inbox: Any, outbox: Any) -> None:
+def worker_main(data_root: str, store: JobStore, job_function: str, slot: int, inbox: Any, outbox: Any,
+                memory_limit_mb: int = 0) -> None:
     """Entry point of a spawned worker process: take job ids from ``inbox`` until ``None``.
     ``store`` is the server's (it holds only where the database is, no connection)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which shuts us down
@@ -117,5 +132,5 @@ def worker_main(data_root: str, store: JobStore, job_function: str, slot: int, i
         job_id = inbox.get()
         if job_id is None:
             return
-        status = execute_job(job_id, store, data, function)
+        status = execute_job(job_id, store, data, function, memory_limit_mb)
         outbox.put((slot, job_id, status))

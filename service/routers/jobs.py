@@ -8,7 +8,7 @@ from fastapi import APIRouter, Query
 
 from api_schemas.errors import ErrorResponse
 from api_schemas.jobs import JobCreate, JobPublic, JobSource, JobsPublic, JobStatus
-from service.deps import DataDep, JobRow, OwnerDep, RunnerDep, SessionRow, StoreDep
+from service.deps import MAX_OFFSET, DataDep, JobRow, OwnerDep, RunnerDep, SessionRow, StoreDep
 from service.errors import Conflict, NotFound
 from service.products import live_product_names
 from service.routers.convert import job_public
@@ -54,7 +54,7 @@ def list_jobs(store: StoreDep, owner: OwnerDep, data: DataDep,
               session: Annotated[str | None, Query(max_length=64, description="Only this session's jobs.")] = None,
               status: Annotated[JobStatus | None, Query(description="Only jobs in this state.")] = None,
               limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-              offset: Annotated[int, Query(ge=0)] = 0) -> JobsPublic:
+              offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0) -> JobsPublic:
     rows, count = store.list_jobs(owner, session, None if status is None else status.value, limit, offset)
     return JobsPublic(data=[job_public(r, live_product_names(data, r)) for r in rows], count=count)
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query, Request
@@ -10,6 +11,7 @@ from starlette.concurrency import run_in_threadpool
 from api_schemas.errors import ErrorResponse
 from api_schemas.logs import LogPublic, LogsPublic
 from service.deps import DataDep, SessionRow, SettingsDep, StoreDep
+from service.disk_space import ensure_free_space
 from service.errors import InvalidInput
 from service.inspection import LogInspector
 from service.routers.convert import log_public
@@ -43,7 +45,8 @@ async def upload_log(request: Request, session: SessionRow, store: StoreDep, dat
     """Upload a drive log in any supported format (a folder format as a .zip). The body is
     streamed to disk and hashed; the loader then checks it: 415 when no format matches, 422 with
     the loader's message when it is corrupt, 413 when too big."""
-    received = await receive_upload(request, data.tmp, settings.max_upload_bytes)
+    received = await receive_upload(request, data.tmp, settings.max_upload_bytes,
+                                    space=partial(ensure_free_space, data, settings.min_free_bytes))
     log_id = new_id()
     upload_dir = data.upload_dir(log_id)
     try:
@@ -60,12 +63,12 @@ async def upload_log(request: Request, session: SessionRow, store: StoreDep, dat
             log_path = upload_dir / f"log{safe_suffix(received.filename)}"
             move_into(received.path, log_path)
         summary = await inspector.summary(log_path, format_name)
-    except BaseException:
+        row = store.add_log(log_id, session["id"], received.filename, received.size_bytes, received.sha256,
+                            archive, summary, data.relative(log_path))
+    except BaseException:  # nothing half-stored: no row without its files, no files without a row
         received.path.unlink(missing_ok=True)
         data.remove(upload_dir)
         raise
-    row = store.add_log(log_id, session["id"], received.filename, received.size_bytes, received.sha256,
-                        archive, summary, data.relative(log_path))
     return log_public(row)
 
 

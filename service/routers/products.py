@@ -18,6 +18,7 @@ from service.errors import InvalidInput
 from service.products import MEDIA_TYPES, product_path, tile_source
 
 MAX_TILE_ZOOM = 24
+MAX_TILE_INDEX = 2**MAX_TILE_ZOOM - 1
 
 router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["products"],
                    responses={401: {"model": ErrorResponse}, 404: {"model": ErrorResponse},
@@ -96,8 +97,8 @@ def run_record(job: JobRow, data: DataDep) -> dict[str, Any]:
 @router.get("/tiles/{layer}/{z}/{x}/{y}.png", response_class=Response,
             responses={200: {"content": {"image/png": {}}}, 422: {"model": ErrorResponse}})
 async def tile(job: JobRow, data: DataDep, layer: TileLayer,
-               z: Annotated[int, Path(ge=0, le=MAX_TILE_ZOOM)], x: Annotated[int, Path(ge=0)],
-               y: Annotated[int, Path(ge=0)]) -> Response:
+               z: Annotated[int, Path(ge=0, le=MAX_TILE_ZOOM)], x: Annotated[int, Path(ge=0, le=MAX_TILE_INDEX)],
+               y: Annotated[int, Path(ge=0, le=MAX_TILE_INDEX)]) -> Response:
     """A 256x256 PNG tile of the map (z=0: the whole map; x, y in 0..2^z-1; 404 beyond the map's
     deepest zoom). While the job runs: tiles of the map so far."""
     if x >= 2**z or y >= 2**z:

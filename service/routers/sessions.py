@@ -8,7 +8,7 @@ from fastapi import APIRouter, Query
 
 from api_schemas.errors import ErrorResponse
 from api_schemas.sessions import SessionCreate, SessionDeleted, SessionPublic, SessionsPublic
-from service.deps import DataDep, OwnerDep, RunnerDep, SessionRow, StoreDep
+from service.deps import MAX_OFFSET, DataDep, OwnerDep, RunnerDep, SessionRow, StoreDep
 from service.routers.convert import session_public
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
@@ -27,7 +27,7 @@ def create_session(body: SessionCreate, store: StoreDep, owner: OwnerDep) -> Ses
 
 @router.get("", response_model=SessionsPublic)
 def list_sessions(store: StoreDep, owner: OwnerDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-                  offset: Annotated[int, Query(ge=0)] = 0) -> SessionsPublic:
+                  offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0) -> SessionsPublic:
     rows, count = store.list_sessions(owner, limit, offset)
     return SessionsPublic(data=[session_public(r) for r in rows], count=count)
 

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 
+import numpy as np
+
 from slam_engine.drive_log import DriveLog
 from slam_engine.errors import LogFormatError, UnknownFormatError
 
@@ -151,6 +153,10 @@ def write_log(log: DriveLog, format: str, out_dir: str | Path) -> Path:
     info = format_info(format)
     if not info.can_write:
         raise LogFormatError(f"format {format!r} cannot be written")
+    for name in ("scans", "encoders", "gyro", "odometry"):
+        stream = getattr(log, name)
+        if stream is not None and not np.isfinite(np.asarray(stream.t_s, dtype=np.float64)).all():
+            raise LogFormatError(f"cannot write a log whose {name} have non-finite timestamps", location=name)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     return _module(format).write(log, out_dir)

@@ -77,6 +77,14 @@ def _floats(tokens: list[str], path: Path, line_no: int) -> np.ndarray:
         raise LogFormatError(f"not a number: {error}", path=str(path), location=f"line {line_no}") from None
 
 
+def _finite(values: np.ndarray, what: str, path: Path, line_no: int) -> np.ndarray:
+    """``values`` (poses, stamps, geometry) when all finite; otherwise a LogFormatError."""
+    if not np.isfinite(values).all():
+        raise LogFormatError(f"{what} is not finite: {' '.join(str(v) for v in values)}", path=str(path),
+                             location=f"line {line_no}")
+    return values
+
+
 def _int_field(token: str, path: Path, line_no: int, what: str) -> int:
     try:
         value = int(token)
@@ -98,17 +106,18 @@ def _parse_old_laser(tokens: list[str], laser: _Laser, path: Path, line_no: int)
     n = _int_field(tokens[1], path, line_no, "beam count") if len(tokens) > 1 else 0
     _expect_length(tokens, n + 11, path, line_no)
     values = _floats(tokens[2:n + 8], path, line_no)
+    _finite(values[n:], "laser/robot pose", path, line_no)
     laser.ranges.append(values[:n])
     laser.laser_pose.append(tuple(values[n:n + 3]))
     laser.robot_pose.append(tuple(values[n + 3:n + 6]))
-    laser.t.append(float(_floats([tokens[n + 8]], path, line_no)[0]))
+    laser.t.append(float(_finite(_floats([tokens[n + 8]], path, line_no), "timestamp", path, line_no)[0]))
     laser.lines.append(line_no)
 
 
 def _parse_new_laser(tokens: list[str], laser: _Laser, path: Path, line_no: int, with_poses: bool) -> None:
     if len(tokens) < 10:
         _expect_length(tokens, 10, path, line_no)
-    header = _floats(tokens[2:6], path, line_no)
+    header = _finite(_floats(tokens[2:6], path, line_no), "laser geometry", path, line_no)
     n = _int_field(tokens[8], path, line_no, "beam count")
     if len(tokens) < 10 + n:
         _expect_length(tokens, 10 + n, path, line_no)
@@ -116,7 +125,7 @@ def _parse_new_laser(tokens: list[str], laser: _Laser, path: Path, line_no: int,
     tail = 11 + 3 if with_poses else 3
     _expect_length(tokens, 10 + n + m + tail, path, line_no)
     laser.ranges.append(_floats(tokens[9:9 + n], path, line_no))
-    rest = _floats(tokens[10 + n + m:-2], path, line_no)
+    rest = _finite(_floats(tokens[10 + n + m:-2], path, line_no), "pose / timestamp", path, line_no)
     if with_poses:
         laser.laser_pose.append(tuple(rest[0:3]))
         laser.robot_pose.append(tuple(rest[3:6]))
@@ -153,7 +162,8 @@ def load(path: Path, no_return_m: float | None = None) -> DriveLog:
                     params[tokens[1]] = tokens[2]
                 elif kind == "ODOM":
                     _expect_length(tokens, 10, path, line_no)
-                    values = _floats(tokens[1:8], path, line_no)
+                    values = _finite(_floats(tokens[1:8], path, line_no), "ODOM pose / velocity / time",
+                                     path, line_no)
                     odom_poses.append(values[:3])
                     odom_t.append(float(values[6]))
                     odom_lines.append(line_no)

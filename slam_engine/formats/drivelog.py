@@ -14,6 +14,7 @@ import math
 import re
 import stat
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -58,7 +59,7 @@ def sniff(path: Path) -> bool:
             if info.file_size > MAX_MANIFEST_BYTES:
                 return False
             return json.loads(archive.read(info)).get("format") == FORMAT_NAME
-    except (KeyError, OSError, ValueError, zipfile.BadZipFile, AttributeError):
+    except (KeyError, OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, AttributeError):
         return False
 
 
@@ -190,7 +191,7 @@ def _read_column(archive: zipfile.ZipFile, member: str, path: Path) -> np.ndarra
             return np.lib.format.read_array(handle, allow_pickle=False)
     except KeyError:
         raise LogFormatError("column listed in the manifest is missing", path=str(path), location=member) from None
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as error:
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as error:
         raise LogFormatError(f"not a valid .npy array: {error}", path=str(path), location=member) from None
 
 
@@ -211,7 +212,7 @@ def load(path: Path, max_total_bytes: int = MAX_TOTAL_BYTES) -> DriveLog:
             raise LogFormatError("manifest.json is too large", path=str(path))
         try:
             manifest = json.loads(archive.read(info))
-        except (ValueError, UnicodeDecodeError) as error:
+        except (ValueError, UnicodeDecodeError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as error:
             raise LogFormatError(f"manifest.json is not JSON: {error}", path=str(path)) from None
         try:
             vehicle, lidar, streams = validate_manifest(manifest)

@@ -138,10 +138,14 @@ def _read_csv(path: Path, columns: int | None) -> tuple[np.ndarray, np.ndarray]:
                 raise LogFormatError(f"row has {len(fields)} fields, expected {columns} (truncated?)",
                                      path=str(path), location=f"line {line_no}")
             try:
-                stamps.append(int(fields[0]))
+                stamp = int(fields[0])
             except ValueError:
                 raise LogFormatError(f"timestamp {fields[0]!r} is not an integer nanosecond count",
                                      path=str(path), location=f"line {line_no}") from None
+            if not 0 <= stamp < 2**63:
+                raise LogFormatError(f"timestamp {fields[0]!r} is outside 0..2^63 ns", path=str(path),
+                                     location=f"line {line_no}")
+            stamps.append(stamp)
             rows.append(fields[1:])
     if not rows:
         raise LogFormatError("file holds no rows", path=str(path))
@@ -165,8 +169,8 @@ def load(path: Path) -> DriveLog:
 
     ns, ticks = _read_csv(data / "encoder.csv", 3)
     t = ns * 1e-9
-    if not np.all(ticks == np.round(ticks)):
-        raise LogFormatError("encoder counts must be integers", path=str(data / "encoder.csv"))
+    if not (np.isfinite(ticks).all() and np.all(ticks == np.round(ticks)) and np.all(np.abs(ticks) < 2**62)):
+        raise LogFormatError("encoder counts must be (finite) integers", path=str(data / "encoder.csv"))
     order = time_order(t, data / "encoder.csv", "encoder", warnings, lambda i: f"line {i + 1}")
     encoders = EncoderStream(t_s=t[order], ticks=ticks[order].astype(np.int64))
 

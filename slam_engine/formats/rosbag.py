@@ -143,6 +143,10 @@ def load(path: Path) -> DriveLog:
                         tree[tf.child_frame_id.lstrip("/")] = (tf.header.frame_id.lstrip("/"), T)
     except (AnyReaderError, FileNotFoundError, OSError) as error:
         raise LogFormatError(f"cannot read bag: {error}", path=str(path)) from None
+    except LogFormatError:
+        raise
+    except Exception as error:  # noqa: BLE001 - a damaged bag makes rosbags raise many kinds of errors
+        raise LogFormatError(f"cannot read bag ({type(error).__name__}: {error})", path=str(path)) from None
 
     base = (base_frame or "").lstrip("/") or next((f for f in BASE_FRAMES if _chain(tree, f, f) is not None),
                                                    BASE_FRAMES[0])
@@ -218,6 +222,11 @@ def write(log: DriveLog, out_dir: Path, name: str = "log") -> Path:
     path = Path(out_dir) / name
     if path.exists():
         raise LogFormatError("bag folder exists already", path=str(path))
+    for stream_name in ("scans", "encoders", "gyro", "odometry"):
+        stream = getattr(log, stream_name)
+        if stream is not None and len(stream.t_s) and float(np.min(stream.t_s)) < 0:
+            raise LogFormatError(f"ROS stamps cannot be negative ({stream_name} start at {np.min(stream.t_s)} s)",
+                                 location=stream_name)
     store = get_typestore(Stores.ROS2_HUMBLE)
     types = store.types
     odometry = odometry_poses(log) if (log.odometry is not None or log.encoders is not None) else None

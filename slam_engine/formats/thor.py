@@ -83,7 +83,7 @@ def _looks_like_encoders(path: Path) -> bool:
         from scipy.io import whosmat
 
         return any(name == "Encoders" for name, _, _ in whosmat(str(path)))
-    except (OSError, ValueError, zipfile.BadZipFile, NotImplementedError):
+    except Exception:  # scipy/zipfile raise many kinds of errors on a damaged file: not a THOR file then
         return False
 
 
@@ -108,8 +108,8 @@ def _read(path: Path) -> dict[str, np.ndarray]:
         from scipy.io import loadmat
 
         raw = loadmat(str(path))
-    except (OSError, ValueError, zipfile.BadZipFile, NotImplementedError) as error:
-        raise LogFormatError(f"cannot read file: {error}", path=str(path)) from None
+    except Exception as error:  # a damaged .mat/.npz makes scipy/numpy/zipfile raise all sorts of errors
+        raise LogFormatError(f"cannot read file ({type(error).__name__}: {error})", path=str(path)) from None
     out: dict[str, np.ndarray] = {}
     for key, value in raw.items():
         if key.startswith("__"):
