@@ -30,6 +30,7 @@ def scan_endpoints_world(log: DriveLog, trajectory: Trajectory, max_range_m: flo
     lidar, scans = log.lidar, log.scans
     ranges = np.asarray(scans.ranges_m, dtype=np.float64)
     valid = np.isfinite(ranges) & (ranges >= lidar.range_min_m) & (ranges <= min(lidar.range_max_m, max_range_m))
+    ranges = np.where(valid, ranges, 0.0)  # no-return beams become NaN below, without inf * 0 warnings
     angles = lidar.beam_angles_rad
     T = np.asarray(lidar.T_vehicle_from_lidar, dtype=np.float64)
     # Beam endpoints in the vehicle frame (the 2-D part of T_vehicle_from_lidar).
