@@ -3,22 +3,22 @@ carry none. Mirrors slam_engine.drive_log.VehicleModel and LidarModel (metres, r
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-Matrix4 = list[list[float]]
+from api_schemas.drivelog import Matrix4  # 4x4, row-major, metres
 
 
 class VehicleCalibration(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     kind: Literal["differential", "skid_steer", "odometry"]
-    ticks_per_revolution: float | None = Field(None, gt=0)
-    wheel_diameters_m: list[float] | None = Field(None, min_length=1, max_length=8)
-    wheel_names: list[str] = Field(default_factory=list, max_length=8)
+    ticks_per_revolution: float | None = Field(None, gt=0, le=1e7)
+    wheel_diameters_m: list[Annotated[float, Field(gt=0, le=10)]] | None = Field(None, min_length=1, max_length=8)
+    wheel_names: list[Annotated[str, Field(max_length=40)]] = Field(default_factory=list, max_length=8)
     track_width_m: float | None = Field(None, gt=0, le=20)
-    gyro_lowpass_hz: float | None = Field(None, gt=0)
+    gyro_lowpass_hz: float | None = Field(None, gt=0, le=10_000)
     T_vehicle_from_gyro: Matrix4 | None = None
     name: str = Field("vehicle", max_length=100)
 
@@ -29,7 +29,7 @@ class LidarCalibration(BaseModel):
     num_beams: int = Field(ge=1, le=100_000)
     angle_min_rad: float = Field(ge=-7.0, le=7.0)
     angle_increment_rad: float = Field(ge=-3.2, le=3.2)
-    range_min_m: float = Field(ge=0.0)
+    range_min_m: float = Field(ge=0.0, le=1000.0)
     range_max_m: float = Field(gt=0.0, le=1000.0)
     T_vehicle_from_lidar: Matrix4 | None = None
     name: str = Field("lidar", max_length=100)

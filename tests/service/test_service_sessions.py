@@ -56,3 +56,25 @@ def test_health_and_readiness(tmp_path) -> None:
         assert body["workers"]["workers_total"] == 2 and body["workers"]["workers_alive"] == 2
         assert body["storage"]["database_ok"] and body["storage"]["data_dir_writable"]
         assert "/v1/jobs/{job_id}/tiles/{layer}/{z}/{x}/{y}.png" in client.get("/openapi.json").json()["paths"]
+
+
+def test_calibration_is_bounded_and_shaped(tmp_path) -> None:
+    """A malformed mounting matrix or an absurd number is refused when the session is created (422),
+    not when a job runs."""
+    lidar = {"num_beams": 180, "angle_min_rad": -1.57, "angle_increment_rad": 0.0175, "range_min_m": 0.0,
+             "range_max_m": 50.0}
+    bad = [
+        {"vehicle": {"kind": "odometry"}, "lidar": {**lidar, "T_vehicle_from_lidar": [[1, 0, 0], [0, 1, 0]]}},
+        {"vehicle": {"kind": "differential", "ticks_per_revolution": 1e12}},
+        {"vehicle": {"kind": "differential", "wheel_diameters_m": [0.2, -1.0]}},
+        {"vehicle": {"kind": "odometry"}, "lidar": {**lidar, "range_min_m": 1e9}},
+    ]
+    with service_client(tmp_path) as client:
+        for calibration in bad:
+            response = client.post("/v1/sessions", json={"name": "x", "calibration": calibration})
+            assert response.status_code == 422, calibration
+            assert response.json()["error"]["code"] == "validation_error"
+        good = client.post("/v1/sessions", json={"name": "ok", "calibration": {
+            "vehicle": {"kind": "odometry"}, "lidar": {**lidar, "T_vehicle_from_lidar": [
+                [1, 0, 0, 0.2], [0, 1, 0, 0], [0, 0, 1, 0.3], [0, 0, 0, 1]]}}})
+        assert good.status_code == 201
