@@ -87,6 +87,9 @@ def load(path: Path) -> DriveLog:
         source_format="breezyslam", source_path=str(path), warnings=warnings)
 
 
+MAX_STORED_RANGE_M = 1000.0  # longer ranges are written as 0, "no return" (no overflow of the mm integers)
+
+
 def write(log: DriveLog, out_dir: Path, name: str = "log") -> Path:
     """Write ``out_dir/<name>.dat``: one line per scan with the wheel ticks at the scan's stamp
     (interpolated from the encoder stream when its stamps differ), ranges rounded to millimetres."""
@@ -101,7 +104,9 @@ def write(log: DriveLog, out_dir: Path, name: str = "log") -> Path:
     t = log.scans.t_s
     ticks = np.column_stack([np.round(np.interp(t, log.encoders.t_s, log.encoders.ticks[:, k]))
                              for k in range(2)]).astype(np.int64)
-    ranges_mm = np.where(np.isfinite(log.scans.ranges_m), np.round(log.scans.ranges_m * 1000.0), 0).astype(np.int64)
+    ranges_m = np.asarray(log.scans.ranges_m, dtype=np.float64)
+    storable = np.isfinite(ranges_m) & (ranges_m <= MAX_STORED_RANGE_M)  # the rest is "no return" (0)
+    ranges_mm = np.round(np.where(storable, ranges_m, 0.0) * 1000.0).astype(np.int64)
     stamps_us = np.round(t * 1e6).astype(np.int64)
     filler = " ".join(["0"] * (FIRST_RANGE_FIELD - 4))
     with open(path, "w") as out:
