@@ -13,7 +13,7 @@ from starlette.concurrency import run_in_threadpool
 
 from api_schemas.errors import ErrorResponse
 from api_schemas.products import Pose, TrajectoryPublic
-from service.deps import DataDep, JobRow
+from service.deps import DataDep, JobRow, StoreDep
 from service.errors import InvalidInput
 from service.products import MEDIA_TYPES, product_path, tile_source
 
@@ -33,6 +33,25 @@ class TrajectoryFormat(StrEnum):
 class TileLayer(StrEnum):
     OCCUPANCY = "occupancy"
     TEXTURE = "texture"
+
+
+class TileScheme(StrEnum):
+    SIMPLE = "simple"  # metric pyramid for Leaflet L.CRS.Simple
+    WEBMERCATOR = "webmercator"  # standard XYZ tiles (EPSG:3857), for sessions with a geo origin
+
+
+def _georeference(store: Any, job: dict[str, Any]) -> Any:
+    """The map's placement on Earth from the job's session geo origin (422 when it has none)."""
+    from slam_engine.products import GeoOrigin
+    from slam_engine.products.georeference import Georeference
+
+    session = store.get_session(job["session_id"], job["owner"])
+    if session is None or session["geo"] is None:
+        raise InvalidInput("Web Mercator tiles need a georeferenced session: create it with a geo origin "
+                           "(lat_deg, lon_deg, heading_deg)", {"scheme": "webmercator"})
+    geo = session["geo"]
+    origin = GeoOrigin(latitude_deg=geo["lat_deg"], longitude_deg=geo["lon_deg"], heading_deg=geo["heading_deg"])
+    return Georeference.utm(origin, start_pose=[0.0, 0.0, 0.0])  # the map frame starts at the first pose
 
 
 def _file(data: DataDep, job: dict[str, Any], name: str) -> FileResponse:
@@ -96,17 +115,22 @@ def run_record(job: JobRow, data: DataDep) -> dict[str, Any]:
 
 @router.get("/tiles/{layer}/{z}/{x}/{y}.png", response_class=Response,
             responses={200: {"content": {"image/png": {}}}, 422: {"model": ErrorResponse}})
-async def tile(job: JobRow, data: DataDep, layer: TileLayer,
+async def tile(job: JobRow, data: DataDep, store: StoreDep, layer: TileLayer,
                z: Annotated[int, Path(ge=0, le=MAX_TILE_ZOOM)], x: Annotated[int, Path(ge=0, le=MAX_TILE_INDEX)],
-               y: Annotated[int, Path(ge=0, le=MAX_TILE_INDEX)]) -> Response:
+               y: Annotated[int, Path(ge=0, le=MAX_TILE_INDEX)],
+               scheme: Annotated[TileScheme, Query(description="simple (metric) or webmercator (XYZ, needs "
+                                                               "a session geo origin)")] = TileScheme.SIMPLE,
+               ) -> Response:
     """A 256x256 PNG tile of the map (z=0: the whole map; x, y in 0..2^z-1; 404 beyond the map's
-    deepest zoom). While the job runs: tiles of the map so far."""
+    deepest zoom, or outside the map in Web Mercator). While the job runs: tiles of the map so far."""
     if x >= 2**z or y >= 2**z:
         raise InvalidInput(f"tile ({x}, {y}) does not exist at zoom {z}: x and y must be below {2**z}",
                            {"z": z, "x": x, "y": y})
     from slam_engine.products import render_tile
 
     source, version = await run_in_threadpool(tile_source, data, job, layer.value)
-    png = await run_in_threadpool(partial(render_tile, source, z, x, y, layer.value, map_version=version))
+    georef = _georeference(store, job) if scheme is TileScheme.WEBMERCATOR else None
+    png = await run_in_threadpool(partial(render_tile, source, z, x, y, layer.value, scheme=scheme.value,
+                                          georef=georef, map_version=(version, scheme.value)))
     headers = {"Cache-Control": "no-store"} if job["status"] == "running" else None
     return Response(png, media_type="image/png", headers=headers)

@@ -161,3 +161,45 @@ def test_restart_keeps_state_and_fails_interrupted_jobs(tmp_path) -> None:
         interrupted = client.get(f"/v1/jobs/{crashed['id']}").json()
         assert interrupted["status"] == "failed" and interrupted["error"].startswith("interrupted")
         assert wait_for(client, waiting["id"])["status"] == "succeeded"  # queued jobs resume
+
+
+def test_web_mercator_tiles_of_a_georeferenced_session(tmp_path) -> None:
+    """?scheme=webmercator serves standard XYZ tiles placed by the session's geo origin: the tile
+    holding the origin (the room's wall corner at map (0, 0)) shows the wall; far tiles are 404;
+    a session without a geo origin gets a 422 saying what is missing."""
+    import io
+    import math
+
+    import numpy as np
+    from PIL import Image
+
+    lat, lon = 48.137, 11.575
+    with service_client(tmp_path, job_function="viewer_job_functions:synthetic_room") as client:
+        geo_sid = new_session(client, calibration=CALIBRATION, geo={"lat_deg": lat, "lon_deg": lon, "heading_deg": 0.0})
+        plain_sid = new_session(client, calibration=CALIBRATION)
+        for sid in (geo_sid, plain_sid):
+            client.post(f"/v1/sessions/{sid}/chunks", json={"seq": 0, "messages": [
+                {"type": "odometry", "t_s": 0.0, "x_m": 0.0, "y_m": 0.0, "theta_rad": 0.0}]})
+        jobs = [client.post(f"/v1/sessions/{sid}/jobs", json={"particles": 3, "seed": 1}).json()
+                for sid in (geo_sid, plain_sid)]
+        for job in jobs:
+            assert wait_for(client, job["id"])["status"] == "succeeded"
+
+        z = 20
+        n = 2**z
+        x = int((lon + 180.0) / 360.0 * n)
+        y = int((1.0 - math.asinh(math.tan(math.radians(lat))) / math.pi) / 2.0 * n)
+        url = f"/v1/jobs/{jobs[0]['id']}/tiles/occupancy/{z}/{x}/{y}.png"
+        response = client.get(url, params={"scheme": "webmercator"})
+        assert response.status_code == 200, response.text
+        rgba = np.asarray(Image.open(io.BytesIO(response.content)).convert("RGBA"))
+        assert rgba.shape == (256, 256, 4)
+        opaque = rgba[..., 3] > 0
+        assert opaque.any() and (rgba[..., 0][opaque] < 60).any()  # the wall corner is on this tile
+
+        far = client.get(f"/v1/jobs/{jobs[0]['id']}/tiles/occupancy/{z}/{x + 500}/{y}.png",
+                         params={"scheme": "webmercator"})
+        assert_error(far, 404)
+        plain = client.get(f"/v1/jobs/{jobs[1]['id']}/tiles/occupancy/{z}/{x}/{y}.png",
+                           params={"scheme": "webmercator"})
+        assert "geo origin" in assert_error(plain, 422)["message"]
