@@ -19,11 +19,13 @@ import math
 import numba as nb
 import numpy as np
 
-from slam_engine.grid import N_LEVELS, TILE_SHIFT, ParticleGrids, cell_value
+from slam_engine.grid import LOG_ODDS_UNIT, N_LEVELS, TILE_SHIFT, ParticleGrids, cell_value
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _squash(v):
+def _squash(stored):
+    """Map value M in [0, 1] of a stored log-odds value (units of ``LOG_ODDS_UNIT``)."""
+    v = stored * LOG_ODDS_UNIT
     return 0.5 + 0.5 * v / (1.0 + abs(v))
 
 
