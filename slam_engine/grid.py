@@ -45,12 +45,12 @@ def cell_value(pool, tables, p, tile_x0, tile_y0, shift, cx, cy):
     tx = (cx >> shift) - tile_x0
     ty = (cy >> shift) - tile_y0
     if tx < 0 or ty < 0 or ty >= tables.shape[1] or tx >= tables.shape[2]:
-        return 0.0
+        return 0
     t = tables[p, ty, tx]
     if t < 0:
-        return 0.0
+        return 0
     mask = (1 << shift) - 1
-    return float(pool[t, cy & mask, cx & mask])
+    return int(pool[t, cy & mask, cx & mask])
 
 
 @nb.njit(cache=True, nogil=True)
