@@ -1,7 +1,8 @@
 """Log-odds occupancy maps for every particle, stored as shared copy-on-write tiles.
 
 Layout: the map frame is cut into square tiles of ``TILE`` x ``TILE`` cells. Tiles live in one
-pool (``levels[0]`` is ``(capacity, TILE, TILE)`` float32 log-odds); each particle has a tile table
+pool (``levels[0]`` is ``(capacity, TILE, TILE)`` int16 log-odds in units of ``LOG_ODDS_UNIT``,
+so 0.9 is stored as 90: half the memory traffic of float32); each particle has a tile table
 (``tables[p, ty, tx]`` -> pool index, -1 = never observed) over a tile window that grows with the
 drive (``tile_x0``, ``tile_y0`` = global tile index of table column/row 0). A pool tile carries a
 reference count: resampling copies only tables, and a particle writes into a tile only after
@@ -25,21 +26,31 @@ TILE_SHIFT = 6
 TILE = 1 << TILE_SHIFT  # cells per tile side at level 0
 N_LEVELS = 4  # level k: cells of 2**k * resolution_m, tiles of TILE >> k cells
 TABLE_MARGIN_TILES = 4
+LOG_ODDS_UNIT = 0.01  # stored log-odds are integers in these units
+POOL_DTYPE = np.int16
+
+
+def quantize_log_odds(value: float) -> int:
+    """A log-odds value (increment or clamp) in stored units (nonzero values stay nonzero)."""
+    q = int(round(value / LOG_ODDS_UNIT))
+    if q == 0 and value != 0:
+        q = 1 if value > 0 else -1
+    return q
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def cell_value(pool, tables, p, tile_x0, tile_y0, shift, cx, cy):
-    """Log-odds of global cell (cx, cy) of particle p's map at the level whose tiles are
-    ``1 << shift`` cells wide; 0 (unknown) outside the observed tiles."""
+    """Stored log-odds (units of ``LOG_ODDS_UNIT``) of global cell (cx, cy) of particle p's map at
+    the level whose tiles are ``1 << shift`` cells wide; 0 (unknown) outside the observed tiles."""
     tx = (cx >> shift) - tile_x0
     ty = (cy >> shift) - tile_y0
     if tx < 0 or ty < 0 or ty >= tables.shape[1] or tx >= tables.shape[2]:
-        return 0.0
+        return 0
     t = tables[p, ty, tx]
     if t < 0:
-        return 0.0
+        return 0
     mask = (1 << shift) - 1
-    return pool[t, cy & mask, cx & mask]
+    return int(pool[t, cy & mask, cx & mask])
 
 
 @nb.njit(cache=True, nogil=True)
@@ -56,10 +67,10 @@ def _privatize(levels0, levels1, levels2, levels3, tables, refcount, free_stack,
         n_free -= 1
         new = free_stack[n_free]
         if t < 0:
-            levels0[new, :, :] = 0.0
-            levels1[new, :, :] = 0.0
-            levels2[new, :, :] = 0.0
-            levels3[new, :, :] = 0.0
+            levels0[new, :, :] = 0
+            levels1[new, :, :] = 0
+            levels2[new, :, :] = 0
+            levels3[new, :, :] = 0
         else:
             levels0[new, :, :] = levels0[t]
             levels1[new, :, :] = levels1[t]
@@ -103,7 +114,7 @@ class ParticleGrids:
     def __init__(self, n_particles: int, resolution_m: float, initial_capacity: int = 256):
         self.n_particles = int(n_particles)
         self.resolution_m = float(resolution_m)
-        self.levels = [np.zeros((initial_capacity, TILE >> k, TILE >> k), np.float32) for k in range(N_LEVELS)]
+        self.levels = [np.zeros((initial_capacity, TILE >> k, TILE >> k), POOL_DTYPE) for k in range(N_LEVELS)]
         self.refcount = np.zeros(initial_capacity, np.int32)
         self.free_stack = np.arange(initial_capacity - 1, -1, -1, dtype=np.int32)
         self.n_free = initial_capacity
@@ -155,7 +166,7 @@ class ParticleGrids:
             return
         old = self.capacity
         new = max(2 * old, old + n_tiles - self.n_free + 64)
-        self.levels = [np.concatenate([lv, np.zeros((new - old,) + lv.shape[1:], np.float32)]) for lv in self.levels]
+        self.levels = [np.concatenate([lv, np.zeros((new - old,) + lv.shape[1:], POOL_DTYPE)]) for lv in self.levels]
         self.refcount = np.concatenate([self.refcount, np.zeros(new - old, np.int32)])
         stack = np.empty(new, np.int32)
         stack[: self.n_free] = self.free_stack[: self.n_free]
@@ -210,11 +221,11 @@ class ParticleGrids:
         if len(rows) == 0:
             return OccupancyGrid(np.zeros((1, 1), np.float32), self.resolution_m, 0.0, 0.0)
         r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
-        out = np.zeros(((r1 - r0) * TILE, (c1 - c0) * TILE), np.float32)
+        out = np.zeros(((r1 - r0) * TILE, (c1 - c0) * TILE), POOL_DTYPE)
         for r, c in zip(rows, cols, strict=True):
             out[(r - r0) * TILE:(r - r0 + 1) * TILE, (c - c0) * TILE:(c - c0 + 1) * TILE] = self.levels[0][table[r, c]]
         return OccupancyGrid(
-            log_odds=out,
+            log_odds=out.astype(np.float32) / np.float32(1.0 / LOG_ODDS_UNIT),
             resolution_m=self.resolution_m,
             origin_x_m=float((self.tile_x0 + c0) * self.tile_size_m),
             origin_y_m=float((self.tile_y0 + r0) * self.tile_size_m),

@@ -3,7 +3,8 @@
 Each beam runs from the LiDAR's cell to its end cell (Bresenham): the cells it crosses get
 ``log_odds_miss``, its end cell ``log_odds_hit`` when the beam returned. Beams without a return
 (or longer than the grid's ``max_range_m``) clear free space along their whole length and add no
-hit. Values are clamped to ``[log_odds_min, log_odds_max]``.
+hit. Values are clamped to ``[log_odds_min, log_odds_max]``; increments and clamps are rounded to the
+pool's integer units (``grid.LOG_ODDS_UNIT`` = 0.01).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import math
 import numba as nb
 import numpy as np
 
-from slam_engine.grid import TILE, TILE_SHIFT, ParticleGrids
+from slam_engine.grid import TILE, TILE_SHIFT, ParticleGrids, quantize_log_odds
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -282,6 +283,7 @@ def insert_scan(
     lv = grids.levels
     integrate_rays(lv[0], lv[1], lv[2], lv[3], grids.tables, grids.refcount, grids.tile_x0, grids.tile_y0, particles,
                    poses, origin_v, ends_v, is_hit, free_from, grids.resolution_m,
-                   log_odds_hit, log_odds_miss, log_odds_min, log_odds_max)
+                   quantize_log_odds(log_odds_hit), quantize_log_odds(log_odds_miss), quantize_log_odds(log_odds_min),
+                   quantize_log_odds(log_odds_max))
     clear_marks(grids._mark, buffer, n)
     return n

@@ -19,16 +19,26 @@ import math
 import numba as nb
 import numpy as np
 
-from slam_engine.grid import N_LEVELS, TILE_SHIFT, ParticleGrids, cell_value
+from slam_engine.grid import LOG_ODDS_UNIT, N_LEVELS, TILE_SHIFT, ParticleGrids, cell_value
+
+
+def _squash_table() -> np.ndarray:
+    """Map value M in [0, 1] of every stored log-odds value (int16, units of ``LOG_ODDS_UNIT``),
+    indexed by ``stored + 32768``: M = 0.5 + 0.5 * l / (1 + |l|), a smooth squash of the log-odds l."""
+    v = np.arange(-32768, 32768, dtype=np.float64) * LOG_ODDS_UNIT
+    return 0.5 + 0.5 * v / (1.0 + np.abs(v))
+
+
+SQUASH = _squash_table()
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _squash(v):
-    return 0.5 + 0.5 * v / (1.0 + abs(v))
+def _squash(squash, stored):
+    return squash[stored + 32768]
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _sample(pool, tables, p, tile_x0, tile_y0, shift, inv_res, x, y):
+def _sample(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, x, y):
     """Bilinear map value M at (x, y) [m] and its gradient [1/m] on one level."""
     u = x * inv_res - 0.5
     v = y * inv_res - 0.5
@@ -48,15 +58,15 @@ def _sample(pool, tables, p, tile_x0, tile_y0, shift, inv_res, x, y):
         t = tables[p, ty, tx]
         if t < 0:
             return 0.5, 0.0, 0.0
-        v00 = _squash(pool[t, lj, li])
-        v10 = _squash(pool[t, lj, li + 1])
-        v01 = _squash(pool[t, lj + 1, li])
-        v11 = _squash(pool[t, lj + 1, li + 1])
+        v00 = _squash(squash, pool[t, lj, li])
+        v10 = _squash(squash, pool[t, lj, li + 1])
+        v01 = _squash(squash, pool[t, lj + 1, li])
+        v11 = _squash(squash, pool[t, lj + 1, li + 1])
     else:
-        v00 = _squash(cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0, j0))
-        v10 = _squash(cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0 + 1, j0))
-        v01 = _squash(cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0, j0 + 1))
-        v11 = _squash(cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0 + 1, j0 + 1))
+        v00 = _squash(squash, cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0, j0))
+        v10 = _squash(squash, cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0 + 1, j0))
+        v01 = _squash(squash, cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0, j0 + 1))
+        v11 = _squash(squash, cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0 + 1, j0 + 1))
     m = (1.0 - fv) * ((1.0 - fu) * v00 + fu * v10) + fv * ((1.0 - fu) * v01 + fu * v11)
     dmdu = (1.0 - fv) * (v10 - v00) + fv * (v11 - v01)
     dmdv = (1.0 - fu) * (v01 - v00) + fu * (v11 - v10)
@@ -64,7 +74,7 @@ def _sample(pool, tables, p, tile_x0, tile_y0, shift, inv_res, x, y):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _evaluate(pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride, x, y, theta, H, g):
+def _evaluate(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride, x, y, theta, H, g):
     """Sum of squared residuals (1 - M) at pose (x, y, theta), filling the Gauss-Newton system
     H (3, 3) and g (3,) (for the step that lowers the residuals). Returns (E, sum M, n)."""
     c = math.cos(theta)
@@ -81,7 +91,7 @@ def _evaluate(pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, strid
         py = points_v[i, 1]
         wx = x + c * px - s * py
         wy = y + s * px + c * py
-        m, mx, my = _sample(pool, tables, p, tile_x0, tile_y0, shift, inv_res, wx, wy)
+        m, mx, my = _sample(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, wx, wy)
         r = 1.0 - m
         jt = mx * (-s * px - c * py) + my * (c * px - s * py)
         j0, j1, j2 = mx, my, jt
@@ -104,7 +114,7 @@ def _evaluate(pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, strid
 
 
 @nb.njit(cache=True, nogil=True)
-def _fit_level(pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride, pose, prior_pose, prior_w,
+def _fit_level(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride, pose, prior_pose, prior_w,
                iterations):
     """Damped Gauss-Newton (Levenberg-Marquardt) on one level; updates ``pose`` in place."""
     H = np.zeros((3, 3))
@@ -112,7 +122,7 @@ def _fit_level(pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stri
     H2 = np.zeros((3, 3))
     g2 = np.zeros(3)
     A = np.zeros((3, 3))
-    e, _, _ = _evaluate(pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride,
+    e, _, _ = _evaluate(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride,
                         pose[0], pose[1], pose[2], H, g)
     d0 = pose[0] - prior_pose[0]
     d1 = pose[1] - prior_pose[1]
@@ -132,7 +142,7 @@ def _fit_level(pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stri
         step = np.linalg.solve(A, b)
         for a in range(3):
             cand[a] = pose[a] + step[a]
-        e2, _, _ = _evaluate(pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride,
+        e2, _, _ = _evaluate(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride,
                              cand[0], cand[1], cand[2], H2, g2)
         d0 = cand[0] - prior_pose[0]
         d1 = cand[1] - prior_pose[1]
@@ -156,8 +166,8 @@ def _fit_level(pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stri
 
 
 @nb.njit(cache=True, nogil=True)
-def match_particles(levels0, levels1, levels2, levels3, tables, tile_x0, tile_y0, particles, init_poses, points_v,
-                    resolution_m, coarsest_level, iterations, strides, prior_w, out_poses, out_e, out_mean):
+def match_particles(squash, levels0, levels1, levels2, levels3, tables, tile_x0, tile_y0, particles, init_poses,
+                    points_v, resolution_m, coarsest_level, iterations, strides, prior_w, out_poses, out_e, out_mean):
     """Fit the scan ``points_v`` (B, 2, vehicle frame [m]) onto the map of each particle index in
     ``particles`` starting from ``init_poses`` (P, 3). Writes the fitted poses, the level-0
     sum of squared residuals over all points and the mean map value at the end points."""
@@ -178,9 +188,10 @@ def match_particles(levels0, levels1, levels2, levels3, tables, tile_x0, tile_y0
                 pool = levels1
             else:
                 pool = levels0
-            _fit_level(pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, strides[level], pose, prior,
+            _fit_level(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, strides[level], pose, prior,
                        prior_w, iterations[level])
-        e, m_sum, n = _evaluate(levels0, tables, p, tile_x0, tile_y0, TILE_SHIFT, 1.0 / resolution_m, points_v, 1,
+        e, m_sum, n = _evaluate(squash, levels0, tables, p, tile_x0, tile_y0, TILE_SHIFT, 1.0 / resolution_m,
+                                points_v, 1,
                                 pose[0], pose[1], pose[2], H, g)
         out_poses[k, 0] = pose[0]
         out_poses[k, 1] = pose[1]
@@ -190,12 +201,13 @@ def match_particles(levels0, levels1, levels2, levels3, tables, tile_x0, tile_y0
 
 
 @nb.njit(cache=True, nogil=True)
-def score_particles(levels0, tables, tile_x0, tile_y0, particles, poses, points_v, resolution_m, out_e, out_mean):
+def score_particles(squash, levels0, tables, tile_x0, tile_y0, particles, poses, points_v, resolution_m, out_e,
+                    out_mean):
     """Level-0 sum of squared residuals and mean map value of the scan at given poses (no fit)."""
     H = np.zeros((3, 3))
     g = np.zeros(3)
     for k in range(particles.shape[0]):
-        e, m_sum, n = _evaluate(levels0, tables, particles[k], tile_x0, tile_y0, TILE_SHIFT, 1.0 / resolution_m,
+        e, m_sum, n = _evaluate(squash, levels0, tables, particles[k], tile_x0, tile_y0, TILE_SHIFT, 1.0 / resolution_m,
                                 points_v, 1, poses[k, 0], poses[k, 1], poses[k, 2], H, g)
         out_e[k] = e
         out_mean[k] = m_sum / max(n, 1)
@@ -237,8 +249,8 @@ class ScanMatcher:
         e = np.empty(n)
         mean = np.empty(n)
         lv = grids.levels
-        match_particles(lv[0], lv[1], lv[2], lv[3], grids.tables, grids.tile_x0, grids.tile_y0, particles, predicted,
-                        points_v, grids.resolution_m, self.coarsest_level, self.iterations, self.strides,
+        match_particles(SQUASH, lv[0], lv[1], lv[2], lv[3], grids.tables, grids.tile_x0, grids.tile_y0, particles,
+                        predicted, points_v, grids.resolution_m, self.coarsest_level, self.iterations, self.strides,
                         self.prior_w, poses, e, mean)
         moved = poses - predicted
         moved[:, 2] = (moved[:, 2] + np.pi) % (2 * np.pi) - np.pi
@@ -248,7 +260,7 @@ class ScanMatcher:
             rejected = ~accepted
             e_pred = np.empty(int(rejected.sum()))
             mean_pred = np.empty_like(e_pred)
-            score_particles(lv[0], grids.tables, grids.tile_x0, grids.tile_y0, particles[rejected],
+            score_particles(SQUASH, lv[0], grids.tables, grids.tile_x0, grids.tile_y0, particles[rejected],
                             predicted[rejected], points_v, grids.resolution_m, e_pred, mean_pred)
             poses[rejected] = predicted[rejected]
             e[rejected] = e_pred
