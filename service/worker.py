@@ -118,6 +118,8 @@ def worker_main(data_root: str, store: JobStore, job_function: str, slot: int, i
     """Entry point of a spawned worker process: take job ids from ``inbox`` until ``None``.
     ``store`` is the server's (it holds only where the database is, no connection)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which shuts us down
+    # several workers share the cores: one engine thread each unless LIDARMAP_THREADS says otherwise
+    os.environ.setdefault("LIDARMAP_THREADS", "1")
     logging.basicConfig(level=logging.INFO)
     data = DataDir(Path(data_root))
     try:

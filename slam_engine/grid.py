@@ -17,10 +17,17 @@ map frame's origin is a cell corner; tiles and levels follow the same rule.
 
 from __future__ import annotations
 
+import os
+
 import numba as nb
 import numpy as np
 
 from slam_engine.result import OccupancyGrid
+
+# Thread pool of the parallel per-particle loops (raycast, scan_matcher): OpenMP first. numba would
+# try TBB first, and Open3D's bundled TBB is too old for numba: a warning, then OpenMP anyway.
+if not {"NUMBA_THREADING_LAYER", "NUMBA_THREADING_LAYER_PRIORITY"} & os.environ.keys():
+    nb.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
 TILE_SHIFT = 6
 TILE = 1 << TILE_SHIFT  # cells per tile side at level 0

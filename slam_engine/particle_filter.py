@@ -14,13 +14,16 @@ Per-particle trajectories are kept as parent pointers per processed scan (no cop
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from slam_engine.config import SlamConfig
 from slam_engine.drive_log import DriveLog, LidarModel
+from slam_engine.errors import ConfigError
 from slam_engine.grid import ParticleGrids
 from slam_engine.lidar_points import ScanProjector
 from slam_engine.messages import EncoderMessage, GyroMessage, Message, OdometryMessage, ScanMessage
@@ -31,6 +34,25 @@ from slam_engine.raycast import insert_scan
 from slam_engine.resampling import low_variance_resample, n_eff, normalize_log_weights
 from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, Trajectory
 from slam_engine.scan_matcher import ScanMatcher
+
+THREADS_ENV = "LIDARMAP_THREADS"
+
+
+def engine_threads() -> int:
+    """Threads for the per-particle work (scan matching, map insertion): the environment variable
+    ``LIDARMAP_THREADS`` (capped at numba's thread count, all cores by default) or, unset, all of
+    numba's. The results do not depend on it."""
+    raw = os.environ.get(THREADS_ENV, "").strip()
+    available = numba.config.NUMBA_NUM_THREADS
+    if not raw:
+        return available
+    try:
+        n = int(raw)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise ConfigError(f"{THREADS_ENV}={raw!r}: expected a whole number of threads >= 1")
+    return min(n, available)
 
 
 @dataclass
@@ -50,6 +72,7 @@ class SlamFilter:
                  rng: np.random.Generator):
         self.config = config
         self.rng = rng
+        numba.set_num_threads(engine_threads())  # per calling thread: the one that steps the filter
         self.integrator = integrator
         n = config.particles
         g = config.grid

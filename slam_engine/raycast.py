@@ -164,77 +164,90 @@ def _tile_of(tables, refcount, p, tile_x0, tile_y0, gx, gy):
     return t
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def integrate_rays(levels0, levels1, levels2, levels3, tables, refcount, tile_x0, tile_y0, particles, poses,
                    origin_v, ends_v, is_hit, free_from_m, resolution_m, log_odds_hit, log_odds_miss, log_odds_min,
                    log_odds_max):
     """Apply every beam to the map of each particle ``particles[k]`` at ``poses[k]``: misses along
     the beams first, then the hits, so a wall cell crossed by a grazing beam of the same scan still gains
     its hit. Beam b clears cells from ``free_from_m[b]`` on (near the LiDAR its neighbours already cover
-    every cell)."""
+    every cell).
+
+    Particles run in parallel threads: ``particles`` must be distinct and a particle writes only its
+    private tiles (reference count 1, made so serially by :meth:`ParticleGrids.privatize` beforehand),
+    so no two threads touch one tile and the maps equal those of a serial loop bit for bit."""
+    for k in nb.prange(poses.shape[0]):
+        _integrate_particle(levels0, levels1, levels2, levels3, tables, refcount, tile_x0, tile_y0, particles[k],
+                            poses[k], origin_v, ends_v, is_hit, free_from_m, resolution_m, log_odds_hit,
+                            log_odds_miss, log_odds_min, log_odds_max)
+
+
+@nb.njit(cache=True, nogil=True)
+def _integrate_particle(levels0, levels1, levels2, levels3, tables, refcount, tile_x0, tile_y0, p, pose, origin_v,
+                        ends_v, is_hit, free_from_m, resolution_m, log_odds_hit, log_odds_miss, log_odds_min,
+                        log_odds_max):
+    """:func:`integrate_rays` for particle p at ``pose`` (3,)."""
     mask = TILE - 1
-    for k in range(poses.shape[0]):
-        p = particles[k]
-        c = math.cos(poses[k, 2])
-        s = math.sin(poses[k, 2])
-        ox = poses[k, 0] + c * origin_v[0] - s * origin_v[1]
-        oy = poses[k, 1] + s * origin_v[0] + c * origin_v[1]
-        for b in range(ends_v.shape[0]):
-            ex = poses[k, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
-            ey = poses[k, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
-            length = math.hypot(ex - ox, ey - oy)
-            if free_from_m[b] >= length:
-                if is_hit[b]:
-                    continue
-                frac = 1.0
-            else:
-                frac = free_from_m[b] / length if length > 0 else 0.0
-            gx0 = int(math.floor((ox + frac * (ex - ox)) / resolution_m))
-            gy0 = int(math.floor((oy + frac * (ey - oy)) / resolution_m))
-            gx1 = int(math.floor(ex / resolution_m))
-            gy1 = int(math.floor(ey / resolution_m))
-            # Bresenham from (gx0, gy0) to (gx1, gy1); the end cell is free too for no-return beams
-            dx = abs(gx1 - gx0)
-            dy = -abs(gy1 - gy0)
-            sx = 1 if gx0 < gx1 else -1
-            sy = 1 if gy0 < gy1 else -1
-            err = dx + dy
-            x = gx0
-            y = gy0
-            key_x = x >> TILE_SHIFT
-            key_y = y >> TILE_SHIFT
-            t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
-            while True:
-                last = x == gx1 and y == gy1
-                if last and is_hit[b]:
-                    break
-                if (x >> TILE_SHIFT) != key_x or (y >> TILE_SHIFT) != key_y:
-                    key_x = x >> TILE_SHIFT
-                    key_y = y >> TILE_SHIFT
-                    t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
-                if t >= 0:
-                    _add(levels0, levels1, levels2, levels3, t, y & mask, x & mask, log_odds_miss, log_odds_min,
-                         log_odds_max)
-                if last:
-                    break
-                e2 = 2 * err
-                if e2 >= dy:
-                    err += dy
-                    x += sx
-                if e2 <= dx:
-                    err += dx
-                    y += sy
-        for b in range(ends_v.shape[0]):
-            if not is_hit[b]:
+    c = math.cos(pose[2])
+    s = math.sin(pose[2])
+    ox = pose[0] + c * origin_v[0] - s * origin_v[1]
+    oy = pose[1] + s * origin_v[0] + c * origin_v[1]
+    for b in range(ends_v.shape[0]):
+        ex = pose[0] + c * ends_v[b, 0] - s * ends_v[b, 1]
+        ey = pose[1] + s * ends_v[b, 0] + c * ends_v[b, 1]
+        length = math.hypot(ex - ox, ey - oy)
+        if free_from_m[b] >= length:
+            if is_hit[b]:
                 continue
-            ex = poses[k, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
-            ey = poses[k, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
-            x = int(math.floor(ex / resolution_m))
-            y = int(math.floor(ey / resolution_m))
-            t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
+            frac = 1.0
+        else:
+            frac = free_from_m[b] / length if length > 0 else 0.0
+        gx0 = int(math.floor((ox + frac * (ex - ox)) / resolution_m))
+        gy0 = int(math.floor((oy + frac * (ey - oy)) / resolution_m))
+        gx1 = int(math.floor(ex / resolution_m))
+        gy1 = int(math.floor(ey / resolution_m))
+        # Bresenham from (gx0, gy0) to (gx1, gy1); the end cell is free too for no-return beams
+        dx = abs(gx1 - gx0)
+        dy = -abs(gy1 - gy0)
+        sx = 1 if gx0 < gx1 else -1
+        sy = 1 if gy0 < gy1 else -1
+        err = dx + dy
+        x = gx0
+        y = gy0
+        key_x = x >> TILE_SHIFT
+        key_y = y >> TILE_SHIFT
+        t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
+        while True:
+            last = x == gx1 and y == gy1
+            if last and is_hit[b]:
+                break
+            if (x >> TILE_SHIFT) != key_x or (y >> TILE_SHIFT) != key_y:
+                key_x = x >> TILE_SHIFT
+                key_y = y >> TILE_SHIFT
+                t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
             if t >= 0:
-                _add(levels0, levels1, levels2, levels3, t, y & mask, x & mask, log_odds_hit, log_odds_min,
+                _add(levels0, levels1, levels2, levels3, t, y & mask, x & mask, log_odds_miss, log_odds_min,
                      log_odds_max)
+            if last:
+                break
+            e2 = 2 * err
+            if e2 >= dy:
+                err += dy
+                x += sx
+            if e2 <= dx:
+                err += dx
+                y += sy
+    for b in range(ends_v.shape[0]):
+        if not is_hit[b]:
+            continue
+        ex = pose[0] + c * ends_v[b, 0] - s * ends_v[b, 1]
+        ey = pose[1] + s * ends_v[b, 0] + c * ends_v[b, 1]
+        x = int(math.floor(ex / resolution_m))
+        y = int(math.floor(ey / resolution_m))
+        t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
+        if t >= 0:
+            _add(levels0, levels1, levels2, levels3, t, y & mask, x & mask, log_odds_hit, log_odds_min,
+                 log_odds_max)
 
 
 def insert_scan(
@@ -256,6 +269,7 @@ def insert_scan(
     LiDAR's position in the vehicle frame [m]; ``ends_v`` (B, 2) beam end points in the vehicle
     frame [m]; ``is_hit`` (B,) False for free-space-only beams; ``free_from_m`` (B,) where each beam
     starts clearing [m] (:func:`slam_engine.lidar_points.free_space_start_m`; None: from the LiDAR).
+    Particles are inserted in parallel (numba threads); ``particles`` must be distinct.
     Returns the number of (particle, tile) pairs written."""
     poses = np.ascontiguousarray(poses, dtype=np.float64)
     origin_v = np.ascontiguousarray(origin_v, dtype=np.float64)
@@ -265,6 +279,8 @@ def insert_scan(
         return 0
     particles = np.arange(poses.shape[0]) if particles is None else particles
     particles = np.ascontiguousarray(particles, dtype=np.int64)
+    if len(np.unique(particles)) != len(particles):  # parallel insertion needs one writer per map
+        raise ValueError(f"insert_scan: particle indices must be distinct, got {particles.tolist()}")
     # grow the tile tables to cover every beam of every particle
     reach = float(np.hypot(*np.vstack([ends_v, origin_v[None, :]]).T).max())
     grids.ensure_extent(poses[:, 0].min() - reach, poses[:, 1].min() - reach,

@@ -165,39 +165,47 @@ def _fit_level(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points
                 break
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def match_particles(squash, levels0, levels1, levels2, levels3, tables, tile_x0, tile_y0, particles, init_poses,
                     points_v, resolution_m, coarsest_level, iterations, strides, prior_w, out_poses, out_e, out_mean):
     """Fit the scan ``points_v`` (B, 2, vehicle frame [m]) onto the map of each particle index in
     ``particles`` starting from ``init_poses`` (P, 3). Writes the fitted poses, the level-0
-    sum of squared residuals over all points and the mean map value at the end points."""
+    sum of squared residuals over all points and the mean map value at the end points.
+    Particles run in parallel threads (maps are only read; row k of the outputs is written by one
+    thread), with the same results as a serial loop."""
+    for k in nb.prange(particles.shape[0]):
+        _match_one(squash, levels0, levels1, levels2, levels3, tables, tile_x0, tile_y0, particles[k], init_poses[k],
+                   points_v, resolution_m, coarsest_level, iterations, strides, prior_w, out_poses, out_e, out_mean, k)
+
+
+@nb.njit(cache=True, nogil=True)
+def _match_one(squash, levels0, levels1, levels2, levels3, tables, tile_x0, tile_y0, p, init_pose, points_v,
+               resolution_m, coarsest_level, iterations, strides, prior_w, out_poses, out_e, out_mean, k):
+    """:func:`match_particles` for particle p from ``init_pose``; writes row k of the outputs."""
     H = np.zeros((3, 3))
     g = np.zeros(3)
-    for k in range(particles.shape[0]):
-        p = particles[k]
-        pose = init_poses[k].copy()
-        prior = init_poses[k].copy()
-        for level in range(coarsest_level, -1, -1):
-            shift = TILE_SHIFT - level
-            inv_res = 1.0 / (resolution_m * (1 << level))
-            if level == 3:
-                pool = levels3
-            elif level == 2:
-                pool = levels2
-            elif level == 1:
-                pool = levels1
-            else:
-                pool = levels0
-            _fit_level(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, strides[level], pose, prior,
-                       prior_w, iterations[level])
-        e, m_sum, n = _evaluate(squash, levels0, tables, p, tile_x0, tile_y0, TILE_SHIFT, 1.0 / resolution_m,
-                                points_v, 1,
-                                pose[0], pose[1], pose[2], H, g)
-        out_poses[k, 0] = pose[0]
-        out_poses[k, 1] = pose[1]
-        out_poses[k, 2] = pose[2]
-        out_e[k] = e
-        out_mean[k] = m_sum / max(n, 1)
+    pose = init_pose.copy()
+    prior = init_pose.copy()
+    for level in range(coarsest_level, -1, -1):
+        shift = TILE_SHIFT - level
+        inv_res = 1.0 / (resolution_m * (1 << level))
+        if level == 3:
+            pool = levels3
+        elif level == 2:
+            pool = levels2
+        elif level == 1:
+            pool = levels1
+        else:
+            pool = levels0
+        _fit_level(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, strides[level], pose, prior,
+                   prior_w, iterations[level])
+    e, m_sum, n = _evaluate(squash, levels0, tables, p, tile_x0, tile_y0, TILE_SHIFT, 1.0 / resolution_m, points_v, 1,
+                            pose[0], pose[1], pose[2], H, g)
+    out_poses[k, 0] = pose[0]
+    out_poses[k, 1] = pose[1]
+    out_poses[k, 2] = pose[2]
+    out_e[k] = e
+    out_mean[k] = m_sum / max(n, 1)
 
 
 @nb.njit(cache=True, nogil=True)
