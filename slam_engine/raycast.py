@@ -73,36 +73,58 @@ def _mark_segment(mark, out, count, p, x0, y0, x1, y1, tile_x0, tile_y0):
 _SPREAD_CELLS = 1.0
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def collect_touched_tiles(particles, poses, origin_v, ends_v, resolution_m, tile_x0, tile_y0, mark, out):
     """Mark (in ``mark``, list in ``out``) every tile a beam of each particle ``particles[k]`` (at
     ``poses[k]``) writes: the tiles crossed by the segment between the cell centres of the LiDAR and
     the beam's end and by that segment shifted ``_SPREAD_CELLS`` either way along its minor axis.
-    Returns the number of distinct (particle, tile) pairs; when it exceeds ``len(out)`` the caller
-    grows ``out``, clears ``mark`` and calls again."""
+    Returns the number of distinct (particle, tile) pairs, listed particle by particle in the order
+    found (as a serial loop would). Particles run in parallel threads, each listing into its own
+    ``len(out) // len(poses)`` rows of ``out``; when a particle needs more, the return value exceeds
+    ``len(out)`` (rows enough for every particle to list as many as the busiest): the caller grows
+    ``out``, clears ``mark`` and calls again."""
+    n_poses = poses.shape[0]
+    per = out.shape[0] // n_poses
+    counts = np.zeros(n_poses, np.int64)
+    for k in nb.prange(n_poses):
+        counts[k] = _collect_particle(particles[k], poses[k], origin_v, ends_v, resolution_m, tile_x0, tile_y0, mark,
+                                      out[k * per:(k + 1) * per])
+    busiest = counts.max()
+    if busiest > per:
+        return max(busiest * n_poses, out.shape[0] + 1)
+    total = 0
+    for k in range(n_poses):  # compact: row total <= k * per, so rows are copied forward only
+        for i in range(counts[k]):
+            for j in range(3):
+                out[total, j] = out[k * per + i, j]
+            total += 1
+    return total
+
+
+@nb.njit(cache=True, nogil=True)
+def _collect_particle(p, pose, origin_v, ends_v, resolution_m, tile_x0, tile_y0, mark, out):
+    """:func:`collect_touched_tiles` for particle p at ``pose`` (3,), listing into ``out``."""
     count = 0
     tile = float(TILE)
     spread = _SPREAD_CELLS / tile
-    for k in range(poses.shape[0]):
-        p = particles[k]
-        c = math.cos(poses[k, 2])
-        s = math.sin(poses[k, 2])
-        ox = poses[k, 0] + c * origin_v[0] - s * origin_v[1]
-        oy = poses[k, 1] + s * origin_v[0] + c * origin_v[1]
-        x0 = (math.floor(ox / resolution_m) + 0.5) / tile
-        y0 = (math.floor(oy / resolution_m) + 0.5) / tile
-        for b in range(ends_v.shape[0]):
-            ex = poses[k, 0] + c * ends_v[b, 0] - s * ends_v[b, 1]
-            ey = poses[k, 1] + s * ends_v[b, 0] + c * ends_v[b, 1]
-            x1 = (math.floor(ex / resolution_m) + 0.5) / tile
-            y1 = (math.floor(ey / resolution_m) + 0.5) / tile
-            count = _mark_segment(mark, out, count, p, x0, y0, x1, y1, tile_x0, tile_y0)
-            if abs(x1 - x0) >= abs(y1 - y0):
-                count = _mark_segment(mark, out, count, p, x0, y0 - spread, x1, y1 - spread, tile_x0, tile_y0)
-                count = _mark_segment(mark, out, count, p, x0, y0 + spread, x1, y1 + spread, tile_x0, tile_y0)
-            else:
-                count = _mark_segment(mark, out, count, p, x0 - spread, y0, x1 - spread, y1, tile_x0, tile_y0)
-                count = _mark_segment(mark, out, count, p, x0 + spread, y0, x1 + spread, y1, tile_x0, tile_y0)
+    c = math.cos(pose[2])
+    s = math.sin(pose[2])
+    ox = pose[0] + c * origin_v[0] - s * origin_v[1]
+    oy = pose[1] + s * origin_v[0] + c * origin_v[1]
+    x0 = (math.floor(ox / resolution_m) + 0.5) / tile
+    y0 = (math.floor(oy / resolution_m) + 0.5) / tile
+    for b in range(ends_v.shape[0]):
+        ex = pose[0] + c * ends_v[b, 0] - s * ends_v[b, 1]
+        ey = pose[1] + s * ends_v[b, 0] + c * ends_v[b, 1]
+        x1 = (math.floor(ex / resolution_m) + 0.5) / tile
+        y1 = (math.floor(ey / resolution_m) + 0.5) / tile
+        count = _mark_segment(mark, out, count, p, x0, y0, x1, y1, tile_x0, tile_y0)
+        if abs(x1 - x0) >= abs(y1 - y0):
+            count = _mark_segment(mark, out, count, p, x0, y0 - spread, x1, y1 - spread, tile_x0, tile_y0)
+            count = _mark_segment(mark, out, count, p, x0, y0 + spread, x1, y1 + spread, tile_x0, tile_y0)
+        else:
+            count = _mark_segment(mark, out, count, p, x0 - spread, y0, x1 - spread, y1, tile_x0, tile_y0)
+            count = _mark_segment(mark, out, count, p, x0 + spread, y0, x1 + spread, y1, tile_x0, tile_y0)
     return count
 
 
@@ -289,7 +311,6 @@ def insert_scan(
     n = collect_touched_tiles(particles, poses, origin_v, ends_v, grids.resolution_m, grids.tile_x0, grids.tile_y0,
                               grids._mark, buffer)
     if n > buffer.shape[0]:
-        clear_marks(grids._mark, buffer, buffer.shape[0])
         grids._mark[:] = 0
         buffer = grids.touched_buffer(n)
         n = collect_touched_tiles(particles, poses, origin_v, ends_v, grids.resolution_m, grids.tile_x0, grids.tile_y0,
