@@ -7,6 +7,8 @@ A thin wrapper over the Celery worker with the project's settings: the broker
 
 from __future__ import annotations
 
+import os
+
 import typer
 
 
@@ -27,6 +29,8 @@ def register(app: typer.Typer) -> None:
 
         if loglevel.lower() not in ("debug", "info", "warning", "error"):
             raise typer.BadParameter(f"unknown log level {loglevel!r}", param_hint="--loglevel")
+        # Share the cores between the pool processes (each SLAM run is multi-threaded) unless told otherwise.
+        os.environ.setdefault("LIDARMAP_THREADS", str(max(1, (os.cpu_count() or 1) // concurrency)))
         settings = get_settings()
         data = DataDir(settings.data_dir)
         data.create()
