@@ -3,14 +3,12 @@ results of one thread; ``LIDARMAP_THREADS`` sets the thread count."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numba
 import numpy as np
 import pytest
+from log_helpers import first_scans
 
 from slam_engine.config import SlamConfig
-from slam_engine.drive_log import DriveLog, OdometryStream, ScanStream
 from slam_engine.errors import ConfigError
 from slam_engine.formats import load_log
 from slam_engine.grid import ParticleGrids
@@ -21,19 +19,9 @@ from slam_engine.raycast import insert_scan
 N_SCANS = 150
 
 
-def _first_scans(log: DriveLog, n: int) -> DriveLog:
-    t_end = log.scans.t_s[n - 1]
-    keep = log.odometry.t_s <= t_end
-    return dataclasses.replace(
-        log,
-        scans=ScanStream(t_s=log.scans.t_s[:n], ranges_m=log.scans.ranges_m[:n]),
-        odometry=OdometryStream(t_s=log.odometry.t_s[keep], poses=log.odometry.poses[keep]),
-    )
-
-
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs at least 2 numba threads")
 def test_threads_give_bit_identical_trajectory_and_map(dataset, monkeypatch) -> None:
-    log = _first_scans(load_log(dataset("benchmark/intel.clf")), N_SCANS)
+    log = first_scans(load_log(dataset("benchmark/intel.clf")), N_SCANS)
     results = {}
     for threads in ("1", "2"):
         monkeypatch.setenv("LIDARMAP_THREADS", threads)

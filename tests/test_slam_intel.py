@@ -2,28 +2,16 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
+from log_helpers import first_scans
 
 from slam_engine.config import SlamConfig
-from slam_engine.drive_log import DriveLog, OdometryStream, ScanStream
 from slam_engine.evaluation import Relations, read_relations, relation_errors
 from slam_engine.formats import load_log
 from slam_engine.pipeline import run_slam
 
 N_SCANS = 300  # the first third of the log (about 160 m, with loops), to keep the test short
-
-
-def _first_scans(log: DriveLog, n: int) -> DriveLog:
-    t_end = log.scans.t_s[n - 1]
-    keep = log.odometry.t_s <= t_end
-    return dataclasses.replace(
-        log,
-        scans=ScanStream(t_s=log.scans.t_s[:n], ranges_m=log.scans.ranges_m[:n]),
-        odometry=OdometryStream(t_s=log.odometry.t_s[keep], poses=log.odometry.poses[keep]),
-    )
 
 
 def _relations_until(relations: Relations, t_end: float) -> Relations:
@@ -33,7 +21,7 @@ def _relations_until(relations: Relations, t_end: float) -> Relations:
 
 @pytest.mark.slow
 def test_intel_slam_is_far_better_than_dead_reckoning(dataset) -> None:
-    log = _first_scans(load_log(dataset("benchmark/intel.clf")), N_SCANS)
+    log = first_scans(load_log(dataset("benchmark/intel.clf")), N_SCANS)
     relations = _relations_until(read_relations(dataset("benchmark/intel.relations")), log.scans.t_s[-1])
     result = run_slam(log, SlamConfig(particles=10, seed=0))
 

@@ -13,6 +13,9 @@ from service.app import create_app
 from service.settings import Settings
 
 TERMINAL = {"succeeded", "failed", "cancelled"}
+CALIBRATION = {"vehicle": {"kind": "odometry"},
+               "lidar": {"num_beams": 2, "angle_min_rad": 0.0, "angle_increment_rad": 0.5,
+                         "range_min_m": 0.1, "range_max_m": 20.0}}
 
 
 @contextmanager
@@ -51,3 +54,12 @@ def assert_error(response, status: int, code: str | None = None) -> dict:
     if code is not None:
         assert body["error"]["code"] == code, body
     return body["error"]
+
+
+def streaming_session(client: TestClient) -> str:
+    """A session a job can run on (one chunk of odometry, with calibration)."""
+    sid = new_session(client, calibration=CALIBRATION)
+    response = client.post(f"/v1/sessions/{sid}/chunks", json={"seq": 0, "messages": [
+        {"type": "odometry", "t_s": 0.0, "x_m": 0.0, "y_m": 0.0, "theta_rad": 0.0}]})
+    assert response.status_code == 201, response.text
+    return sid

@@ -7,25 +7,12 @@ import os
 import signal
 import time
 
-from service_helpers import assert_error, new_session, service_client, wait_for
+from service_helpers import CALIBRATION, assert_error, new_session, service_client, streaming_session, wait_for
 
 from service.storage import DataDir
 from service.store import JobStore
 
 FUNCS = "service_job_functions"
-CALIBRATION = {"vehicle": {"kind": "odometry"},
-               "lidar": {"num_beams": 2, "angle_min_rad": 0.0, "angle_increment_rad": 0.5,
-                         "range_min_m": 0.1, "range_max_m": 20.0}}
-
-
-def streaming_session(client) -> str:
-    """A session a job can run on (one chunk, with calibration)."""
-    sid = new_session(client, calibration=CALIBRATION)
-    response = client.post(f"/v1/sessions/{sid}/chunks", json={"seq": 0, "messages": [
-        {"type": "odometry", "t_s": 0.0, "x_m": 0.0, "y_m": 0.0, "theta_rad": 0.0}]})
-    assert response.status_code == 201
-    return sid
-
 
 def start(client, sid: str, steps: int, step_ms: int) -> dict:
     response = client.post(f"/v1/sessions/{sid}/jobs", json={"particles": steps, "seed": step_ms})

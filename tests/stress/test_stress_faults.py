@@ -20,24 +20,19 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "service"))
 
-from service_helpers import assert_error, new_session, service_client, wait_for  # noqa: E402
+from service_helpers import (  # noqa: E402
+    CALIBRATION,
+    assert_error,
+    new_session,
+    service_client,
+    streaming_session,
+    wait_for,
+)
 
 from service.storage import DataDir  # noqa: E402
 from service.store import JobStore  # noqa: E402
 
 JOBS = "stress_jobs"
-CALIBRATION = {"vehicle": {"kind": "odometry"},
-               "lidar": {"num_beams": 2, "angle_min_rad": 0.0, "angle_increment_rad": 0.5,
-                         "range_min_m": 0.1, "range_max_m": 20.0}}
-
-
-def streaming_session(client) -> str:
-    sid = new_session(client, calibration=CALIBRATION)
-    response = client.post(f"/v1/sessions/{sid}/chunks", json={"seq": 0, "messages": [
-        {"type": "odometry", "t_s": 0.0, "x_m": 0.0, "y_m": 0.0, "theta_rad": 0.0}]})
-    assert response.status_code == 201, response.text
-    return sid
-
 
 def start(client, sid: str, steps: int, step_ms: int) -> dict:
     """A job of the injected functions: ``particles`` = steps, ``seed`` = ms per step."""
