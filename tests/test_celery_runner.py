@@ -30,7 +30,9 @@ from service.store import JobStore
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 TERMINAL = {"succeeded", "failed", "cancelled"}
-HEARTBEAT_S, WORKER_LOST_S, CANCEL_GRACE_S = 0.5, 3.0, 2.0
+# WORKER_LOST_S leaves Celery time to notice a dead pool process itself (slow on a loaded 2-core machine)
+# before the heartbeat reaper would fail the job with the other reason.
+HEARTBEAT_S, WORKER_LOST_S, CANCEL_GRACE_S = 0.5, 8.0, 2.0
 QUICK = {"particles": 5, "seed": 1, "resolution_m": 0.1, "snapshot_every_scans": 0}
 SLOW = {**QUICK, "particles": 25}  # several seconds: long enough to kill or cancel mid-run
 
