@@ -32,52 +32,39 @@ def _mark(mark, out, count, p, tx, ty):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _mark_segment(mark, out, count, p, x0, y0, x1, y1, tile_x0, tile_y0):
-    """Mark every tile the segment (x0, y0)-(x1, y1) [tile units] crosses (grid traversal)."""
-    tx = int(math.floor(x0))
-    ty = int(math.floor(y0))
-    tx_end = int(math.floor(x1))
-    ty_end = int(math.floor(y1))
-    count = _mark(mark, out, count, p, tx - tile_x0, ty - tile_y0)
-    dx = x1 - x0
-    dy = y1 - y0
-    step_x = 1 if dx > 0 else -1
-    step_y = 1 if dy > 0 else -1
-    t_delta_x = abs(1.0 / dx) if dx != 0 else 1e30
-    t_delta_y = abs(1.0 / dy) if dy != 0 else 1e30
-    t_max_x = ((tx + 1 - x0) if dx > 0 else (x0 - tx)) * t_delta_x if dx != 0 else 1e30
-    t_max_y = ((ty + 1 - y0) if dy > 0 else (y0 - ty)) * t_delta_y if dy != 0 else 1e30
-    guard = abs(tx_end - tx) + abs(ty_end - ty) + 2
-    while (tx != tx_end or ty != ty_end) and guard > 0:
-        guard -= 1
-        if abs(t_max_x - t_max_y) < 1e-9:  # through a corner: mark both neighbours
-            count = _mark(mark, out, count, p, tx + step_x - tile_x0, ty - tile_y0)
-            count = _mark(mark, out, count, p, tx - tile_x0, ty + step_y - tile_y0)
-            tx += step_x
-            ty += step_y
-            t_max_x += t_delta_x
-            t_max_y += t_delta_y
-        elif t_max_x < t_max_y:
-            tx += step_x
-            t_max_x += t_delta_x
-        else:
-            ty += step_y
-            t_max_y += t_delta_y
-        count = _mark(mark, out, count, p, tx - tile_x0, ty - tile_y0)
-    return _mark(mark, out, count, p, tx_end - tile_x0, ty_end - tile_y0)
+def _mark_band(mark, out, count, p, x0, y0, x1, y1, spread, transpose, tile_x0, tile_y0):
+    """Mark every tile that the band of half width ``spread`` around the segment (x0, y0)-(x1, y1)
+    [tile units] overlaps, the band measured along y, for ``|x1 - x0| >= |y1 - y0|``. The segment is
+    walked one tile column at a time: in a column the band spans ``[min y - spread, max y + spread]``.
+    ``transpose``: the coordinates are (y, x), so the tiles marked are (column = y, row = x)."""
+    if x1 < x0:
+        x0, y0, x1, y1 = x1, y1, x0, y0
+    slope = (y1 - y0) / (x1 - x0) if x1 > x0 else 0.0
+    for col in range(int(math.floor(x0)), int(math.floor(x1)) + 1):
+        ya = y0 + (max(x0, col) - x0) * slope
+        yb = y0 + (min(x1, col + 1.0) - x0) * slope
+        lo = int(math.floor(min(ya, yb) - spread))
+        hi = int(math.floor(max(ya, yb) + spread))
+        for row in range(lo, hi + 1):
+            if transpose:
+                count = _mark(mark, out, count, p, row - tile_x0, col - tile_y0)
+            else:
+                count = _mark(mark, out, count, p, col - tile_x0, row - tile_y0)
+    return count
 
 
 # Bresenham cells between two cell centres lie on the tiles of the line between them, but a beam
 # that starts clearing part-way (``free_from_m``) runs from a cell up to about a cell off that line:
-# the tiles of the lines shifted by this many cells across the beam cover every cell it writes.
+# the tiles of the band this many cells either side of the line (across the beam) cover every cell
+# it writes.
 _SPREAD_CELLS = 1.0
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def collect_touched_tiles(particles, poses, origin_v, ends_v, resolution_m, tile_x0, tile_y0, mark, out):
     """Mark (in ``mark``, list in ``out``) every tile a beam of each particle ``particles[k]`` (at
-    ``poses[k]``) writes: the tiles crossed by the segment between the cell centres of the LiDAR and
-    the beam's end and by that segment shifted ``_SPREAD_CELLS`` either way along its minor axis.
+    ``poses[k]``) writes: the tiles overlapped by the band ``_SPREAD_CELLS`` wide either side (along
+    its minor axis) of the segment between the cell centres of the LiDAR and the beam's end.
     Returns the number of distinct (particle, tile) pairs, listed particle by particle in the order
     found (as a serial loop would). Particles run in parallel threads, each listing into its own
     ``len(out) // len(poses)`` rows of ``out``; when a particle needs more, the return value exceeds
@@ -118,13 +105,10 @@ def _collect_particle(p, pose, origin_v, ends_v, resolution_m, tile_x0, tile_y0,
         ey = pose[1] + s * ends_v[b, 0] + c * ends_v[b, 1]
         x1 = (math.floor(ex / resolution_m) + 0.5) / tile
         y1 = (math.floor(ey / resolution_m) + 0.5) / tile
-        count = _mark_segment(mark, out, count, p, x0, y0, x1, y1, tile_x0, tile_y0)
         if abs(x1 - x0) >= abs(y1 - y0):
-            count = _mark_segment(mark, out, count, p, x0, y0 - spread, x1, y1 - spread, tile_x0, tile_y0)
-            count = _mark_segment(mark, out, count, p, x0, y0 + spread, x1, y1 + spread, tile_x0, tile_y0)
+            count = _mark_band(mark, out, count, p, x0, y0, x1, y1, spread, False, tile_x0, tile_y0)
         else:
-            count = _mark_segment(mark, out, count, p, x0 - spread, y0, x1 - spread, y1, tile_x0, tile_y0)
-            count = _mark_segment(mark, out, count, p, x0 + spread, y0, x1 + spread, y1, tile_x0, tile_y0)
+            count = _mark_band(mark, out, count, p, y0, x0, y1, x1, spread, True, tile_x0, tile_y0)
     return count
 
 
@@ -142,33 +126,64 @@ def _max4(a, b, c, d):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _add(levels0, levels1, levels2, levels3, t, iy, ix, delta, lo, hi):
-    """Add ``delta`` to cell (iy, ix) of pool tile t (clamped) and keep the coarse maxima current."""
-    old = levels0[t, iy, ix]
-    v = old + delta
-    if v < lo:
-        v = lo
-    elif v > hi:
+def _raise(levels0, levels1, levels2, levels3, t, iy, ix, delta, hi):
+    """Add ``delta`` > 0 to cell (iy, ix) of pool tile t, clamped at ``hi``; the coarse maxima above
+    the cell rise with it."""
+    v = levels0[t, iy, ix] + delta
+    if v > hi:
         v = hi
-    if v == old:
+    if v <= levels0[t, iy, ix]:
         return
     levels0[t, iy, ix] = v
     i = iy >> 1
     j = ix >> 1
+    if v <= levels1[t, i, j]:
+        return
+    levels1[t, i, j] = v
+    i >>= 1
+    j >>= 1
+    if v <= levels2[t, i, j]:
+        return
+    levels2[t, i, j] = v
+    i >>= 1
+    j >>= 1
+    if v > levels3[t, i, j]:
+        levels3[t, i, j] = v
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _lower(levels0, levels1, levels2, levels3, t, iy, ix, delta, lo):
+    """Add ``delta`` < 0 to cell (iy, ix) of pool tile t, clamped at ``lo``; a coarse maximum the
+    cell held is recomputed (max of its 2x2 finer cells), level by level while it changes."""
+    old = levels0[t, iy, ix]
+    v = old + delta
+    if v < lo:
+        v = lo
+    if v >= old:
+        return
+    levels0[t, iy, ix] = v
+    i = iy >> 1
+    j = ix >> 1
+    if old < levels1[t, i, j]:  # it was not the maximum of its 2x2 block
+        return
     m = _max4(levels0[t, 2 * i, 2 * j], levels0[t, 2 * i, 2 * j + 1], levels0[t, 2 * i + 1, 2 * j],
               levels0[t, 2 * i + 1, 2 * j + 1])
-    if m == levels1[t, i, j]:
+    if m == old:
         return
     levels1[t, i, j] = m
     i >>= 1
     j >>= 1
+    if old < levels2[t, i, j]:
+        return
     m = _max4(levels1[t, 2 * i, 2 * j], levels1[t, 2 * i, 2 * j + 1], levels1[t, 2 * i + 1, 2 * j],
               levels1[t, 2 * i + 1, 2 * j + 1])
-    if m == levels2[t, i, j]:
+    if m == old:
         return
     levels2[t, i, j] = m
     i >>= 1
     j >>= 1
+    if old < levels3[t, i, j]:
+        return
     levels3[t, i, j] = _max4(levels2[t, 2 * i, 2 * j], levels2[t, 2 * i, 2 * j + 1], levels2[t, 2 * i + 1, 2 * j],
                              levels2[t, 2 * i + 1, 2 * j + 1])
 
@@ -228,7 +243,8 @@ def _integrate_particle(levels0, levels1, levels2, levels3, tables, refcount, ti
         gy0 = int(math.floor((oy + frac * (ey - oy)) / resolution_m))
         gx1 = int(math.floor(ex / resolution_m))
         gy1 = int(math.floor(ey / resolution_m))
-        # Bresenham from (gx0, gy0) to (gx1, gy1); the end cell is free too for no-return beams
+        # Bresenham from (gx0, gy0) to (gx1, gy1): max(|dx|, |dy|) steps; the end cell is free too
+        # for no-return beams
         dx = abs(gx1 - gx0)
         dy = -abs(gy1 - gy0)
         sx = 1 if gx0 < gx1 else -1
@@ -239,19 +255,14 @@ def _integrate_particle(levels0, levels1, levels2, levels3, tables, refcount, ti
         key_x = x >> TILE_SHIFT
         key_y = y >> TILE_SHIFT
         t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
-        while True:
-            last = x == gx1 and y == gy1
-            if last and is_hit[b]:
-                break
+        n_cells = max(dx, -dy) + (0 if is_hit[b] else 1)
+        for _ in range(n_cells):
             if (x >> TILE_SHIFT) != key_x or (y >> TILE_SHIFT) != key_y:
                 key_x = x >> TILE_SHIFT
                 key_y = y >> TILE_SHIFT
                 t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
             if t >= 0:
-                _add(levels0, levels1, levels2, levels3, t, y & mask, x & mask, log_odds_miss, log_odds_min,
-                     log_odds_max)
-            if last:
-                break
+                _lower(levels0, levels1, levels2, levels3, t, y & mask, x & mask, log_odds_miss, log_odds_min)
             e2 = 2 * err
             if e2 >= dy:
                 err += dy
@@ -268,8 +279,7 @@ def _integrate_particle(levels0, levels1, levels2, levels3, tables, refcount, ti
         y = int(math.floor(ey / resolution_m))
         t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
         if t >= 0:
-            _add(levels0, levels1, levels2, levels3, t, y & mask, x & mask, log_odds_hit, log_odds_min,
-                 log_odds_max)
+            _raise(levels0, levels1, levels2, levels3, t, y & mask, x & mask, log_odds_hit, log_odds_max)
 
 
 def insert_scan(
@@ -297,6 +307,8 @@ def insert_scan(
     origin_v = np.ascontiguousarray(origin_v, dtype=np.float64)
     ends_v = np.ascontiguousarray(ends_v, dtype=np.float64)
     is_hit = np.ascontiguousarray(is_hit, dtype=np.bool_)
+    if not (log_odds_miss < 0 < log_odds_hit and log_odds_min < 0 < log_odds_max):
+        raise ValueError("insert_scan: needs log_odds_miss < 0 < log_odds_hit and log_odds_min < 0 < log_odds_max")
     if ends_v.shape[0] == 0:
         return 0
     particles = np.arange(poses.shape[0]) if particles is None else particles
