@@ -1,4 +1,4 @@
-"""Streamed chunks: canonical form, hashing, ordering checks, storage and the stream's state."""
+"""Streamed chunks: canonical form, hashing, ordering checks, storage, the stream's state and its end."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import hashlib
 import json
 from typing import Any
 
-from api_schemas.chunks import ChunkCreate, StreamState
+from api_schemas.chunks import ChunkCreate, StreamFinish, StreamState
 from service.disk_space import disk_full_error
 from service.errors import Conflict, InvalidInput
 from service.storage import DataDir, write_atomic
@@ -71,8 +71,18 @@ def stream_state_in_store(store: JobStore, session_id: str) -> StreamState:
             missing.append(seq)
             if len(missing) == MAX_MISSING_LISTED:
                 break
+    end = figures["last_seq"]
     return StreamState(received=figures["received"], contiguous_through=k, next_expected_seq=k + 1,
-                       missing_seqs=missing, messages=figures["messages"])
+                       missing_seqs=missing, messages=figures["messages"], finished=end is not None, last_seq=end)
+
+
+def finish_stream(store: JobStore, session_id: str, body: StreamFinish) -> StreamState:
+    """Set the stream's end (idempotent); 409 when it contradicts the end already set or a chunk received."""
+    outcome = store.finish_stream(session_id, body.last_seq)
+    if outcome.conflict is not None:
+        raise Conflict(f"cannot finish the stream: {outcome.conflict}",
+                       {"last_seq": outcome.last_seq, "requested_last_seq": body.last_seq})
+    return stream_state_in_store(store, session_id)
 
 
 def store_chunk(store: JobStore, data: DataDir, session_id: str, chunk: ChunkCreate) -> tuple[dict, bool]:
@@ -86,6 +96,9 @@ def store_chunk(store: JobStore, data: DataDir, session_id: str, chunk: ChunkCre
         check_neighbours(chunk, rows)
     outcome = store.put_chunk(session_id, chunk.seq, digest, len(chunk.messages),
                               chunk.messages[0].t_s, chunk.messages[-1].t_s)
+    if outcome.beyond_end is not None:
+        raise Conflict(f"the stream was finished at seq {outcome.beyond_end}: chunk {chunk.seq} is beyond its end "
+                       "(start a new session for more data)", {"seq": chunk.seq, "last_seq": outcome.beyond_end})
     if outcome.conflict:
         raise Conflict(f"chunk {chunk.seq} was already received with different content",
                        {"seq": chunk.seq, "stored_sha256": outcome.row["sha256"], "sent_sha256": digest})
