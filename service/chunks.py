@@ -93,12 +93,14 @@ def store_chunk(store: JobStore, data: DataDir, session_id: str, chunk: ChunkCre
     rows = store.chunk_rows_near(session_id, chunk.seq)
     known = next((r for r in rows if r["seq"] == chunk.seq), None)
     if known is None:
+        end = store.stream_end(session_id)
+        if end is not None and chunk.seq > end:  # the clearer answer first (put_chunk checks it atomically)
+            raise _beyond_end(chunk.seq, end)
         check_neighbours(chunk, rows)
     outcome = store.put_chunk(session_id, chunk.seq, digest, len(chunk.messages),
                               chunk.messages[0].t_s, chunk.messages[-1].t_s)
     if outcome.beyond_end is not None:
-        raise Conflict(f"the stream was finished at seq {outcome.beyond_end}: chunk {chunk.seq} is beyond its end "
-                       "(start a new session for more data)", {"seq": chunk.seq, "last_seq": outcome.beyond_end})
+        raise _beyond_end(chunk.seq, outcome.beyond_end)
     if outcome.conflict:
         raise Conflict(f"chunk {chunk.seq} was already received with different content",
                        {"seq": chunk.seq, "stored_sha256": outcome.row["sha256"], "sent_sha256": digest})
@@ -111,6 +113,11 @@ def store_chunk(store: JobStore, data: DataDir, session_id: str, chunk: ChunkCre
                 store.delete_chunk(session_id, chunk.seq)
             raise disk_full_error(exc, f"chunk {chunk.seq}") or exc from None
     return outcome.row, outcome.duplicate
+
+
+def _beyond_end(seq: int, last_seq: int) -> Conflict:
+    return Conflict(f"the stream was finished at seq {last_seq}: chunk {seq} is beyond its end (start a new "
+                    "session for more data)", {"seq": seq, "last_seq": last_seq})
 
 
 def read_chunk_messages(data: DataDir, session_id: str, seq: int) -> list[dict[str, Any]]:
