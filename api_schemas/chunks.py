@@ -20,6 +20,16 @@ class ChunkCreate(BaseModel):
     messages: list[Message] = Field(min_length=1, max_length=MAX_MESSAGES_PER_CHUNK)
 
 
+class StreamFinish(BaseModel):
+    """The end of a stream: no chunk beyond ``last_seq`` will come."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    last_seq: int | None = Field(None, ge=0, le=10_000_000, description="The stream's last seq (default: the "
+                                 "highest received). Chunks up to it that have not arrived yet are still "
+                                 "accepted (a live job waits for them); chunks beyond it are refused (409).")
+
+
 class StreamState(BaseModel):
     """The session's stream after this chunk: what arrived and what is missing."""
 
@@ -28,6 +38,9 @@ class StreamState(BaseModel):
     next_expected_seq: int
     missing_seqs: list[int] = Field(description="Gaps below the highest seq received (at most 100 listed).")
     messages: int = Field(description="Messages in the contiguous chunks 0..contiguous_through.")
+    finished: bool = Field(False, description="True once the client declared the stream's end "
+                           "(POST /v1/sessions/{id}/chunks/finish).")
+    last_seq: int | None = Field(None, description="The stream's last seq once finished; null while it is open.")
 
 
 class ChunkPublic(BaseModel):

@@ -6,7 +6,7 @@ from datetime import datetime
 from enum import StrEnum
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class JobStatus(StrEnum):
@@ -19,7 +19,7 @@ class JobStatus(StrEnum):
 
 class JobSource(StrEnum):
     LOG = "log"  # an uploaded log (the newest one unless log_id is given)
-    STREAM = "stream"  # the streamed chunks 0..k received when the job starts
+    STREAM = "stream"  # the streamed chunks 0..k received when the job starts (or, live, as they arrive)
 
 
 class JobCreate(BaseModel):
@@ -38,6 +38,20 @@ class JobCreate(BaseModel):
     angular_update_rad: float = Field(0.1, ge=0.0, le=3.2, description="... or this much rotation [rad].")
     snapshot_every_scans: int = Field(50, ge=0, le=100_000, description="Live map preview and animation "
                                       "frame every n processed scans (0 = none).")
+    live: bool = Field(False, description="Follow the session's stream: map chunks in seq order as they "
+                       "arrive (a gap waits for its chunk) until the stream is finished "
+                       "(POST /v1/sessions/{id}/chunks/finish) or idle for idle_timeout_s. One live job per "
+                       "session at a time; it holds a worker while it waits.")
+    idle_timeout_s: float = Field(600.0, ge=1.0, le=86_400.0, description="Live jobs: with no new chunk to map "
+                                  "for this long [s], the job ends and writes the products of what it mapped "
+                                  "(fails when it mapped nothing).")
+
+    @model_validator(mode="after")
+    def _live_follows_a_stream(self) -> JobCreate:
+        if self.live and (self.source is JobSource.LOG or self.log_id is not None):
+            raise ValueError("a live job follows the session's stream: leave 'source' out (or 'stream') "
+                             "and give no 'log_id'")
+        return self
 
 
 class JobPublic(BaseModel):
@@ -46,9 +60,11 @@ class JobPublic(BaseModel):
     source: JobSource
     log_id: str | None
     status: JobStatus
-    progress: float = Field(ge=0.0, le=1.0)
+    progress: float | None = Field(ge=0.0, le=1.0, description="0..1; null for a live job until it "
+                                   "succeeds (its total is unknown while the stream goes on).")
     scans_done: int
-    scans_total: int | None
+    scans_total: int | None = Field(description="Scans in the input; null while unknown (before the run "
+                                    "starts, and for a live job until it succeeds).")
     eta_s: float | None = Field(description="Estimated seconds left while running.")
     error: str | None = Field(description="Why the job failed or was cancelled.")
     cancel_requested: bool

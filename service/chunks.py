@@ -1,4 +1,4 @@
-"""Streamed chunks: canonical form, hashing, ordering checks, storage and the stream's state."""
+"""Streamed chunks: canonical form, hashing, ordering checks, storage, the stream's state and its end."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import hashlib
 import json
 from typing import Any
 
-from api_schemas.chunks import ChunkCreate, StreamState
+from api_schemas.chunks import ChunkCreate, StreamFinish, StreamState
 from service.disk_space import disk_full_error
 from service.errors import Conflict, InvalidInput
 from service.storage import DataDir, write_atomic
@@ -71,8 +71,18 @@ def stream_state_in_store(store: JobStore, session_id: str) -> StreamState:
             missing.append(seq)
             if len(missing) == MAX_MISSING_LISTED:
                 break
+    end = figures["last_seq"]
     return StreamState(received=figures["received"], contiguous_through=k, next_expected_seq=k + 1,
-                       missing_seqs=missing, messages=figures["messages"])
+                       missing_seqs=missing, messages=figures["messages"], finished=end is not None, last_seq=end)
+
+
+def finish_stream(store: JobStore, session_id: str, body: StreamFinish) -> StreamState:
+    """Set the stream's end (idempotent); 409 when it contradicts the end already set or a chunk received."""
+    outcome = store.finish_stream(session_id, body.last_seq)
+    if outcome.conflict is not None:
+        raise Conflict(f"cannot finish the stream: {outcome.conflict}",
+                       {"last_seq": outcome.last_seq, "requested_last_seq": body.last_seq})
+    return stream_state_in_store(store, session_id)
 
 
 def store_chunk(store: JobStore, data: DataDir, session_id: str, chunk: ChunkCreate) -> tuple[dict, bool]:
@@ -83,9 +93,14 @@ def store_chunk(store: JobStore, data: DataDir, session_id: str, chunk: ChunkCre
     rows = store.chunk_rows_near(session_id, chunk.seq)
     known = next((r for r in rows if r["seq"] == chunk.seq), None)
     if known is None:
+        end = store.stream_end(session_id)
+        if end is not None and chunk.seq > end:  # the clearer answer first (put_chunk checks it atomically)
+            raise _beyond_end(chunk.seq, end)
         check_neighbours(chunk, rows)
     outcome = store.put_chunk(session_id, chunk.seq, digest, len(chunk.messages),
                               chunk.messages[0].t_s, chunk.messages[-1].t_s)
+    if outcome.beyond_end is not None:
+        raise _beyond_end(chunk.seq, outcome.beyond_end)
     if outcome.conflict:
         raise Conflict(f"chunk {chunk.seq} was already received with different content",
                        {"seq": chunk.seq, "stored_sha256": outcome.row["sha256"], "sent_sha256": digest})
@@ -98,6 +113,11 @@ def store_chunk(store: JobStore, data: DataDir, session_id: str, chunk: ChunkCre
                 store.delete_chunk(session_id, chunk.seq)
             raise disk_full_error(exc, f"chunk {chunk.seq}") or exc from None
     return outcome.row, outcome.duplicate
+
+
+def _beyond_end(seq: int, last_seq: int) -> Conflict:
+    return Conflict(f"the stream was finished at seq {last_seq}: chunk {seq} is beyond its end (start a new "
+                    "session for more data)", {"seq": seq, "last_seq": last_seq})
 
 
 def read_chunk_messages(data: DataDir, session_id: str, seq: int) -> list[dict[str, Any]]:

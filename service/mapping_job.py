@@ -1,8 +1,10 @@
 """The mapping job, run in a worker process: load the input, run SLAM with progress, cancel and
 live snapshots, then write the products.
 
-Input: an uploaded log (loaded again with ``load_log``) or the session's streamed chunks
-0..k that are contiguous when the job starts (later chunks are not followed: start another job).
+Input: an uploaded log (loaded again with ``load_log``), the session's streamed chunks 0..k that
+are contiguous when the job starts, or - a live job (``"live": true``) - the session's chunks
+followed in seq order as they arrive until the stream is finished or idle
+(:mod:`service.live_job`). Every kind writes the same products (:func:`write_job_products`).
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ def load_input(ctx: JobContext) -> tuple[DriveLog, dict[str, Any]]:
     """The job's DriveLog and a description of what it is (stored with the job)."""
     job = ctx.job
     store, data = ctx.store, ctx.data
-    session = _session_row(ctx)
+    session = session_row(ctx)
     if job["source"] == "log":
         from slam_engine.formats import load_log
 
@@ -65,7 +67,7 @@ def load_input(ctx: JobContext) -> tuple[DriveLog, dict[str, Any]]:
                  "messages": len(messages), "missing_seqs_after": state.missing_seqs, "summary": log.summary()}
 
 
-def _session_row(ctx: JobContext) -> dict[str, Any]:
+def session_row(ctx: JobContext) -> dict[str, Any]:
     session = ctx.store.get_session(ctx.job["session_id"], ctx.job["owner"])
     if session is None:
         raise LogFormatError("the job's session was deleted")
@@ -92,8 +94,12 @@ class LiveMap:
 
 def run_mapping_job(ctx: JobContext) -> None:
     """Job function for the worker: input -> run_slam -> products (names as the API serves them)."""
+    if ctx.job["config"].get("live"):
+        from service.live_job import run_live_job
+
+        run_live_job(ctx)
+        return
     from slam_engine.pipeline import run_slam
-    from slam_engine.products import GeoOrigin, write_products, write_trajectory_tum
 
     log, description = load_input(ctx)
     ctx.store.set_input(ctx.job_id, description)
@@ -107,11 +113,19 @@ def run_mapping_job(ctx: JobContext) -> None:
     result = run_slam(log, config, rng=np.random.default_rng(config.seed), progress=on_progress)
     total = len(log.scans) if log.scans is not None else 0
     ctx.progress(total, total, force=True)
+    write_job_products(ctx, result, log)
+
+
+def write_job_products(ctx: JobContext, result: Any, log: DriveLog) -> None:
+    """Write a finished run's products into the job's folder, list them in the store, drop the live
+    snapshot."""
+    from slam_engine.products import GeoOrigin, write_products, write_trajectory_tum
+
     peak = ctx.peak_memory_bytes()
     if peak:  # this job's own peak (the engine's getrusage figure spans the worker's whole life)
         result.peak_memory_bytes = peak
     out_dir = ctx.out_dir
-    session = _session_row(ctx)
+    session = session_row(ctx)
     geo = None if session["geo"] is None else GeoOrigin(
         latitude_deg=session["geo"]["lat_deg"], longitude_deg=session["geo"]["lon_deg"],
         heading_deg=session["geo"]["heading_deg"])

@@ -11,6 +11,9 @@ Atomicity: SQLite's ``BEGIN IMMEDIATE`` runs transactions one after another. Pos
 concurrently (READ COMMITTED), so every check-then-write is one conditional statement (the
 queued -> running claim is ``UPDATE ... WHERE status = 'queued'``: a concurrent claimer waits for
 the row lock, re-reads the row and updates nothing) and chunk inserts use ``ON CONFLICT``.
+Checks that span rows of a session (a chunk beyond the stream's end, one live job per session)
+first lock the session's row with a no-op ``UPDATE`` (:func:`_lock_session`), so those
+transactions run one after another on both backends.
 """
 
 from __future__ import annotations
@@ -58,6 +61,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     worker_pid BIGINT, created_at DOUBLE PRECISION NOT NULL, started_at DOUBLE PRECISION,
     finished_at DOUBLE PRECISION, heartbeat_at DOUBLE PRECISION);
 CREATE INDEX IF NOT EXISTS jobs_session ON jobs(session_id, created_at);
+CREATE TABLE IF NOT EXISTS stream_ends (
+    session_id TEXT PRIMARY KEY, last_seq BIGINT NOT NULL, finished_at DOUBLE PRECISION NOT NULL);
 CREATE INDEX IF NOT EXISTS jobs_status ON jobs(status);
 """
 SCHEMA_STATEMENTS = [s.strip() for s in SCHEMA.split(";") if s.strip()]
@@ -74,9 +79,16 @@ def new_id() -> str:
 
 @dataclass(frozen=True)
 class ChunkOutcome:
-    row: dict[str, Any]
+    row: dict[str, Any] | None
     duplicate: bool
     conflict: bool
+    beyond_end: int | None = None  # the stream was finished at this seq, below the chunk's: nothing stored
+
+
+@dataclass(frozen=True)
+class FinishOutcome:
+    last_seq: int | None  # the stream's end now (None: nothing to finish, no chunk and no last_seq)
+    conflict: str | None = None  # why the end could not be set (nothing was changed)
 
 
 # ---- backends -----------------------------------------------------------------------------------
@@ -255,7 +267,7 @@ class JobStore:
         """Delete the session with its logs, chunks and jobs; returns the deleted job ids."""
         with self._tx() as tx:
             job_ids = [r["id"] for r in tx.execute("SELECT id FROM jobs WHERE session_id = ?", (session_id,))]
-            for table in ("logs", "chunks", "jobs"):
+            for table in ("logs", "chunks", "jobs", "stream_ends"):
                 tx.execute(f"DELETE FROM {table} WHERE session_id = ?", (session_id,))
             tx.execute("DELETE FROM sessions WHERE id = ?", (session_id,))
         return job_ids
@@ -290,16 +302,48 @@ class JobStore:
 
     def put_chunk(self, session_id: str, seq: int, sha256: str, messages: int,
                   t_first_s: float, t_last_s: float) -> ChunkOutcome:
-        """Record chunk ``seq`` once: a retry with the same hash is a duplicate, another hash a conflict."""
+        """Record chunk ``seq`` once: a retry with the same hash is a duplicate, another hash a conflict;
+        a new chunk beyond the end of a finished stream is refused (``beyond_end``)."""
         row = {"session_id": session_id, "seq": seq, "sha256": sha256, "messages": messages,
                "t_first_s": t_first_s, "t_last_s": t_last_s, "created_at": time.time()}
         with self._tx() as tx:
+            _lock_session(tx, session_id)
+            end = _stream_end(tx, session_id)
+            if end is not None and seq > end:
+                return ChunkOutcome(None, duplicate=False, conflict=False, beyond_end=end)
             inserted = tx.execute(f"INSERT INTO chunks ({', '.join(row)}) VALUES ({', '.join('?' * len(row))}) "
                                   "ON CONFLICT (session_id, seq) DO NOTHING", tuple(row.values())).rowcount
             if inserted == 1:
                 return ChunkOutcome(row, duplicate=False, conflict=False)
             old = tx.execute("SELECT * FROM chunks WHERE session_id = ? AND seq = ?", (session_id, seq)).fetchone()
         return ChunkOutcome(old, duplicate=old["sha256"] == sha256, conflict=old["sha256"] != sha256)
+
+    def finish_stream(self, session_id: str, last_seq: int | None) -> FinishOutcome:
+        """Declare the stream's last seq (default: the highest received). Idempotent for the same end;
+        refused (``conflict``) for another end than the one set, or below a chunk already received."""
+        with self._tx() as tx:
+            _lock_session(tx, session_id)
+            highest = tx.execute("SELECT max(seq) AS highest FROM chunks WHERE session_id = ?",
+                                 (session_id,)).fetchone()["highest"]
+            end = _stream_end(tx, session_id)
+            wanted = last_seq if last_seq is not None else (end if end is not None else highest)
+            if wanted is None:
+                return FinishOutcome(None, "the stream has no chunks: send some, or give 'last_seq'")
+            wanted = int(wanted)
+            if end is not None:
+                if end != wanted:
+                    return FinishOutcome(end, f"the stream was already finished at seq {end}")
+                return FinishOutcome(end)
+            if highest is not None and int(highest) > wanted:
+                return FinishOutcome(None, f"chunk {int(highest)} was already received, beyond last_seq {wanted}")
+            tx.execute("INSERT INTO stream_ends (session_id, last_seq, finished_at) VALUES (?, ?, ?)",
+                       (session_id, wanted, time.time()))
+        return FinishOutcome(wanted)
+
+    def stream_end(self, session_id: str) -> int | None:
+        """The finished stream's last seq; None while the stream is open."""
+        with self._tx() as tx:
+            return _stream_end(tx, session_id)
 
     def delete_chunk(self, session_id: str, seq: int) -> None:
         """Forget chunk ``seq`` (its file could not be written)."""
@@ -315,8 +359,9 @@ class JobStore:
 
     def stream_figures(self, session_id: str, max_after: int = 5000) -> dict[str, Any]:
         """The stream's state computed in SQL (cheap for long streams): chunks received, the end of
-        the contiguous run from seq 0 (-1: none), the messages in it, the highest seq, and the
-        seqs received beyond the run (at most ``max_after``, ascending)."""
+        the contiguous run from seq 0 (-1: none), the messages in it, the highest seq, the seqs
+        received beyond the run (at most ``max_after``, ascending) and the stream's declared last
+        seq (None while open)."""
         with self._tx() as conn:
             totals = conn.execute("SELECT count(*) AS received, max(seq) AS highest FROM chunks "
                                   "WHERE session_id = ?", (session_id,)).fetchone()
@@ -330,8 +375,9 @@ class JobStore:
                                     "AND seq <= ?", (session_id, k)).fetchone()["n"]
             after = [r["seq"] for r in conn.execute("SELECT seq FROM chunks WHERE session_id = ? AND seq > ? "
                                                     "ORDER BY seq LIMIT ?", (session_id, k, max_after))]
+            end = _stream_end(conn, session_id)
         return {"received": int(received), "contiguous_through": int(k), "messages": int(messages),
-                "highest": -1 if highest is None else int(highest), "after": after}
+                "highest": -1 if highest is None else int(highest), "after": after, "last_seq": end}
 
     def chunk_rows(self, session_id: str) -> list[dict[str, Any]]:
         """All chunks of a session in seq order."""
@@ -348,6 +394,23 @@ class JobStore:
                        "VALUES (?, ?, ?, ?, ?, ?, 'queued', ?)",
                        (job_id, session_id, owner, source, log_id, _dump(config), time.time()))
         return self.get_job(job_id)  # type: ignore[return-value]
+
+    def create_live_job(self, session_id: str, owner: str, config: dict) -> tuple[dict[str, Any] | None,
+                                                                                 dict[str, Any] | None]:
+        """A live stream job, unless the session has one queued or running: (new row, None) or
+        (None, the active live job's row)."""
+        job_id = new_id()
+        with self._tx() as tx:
+            _lock_session(tx, session_id)
+            active = tx.execute("SELECT * FROM jobs WHERE session_id = ? AND status IN ('queued', 'running') "
+                                "ORDER BY created_at", (session_id,)).fetchall()
+            for row in active:
+                if (_load(row["config_json"]) or {}).get("live"):
+                    return None, _job(row)
+            tx.execute("INSERT INTO jobs (id, session_id, owner, source, log_id, config_json, status, created_at) "
+                       "VALUES (?, ?, ?, 'stream', NULL, ?, 'queued', ?)",
+                       (job_id, session_id, owner, _dump(config), time.time()))
+        return self.get_job(job_id), None
 
     def get_job(self, job_id: str, owner: str | None = None) -> dict[str, Any] | None:
         """The job, or None when unknown (or owned by someone else when ``owner`` is given)."""
@@ -469,6 +532,17 @@ class JobStore:
                               "service stopped while the job was running' WHERE status = 'running' RETURNING id",
                               (time.time(),)).fetchall()
         return [r["id"] for r in rows]
+
+
+def _lock_session(tx: _Transaction, session_id: str) -> None:
+    """Hold the session's row lock until the transaction ends (PostgreSQL; SQLite's BEGIN IMMEDIATE
+    already serialises every transaction)."""
+    tx.execute("UPDATE sessions SET id = id WHERE id = ?", (session_id,))
+
+
+def _stream_end(tx: _Transaction, session_id: str) -> int | None:
+    row = tx.execute("SELECT last_seq FROM stream_ends WHERE session_id = ?", (session_id,)).fetchone()
+    return None if row is None else int(row["last_seq"])
 
 
 _SESSION_SELECT = (

@@ -1,7 +1,10 @@
-"""Streamed chunks -> a DriveLog: the session's calibration plus the messages of chunks 0..k.
+"""Streamed chunks -> a DriveLog (the session's calibration plus the messages of chunks 0..k), or
+-> engine messages one at a time, for a live job that steps the filter as chunks arrive.
 
 Message JSON follows api_schemas.drivelog (``type`` discriminator); a ``null`` range is a beam
-with no return (``inf`` in the engine).
+with no return (``inf`` in the engine). Both conversions give the same values (float64 times and
+poses, float32 ranges, int64 ticks), so a live job steps the filter through exactly what a job
+over the whole DriveLog would.
 """
 
 from __future__ import annotations
@@ -22,6 +25,10 @@ from slam_engine.drive_log import (
 )
 from slam_engine.errors import LogFormatError
 from slam_engine.formats.drivelog import lidar_from_json, lidar_to_json, vehicle_from_json, vehicle_to_json
+from slam_engine.messages import EncoderMessage, GyroMessage, Message, OdometryMessage, ScanMessage
+
+# DriveLog.messages() puts messages with equal stamps in this order (odometry sources before scans)
+MESSAGE_ORDER = {"encoder": 0, "gyro": 1, "odometry": 2, "scan": 3}
 
 
 def vehicle_from_calibration(vehicle: dict[str, Any]) -> VehicleModel:
@@ -55,13 +62,8 @@ def drive_log_from_messages(calibration: dict[str, Any], messages: Iterable[dict
     vehicle = vehicle_from_calibration(calibration["vehicle"])
     cols: dict[str, list] = {k: [] for k in ("scan_t", "scan_r", "enc_t", "enc", "gyro_t", "gyro", "odo_t", "odo")}
     for i, m in enumerate(messages):
-        kind = m.get("type")
+        kind = check_message(m, lidar, f"message {i}")
         if kind == "scan":
-            if lidar is None:
-                raise LogFormatError("scan message but the session's calibration has no lidar", location=f"message {i}")
-            if len(m["ranges_m"]) != lidar.num_beams:
-                raise LogFormatError(f"scan has {len(m['ranges_m'])} ranges, the lidar has {lidar.num_beams} beams",
-                                     location=f"message {i}")
             cols["scan_t"].append(m["t_s"])
             cols["scan_r"].append([np.inf if r is None else r for r in m["ranges_m"]])
         elif kind == "encoder":
@@ -70,11 +72,9 @@ def drive_log_from_messages(calibration: dict[str, Any], messages: Iterable[dict
         elif kind == "gyro":
             cols["gyro_t"].append(m["t_s"])
             cols["gyro"].append(m["yaw_rate_rad_s"])
-        elif kind == "odometry":
+        else:
             cols["odo_t"].append(m["t_s"])
             cols["odo"].append([m["x_m"], m["y_m"], m["theta_rad"]])
-        else:
-            raise LogFormatError(f"message type {kind!r} cannot be mapped from a stream", location=f"message {i}")
     if cols["enc"] and len({len(t) for t in cols["enc"]}) > 1:
         raise LogFormatError("encoder messages carry different numbers of wheels", location="encoder messages")
 
@@ -91,10 +91,44 @@ def drive_log_from_messages(calibration: dict[str, Any], messages: Iterable[dict
     )
 
 
+def check_message(m: dict[str, Any], lidar: LidarModel | None, location: str) -> str:
+    """The message's type, once it is known to fit the calibration (LogFormatError at ``location``
+    otherwise: an unknown type, a scan without a lidar or with the wrong number of ranges)."""
+    kind = m.get("type")
+    if kind not in MESSAGE_ORDER:
+        raise LogFormatError(f"message type {kind!r} cannot be mapped from a stream", location=location)
+    if kind == "scan":
+        if lidar is None:
+            raise LogFormatError("scan message but the session's calibration has no lidar", location=location)
+        if len(m["ranges_m"]) != lidar.num_beams:
+            raise LogFormatError(f"scan has {len(m['ranges_m'])} ranges, the lidar has {lidar.num_beams} beams",
+                                 location=location)
+    return kind
+
+
+def in_log_order(messages: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Time-ordered messages in the order DriveLog.messages() would give them (equal stamps:
+    encoders, gyro, odometry, then scans; otherwise as sent)."""
+    return sorted(messages, key=lambda m: (m["t_s"], MESSAGE_ORDER.get(m.get("type"), len(MESSAGE_ORDER))))
+
+
+def engine_message(m: dict[str, Any], lidar: LidarModel | None, location: str) -> Message:
+    """One stream message as the engine's message (the values a DriveLog of it would hold)."""
+    kind = check_message(m, lidar, location)
+    t_s = float(np.float64(m["t_s"]))
+    if kind == "scan":
+        return ScanMessage(t_s=t_s, ranges_m=np.asarray([np.inf if r is None else r for r in m["ranges_m"]],
+                                                        dtype=np.float32))
+    if kind == "encoder":
+        return EncoderMessage(t_s=t_s, ticks=np.asarray(m["ticks"], dtype=np.int64))
+    if kind == "gyro":
+        return GyroMessage(t_s=t_s, yaw_rate_rad_s=float(np.float64(m["yaw_rate_rad_s"])))
+    return OdometryMessage(t_s=t_s, x_m=float(np.float64(m["x_m"])), y_m=float(np.float64(m["y_m"])),
+                           theta_rad=float(np.float64(m["theta_rad"])))
+
+
 def messages_of_log(log: DriveLog) -> list[dict[str, Any]]:
     """A DriveLog's messages as stream JSON dicts (time-ordered): what a streaming client sends."""
-    from slam_engine.messages import EncoderMessage, GyroMessage, OdometryMessage, ScanMessage
-
     out: list[dict[str, Any]] = []
     for m in log.messages():
         if isinstance(m, ScanMessage):

@@ -32,6 +32,10 @@ PROGRESS_INTERVAL_S = 0.2
 JobFunction = Callable[["JobContext"], None]
 
 
+class JobFailed(Exception):
+    """A job function's own failure, with the reason the user sees as the job's error."""
+
+
 @dataclass
 class JobContext:
     """One job as its function sees it: the stored row, the store, the data folder, progress."""
@@ -98,6 +102,9 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
     except Cancelled:
         store.finish(job_id, "cancelled", "cancelled by request")
         return "cancelled"
+    except JobFailed as exc:
+        store.finish(job_id, "failed", str(exc))
+        return "failed"
     except LogFormatError as exc:
         where = f" ({exc.location})" if exc.location else ""
         store.finish(job_id, "failed", f"log_format: {exc.message}{where}")

@@ -3,6 +3,8 @@
 ``run_slam(log, config)`` feeds every message of the log to a :class:`SlamFilter` and collects a
 :class:`SlamResult`: the best particle's trajectory and the dead-reckoning trajectory (one pose per
 scan), the best particle's final map, per-scan statistics, snapshots, wall time and peak memory.
+A caller that steps a filter itself (messages that arrive over time) collects the same result with
+:func:`filter_result` once the filter has seen the whole log.
 """
 
 from __future__ import annotations
@@ -61,11 +63,10 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
     start = time.perf_counter()
     odometry_source(log)  # ConfigError when there is none
     rng = np.random.default_rng(config.seed) if rng is None else rng
-    warnings = list(log.warnings)
-    dr = dead_reckoning(log)
     scans_total = 0 if log.scans is None else len(log.scans)
     if scans_total == 0 or log.lidar is None:
-        warnings.append("the log has no LiDAR scans: the result is dead reckoning only, with an empty map")
+        dr = dead_reckoning(log)
+        warnings = [*log.warnings, "the log has no LiDAR scans: the result is dead reckoning only, with an empty map"]
         return SlamResult(
             trajectory=dr, dead_reckoning=dr,
             grid=OccupancyGrid(np.zeros((1, 1), np.float32), config.grid.resolution_m, 0.0, 0.0),
@@ -84,9 +85,18 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
             progress(RunProgress(slam.scans_seen, scans_total, time.perf_counter() - start,
                                  slam.snapshots[-1] if slam.snapshots else None))
     slam.finish()
-    trajectory = slam.trajectory()
     if progress is not None:
         progress(RunProgress(scans_total, scans_total, time.perf_counter() - start))
+    return filter_result(slam, log, config, start)
+
+
+def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s: float) -> SlamResult:
+    """The :class:`SlamResult` of a filter that has stepped through every message of ``log`` (in
+    time order) and been finished: what :func:`run_slam` returns, also for a caller that fed the
+    filter itself, message by message as they arrived. ``started_s`` is the run's
+    ``time.perf_counter()`` at its start (for the wall time)."""
+    warnings = list(log.warnings)
+    trajectory = slam.trajectory()
     resampled = slam.scan_stats().resampled
     if len(resampled) > 1 and resampled.mean() > 0.9:
         warnings.append("the particle set was resampled after almost every scan: the map may be unreliable "
@@ -95,13 +105,13 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
     texture, texture_status = _ground_texture(log, trajectory, grid, config, warnings)
     return SlamResult(
         trajectory=trajectory,
-        dead_reckoning=dr,
+        dead_reckoning=dead_reckoning(log),
         grid=grid,
         texture=texture,
         scan_stats=slam.scan_stats(),
         config=config,
         snapshots=slam.snapshots,
-        wall_time_s=time.perf_counter() - start,
+        wall_time_s=time.perf_counter() - started_s,
         peak_memory_bytes=_peak_rss_bytes(),
         warnings=warnings,
         input_summary={**log.summary(), "grid_memory_bytes": slam.grids.memory_bytes(),

@@ -87,6 +87,7 @@ class Cluster:
     workers: list[Worker]
     session_id: str
     ground_truth: object
+    log_path: Path
 
     def post_job(self, config: dict) -> str:
         response = self.client.post(f"/v1/sessions/{self.session_id}/jobs", json=config)
@@ -146,7 +147,7 @@ def cluster(redis_url, tmp_path_factory):
             with log_path.open("rb") as f:
                 upload = client.post(f"/v1/sessions/{session_id}/logs", files={"file": ("office.clf", f)})
             assert upload.status_code == 201, upload.text
-            yield Cluster(client, client.app.state.store, workers, session_id, drive.ground_truth)
+            yield Cluster(client, client.app.state.store, workers, session_id, drive.ground_truth, log_path)
     finally:
         for worker in workers:
             if worker.process.poll() is None:
@@ -221,6 +222,51 @@ def test_cancel_a_running_and_a_queued_job(cluster) -> None:
     finally:
         reader.close()
     assert cluster.store.get_job(queued)["started_at"] is None
+
+
+def test_a_live_job_follows_its_stream_on_a_worker_and_maps_it_like_the_upload(cluster) -> None:
+    """The live job runs in a pool process like any job: it maps the chunks as they come (waiting at
+    a gap), finishes when the stream does, gives the upload's trajectory, and stops on cancel."""
+    from service.stream_log import calibration_from_log, messages_of_log
+    from slam_engine.formats import load_log
+
+    client = cluster.client
+    loaded = load_log(cluster.log_path)
+    messages = messages_of_log(loaded)
+    chunks = [messages[i:i + 150] for i in range(0, len(messages), 150)]
+
+    def live_job(session_id: str) -> str:
+        live_params = {**QUICK, "live": True, "snapshot_every_scans": 25}  # live previews; the same map
+        response = client.post(f"/v1/sessions/{session_id}/jobs", json=live_params)
+        assert response.status_code == 202, response.text
+        return response.json()["id"]
+
+    def stream_session(name: str) -> str:
+        body = {"name": name, "calibration": calibration_from_log(loaded)}
+        return client.post("/v1/sessions", json=body).json()["id"]
+
+    sid = stream_session("live")
+    live = live_job(sid)
+    assert client.post(f"/v1/sessions/{sid}/jobs", json={"live": True}).status_code == 409
+    regular = cluster.post_job(QUICK)  # the upload of the same drive, on the other worker
+    cluster.wait(live, {"running"})
+    for seq in [0, 2, 1, *range(3, len(chunks))]:
+        assert client.post(f"/v1/sessions/{sid}/chunks", json={"seq": seq, "messages": chunks[seq]}).status_code == 201
+    caught_up = cluster.wait(live, {"running"}, condition=lambda j: j["scans_done"] == 200)
+    assert caught_up["progress"] is None and "occupancy.png" in caught_up["products"]
+    assert client.post(f"/v1/sessions/{sid}/chunks/finish").json()["last_seq"] == len(chunks) - 1
+    done, upload = cluster.wait(live), cluster.wait(regular)
+    assert done["status"] == upload["status"] == "succeeded", (done, upload)
+    assert done["input"]["ended"] == "finished" and done["scans_total"] == 200
+    np.testing.assert_array_equal(_trajectory(client, live).poses, _trajectory(client, regular).poses)
+
+    waiting = live_job(stream_session("cancelled"))
+    cluster.wait(waiting, {"running"})
+    t0 = time.monotonic()
+    client.delete(f"/v1/jobs/{waiting}")
+    stopped = cluster.wait(waiting, timeout_s=10)
+    assert stopped["status"] == "cancelled" and stopped["error"] == "cancelled by request"
+    assert time.monotonic() - t0 < 3.0
 
 
 def test_killed_workers_fail_their_jobs_and_the_survivor_goes_on(cluster) -> None:

@@ -294,6 +294,77 @@ def test_concurrent_chunks_with_one_seq_keep_the_first(store) -> None:
     assert [c["sha256"] for c in store.chunk_rows(sid)] == winners
 
 
+def test_one_live_job_per_session_under_concurrent_creators(store) -> None:
+    sid = store.create_session("", "s", None, None, None)["id"]
+    other = store.create_session("", "t", None, None, None)["id"]
+    store.create_job(sid, "", "stream", None, {"live": False})  # a regular job does not count
+    barrier = threading.Barrier(4)
+    outcomes: list[tuple] = []
+    errors: list[BaseException] = []
+
+    def create() -> None:
+        try:
+            barrier.wait(timeout=30)
+            outcomes.append(store.create_live_job(sid, "", {"live": True}))
+        except BaseException as exc:  # reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=create) for _ in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+    assert not errors, errors
+    created = [row for row, _ in outcomes if row is not None]
+    assert len(created) == 1 and created[0]["source"] == "stream" and created[0]["config"] == {"live": True}
+    assert all(active["id"] == created[0]["id"] for row, active in outcomes if row is None)
+    assert store.create_live_job(other, "", {"live": True})[0] is not None  # another session: its own
+    assert store.finish(created[0]["id"], "cancelled")
+    assert store.create_live_job(sid, "", {"live": True})[0] is not None  # the first one ended
+
+
+def test_the_stream_end_and_chunks_beyond_it(store) -> None:
+    sid = store.create_session("", "s", None, None, None)["id"]
+    assert store.stream_end(sid) is None and store.finish_stream(sid, None).conflict
+    for seq in (0, 2):
+        store.put_chunk(sid, seq, f"h{seq}", 1, seq, seq + 0.5)
+    assert "beyond last_seq 1" in store.finish_stream(sid, 1).conflict
+    assert store.finish_stream(sid, None).last_seq == 2 and store.stream_end(sid) == 2
+    assert store.finish_stream(sid, 2).conflict is None  # again: the same end
+    assert store.finish_stream(sid, 3).conflict == "the stream was already finished at seq 2"
+    assert store.stream_figures(sid)["last_seq"] == 2
+    assert store.put_chunk(sid, 3, "h3", 1, 3.0, 3.5).beyond_end == 2
+    assert store.put_chunk(sid, 1, "h1", 1, 1.0, 1.5).row["seq"] == 1  # below the end: welcome
+    assert store.put_chunk(sid, 2, "h2", 1, 2.0, 2.5).duplicate
+    store.delete_session(sid)
+    assert store.stream_end(sid) is None
+
+    # a finish racing a chunk beyond it: one of the two is refused, never both stored
+    for round_no in range(6):
+        race = store.create_session("", f"race {round_no}", None, None, None)["id"]
+        store.put_chunk(race, 0, "h0", 1, 0.0, 0.5)
+        barrier = threading.Barrier(2)
+        result: dict[str, object] = {}
+
+        def finish(race: str = race, barrier: threading.Barrier = barrier, result: dict = result) -> None:
+            barrier.wait(timeout=30)
+            result["finish"] = store.finish_stream(race, 0)
+
+        def chunk(race: str = race, barrier: threading.Barrier = barrier, result: dict = result) -> None:
+            barrier.wait(timeout=30)
+            result["chunk"] = store.put_chunk(race, 1, "h1", 1, 1.0, 1.5)
+
+        threads = [threading.Thread(target=finish), threading.Thread(target=chunk)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(timeout=60)
+        finished = result["finish"].conflict is None
+        stored = result["chunk"].beyond_end is None
+        assert finished != stored, result
+        assert [c["seq"] for c in store.chunk_rows(race)] == ([0] if finished else [0, 1])
+
+
 def test_heartbeats_and_lost_workers(store, monkeypatch) -> None:
     clock = FakeClock(1_000.0)
     monkeypatch.setattr(store_module, "time", clock)

@@ -37,8 +37,10 @@ def eta_s(row: dict[str, Any], now: float | None = None) -> float | None:
 
 def job_public(row: dict[str, Any], live_products: list[str] | None = None) -> JobPublic:
     products = sorted(set(row["products"]) | set(live_products or []))
+    following = bool(row["config"].get("live")) and row["status"] != "succeeded"  # total unknown
     return JobPublic(id=row["id"], session_id=row["session_id"], source=row["source"], log_id=row["log_id"],
-                     status=row["status"], progress=row["progress"], scans_done=row["scans_done"],
+                     status=row["status"], progress=None if following else row["progress"],
+                     scans_done=row["scans_done"],
                      scans_total=row["scans_total"], eta_s=eta_s(row), error=row["error"],
                      cancel_requested=row["cancel_requested"], config=row["config"], input=row["input"],
                      products=products, created_at=utc(row["created_at"]), started_at=utc(row["started_at"]),

@@ -29,7 +29,7 @@ def test_chunks_idempotent_gaps_and_order(tmp_path) -> None:
         assert body["duplicate"] is False and body["messages"] == 6
         assert (body["t_first_s"], body["t_last_s"]) == (0.0, 0.2)
         assert body["stream"] == {"received": 1, "contiguous_through": 0, "next_expected_seq": 1,
-                                  "missing_seqs": [], "messages": 6}
+                                  "missing_seqs": [], "messages": 6, "finished": False, "last_seq": None}
 
         retry = client.post(url, json=chunk(0, 0.0))
         assert retry.status_code == 200 and retry.json()["duplicate"] is True
@@ -43,7 +43,8 @@ def test_chunks_idempotent_gaps_and_order(tmp_path) -> None:
         ahead = client.post(url, json=chunk(3, 3.0))  # 1 and 2 not yet sent
         assert ahead.status_code == 201
         assert ahead.json()["stream"] == {"received": 2, "contiguous_through": 0, "next_expected_seq": 1,
-                                          "missing_seqs": [1, 2], "messages": 6}
+                                          "missing_seqs": [1, 2], "messages": 6, "finished": False,
+                                          "last_seq": None}
         # chunk 2 must end before chunk 3 starts
         err = assert_error(client.post(url, json=chunk(2, 2.95)), 422, "invalid_input")
         assert "before" in err["message"] or "after" in err["message"]
@@ -53,7 +54,7 @@ def test_chunks_idempotent_gaps_and_order(tmp_path) -> None:
         assert client.post(url, json=chunk(2, 2.0)).status_code == 201
         state = client.get(url).json()
         assert state == {"received": 4, "contiguous_through": 3, "next_expected_seq": 4,
-                         "missing_seqs": [], "messages": 24}
+                         "missing_seqs": [], "messages": 24, "finished": False, "last_seq": None}
 
         backwards = chunk(4, 5.0)
         backwards["messages"][2]["t_s"] = 4.0

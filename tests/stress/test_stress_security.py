@@ -37,6 +37,7 @@ def body_for(method: str, path: str) -> dict:
         ("POST", "/v1/sessions"): {"json": {"name": "probe"}},
         ("POST", "/v1/sessions/{session_id}/logs"): {"files": {"file": ("log.clf", b"ODOM 0 0 0 0 0 0 1 h 1\n")}},
         ("POST", "/v1/sessions/{session_id}/chunks"): {"json": CHUNK},
+        ("POST", "/v1/sessions/{session_id}/chunks/finish"): {"json": {"last_seq": 5}},
         ("POST", "/v1/sessions/{session_id}/jobs"): {"json": {"particles": 1, "seed": 1}},
     }
     if method in ("POST", "PUT", "PATCH"):
