@@ -28,7 +28,7 @@ def test_real_logs_load_with_urg04lx_geometry_and_metres(dataset, name, lines, d
     assert log.scans.ranges_m[np.isfinite(log.scans.ranges_m)].max() == pytest.approx(max_m)
     assert log.scans.t_s[-1] - log.scans.t_s[0] == pytest.approx(duration_s, abs=0.01)
     assert log.vehicle.kind == MotionModelKind.DIFFERENTIAL
-    assert log.vehicle.ticks_per_revolution == 4000 and log.vehicle.track_width_m == pytest.approx(0.33)
+    assert log.vehicle.ticks_per_revolution == 2000 and log.vehicle.track_width_m == pytest.approx(0.33)
     if left_ticks:  # PROVENANCE: "left 29221 -> 211828" (first and largest value)
         assert (log.encoders.ticks[0, 0], log.encoders.ticks[:, 0].max()) == left_ticks
     steps = np.diff(log.encoders.ticks, axis=0)

@@ -3,9 +3,16 @@
 One record per line, 707 whitespace-separated numbers: field 0 the time in microseconds, field 1
 undocumented, fields 2 and 3 cumulative left and right wheel ticks, fields 4-23 other telemetry
 (ignored), fields 24-705 the 682 Hokuyo URG-04LX ranges in millimetres (0 = no return), field 706
-unused. The robot: differential drive, wheel radius 77 mm, axle 330 mm, 4000 ticks per wheel
+unused. The robot: differential drive, wheel radius 77 mm, axle 330 mm, 2000 ticks per wheel
 revolution; the laser 145 mm ahead of the axle centre, 682 beams 360/1024 deg apart (239.7 deg,
 symmetric about the front).
+
+Ticks per revolution: BreezySLAM turns ticks into wheel angles as ``ticks * 180 / 2000`` degrees
+(read alone: 4000 ticks per revolution), but its pose change is ``r * (phi_l + phi_r)`` forward and
+``r / (axle / 2) * (phi_r - phi_l)`` turned, twice the differential-drive formulas (which halve the
+first and divide the second by the whole axle). Its odometry is therefore that of 2000 ticks per
+revolution, and the scans agree: matched against each other, the drives of exp1/exp2 are 1.9 times
+longer, in distance and in heading change, than 4000-tick odometry says.
 """
 
 from __future__ import annotations
@@ -22,7 +29,7 @@ FIELDS = 707
 BEAMS = 682
 FIRST_RANGE_FIELD = 24
 URG_STEP_RAD = float(np.radians(360 / 1024))
-MINES_ROVER = VehicleModel(kind=MotionModelKind.DIFFERENTIAL, ticks_per_revolution=4000,
+MINES_ROVER = VehicleModel(kind=MotionModelKind.DIFFERENTIAL, ticks_per_revolution=2000,
                            wheel_diameters_m=(0.154, 0.154), wheel_names=("left", "right"), track_width_m=0.33,
                            name="Mines rover")
 
