@@ -1,7 +1,8 @@
 """Engine speed and accuracy on a few logs, one process per (log, seed) so CPU time and peak memory
 belong to that run alone.
 
-``python -m bench.engine_profile --log intel --seeds 0-4 [--particles 30] [--set matcher.max_points=150]``
+``python -m bench.engine_profile --log intel --seeds 0-4 [--particles 30] [--set matcher.max_points=150]
+[--heading-error 1.3,0.02]`` (the last distorts the odometry: :mod:`bench.odometry_bias`)
 
 Logs: ``intel``, ``freiburg`` (relation errors against the benchmark ground truth), ``exp2``,
 ``malaga`` (maps only: time), ``sim:<rig>`` (simulated drive, ATE against its exact ground truth,
@@ -51,7 +52,8 @@ def _overrides(pairs: list[str]) -> dict:
     return out
 
 
-def run_one(name: str, seed: int, particles: int, overrides: dict) -> dict:
+def run_one(name: str, seed: int, particles: int, overrides: dict, heading_error: tuple[float, float] | None = None,
+            ) -> dict:
     """One run in this process: the record printed as JSON by the child."""
     import numpy as np
 
@@ -72,6 +74,11 @@ def run_one(name: str, seed: int, particles: int, overrides: dict) -> dict:
 
         path = root / (BENCHMARK.get(name) or MAPS_ONLY.get(name) or name)
         log, truth = load_log(path), None
+    if heading_error is not None:
+        from bench.odometry_bias import with_heading_error
+
+        log = with_heading_error(log, *heading_error)
+        record["heading_error"] = list(heading_error)
     cpu0, wall0 = time.process_time(), time.perf_counter()
     result = run_slam(log, config, rng=np.random.default_rng(seed))
     record["cpu_s"] = time.process_time() - cpu0
@@ -96,18 +103,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", default="0")
     parser.add_argument("--particles", type=int, default=30)
     parser.add_argument("--set", action="append", default=[], help="config override a.b=value")
+    parser.add_argument("--heading-error", default=None, metavar="SCALE[,DRIFT]",
+                        help="distort the odometry: turns times SCALE plus DRIFT rad per metre (e.g. 1.3,0.02)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    heading_error = None
+    if args.heading_error:
+        parts = [float(v) for v in args.heading_error.split(",")]
+        heading_error = (parts[0], parts[1] if len(parts) > 1 else 0.0)
     overrides = _overrides(args.set)
     seeds = _parse_seeds(args.seeds)
     if args.child:
-        print(json.dumps(run_one(args.log[0], seeds[0], args.particles, overrides)))
+        print(json.dumps(run_one(args.log[0], seeds[0], args.particles, overrides, heading_error)))
         return 0
     for name in args.log:
         records = []
         for seed in seeds:
             cmd = [sys.executable, "-m", "bench.engine_profile", "--child", "--log", name, "--seeds", str(seed),
                    "--particles", str(args.particles)] + [f"--set={s}" for s in args.set]
+            if args.heading_error:
+                cmd += ["--heading-error", args.heading_error]
             out = subprocess.run(cmd, capture_output=True, text=True, env=os.environ, cwd=Path.cwd())
             if out.returncode != 0:
                 print(f"{name} seed {seed}: FAILED\n{out.stderr[-2000:]}")

@@ -43,6 +43,22 @@ class MotionNoiseConfig(_Section):
     trans_from_rot: float = Field(0.02, ge=0.0, le=2.0, description="sd(trans) per |rot| [m/rad].")
 
 
+class HeadingCalibrationConfig(_Section):
+    """Online estimate of the odometry's systematic heading error (turn scale, drift per metre),
+    measured by the scan matcher and corrected before sampling the motion."""
+
+    enabled: bool = Field(True, description="Estimate and correct the odometry's heading scale and drift.")
+    prior_scale_rad2: float = Field(0.5, gt=0.0, le=1000.0, description="Weight of the prior 'scale = 1', "
+                                    "in squared radians of odometry turn it is worth (more = slower to move).")
+    prior_drift_m2: float = Field(10.0, gt=0.0, le=100000.0, description="Weight of the prior 'drift = 0', "
+                                  "in squared metres of travel it is worth.")
+    scale_band: float = Field(0.1, ge=0.0, le=1.0, description="Dead band of the turn-scale correction: "
+                              "the estimate is used once it is this far from 1 (smaller errors are left to the "
+                              "scan matcher).")
+    drift_band_rad_per_m: float = Field(0.01, ge=0.0, le=1.0, description="Dead band of the drift "
+                                        "correction [rad/m]: the estimate is used once it is this far from 0.")
+
+
 class MatcherConfig(_Section):
     """Scan-matched proposal: local search around each particle's odometry prediction."""
 
@@ -123,6 +139,7 @@ class SlamConfig(_Section):
     resample_threshold: float = Field(0.5, gt=0.0, le=1.0, description="Resample when N_eff < this * N.")
     grid: GridConfig = GridConfig()
     motion: MotionNoiseConfig = MotionNoiseConfig()
+    heading_calibration: HeadingCalibrationConfig = HeadingCalibrationConfig()
     matcher: MatcherConfig = MatcherConfig()
     scheduling: SchedulingConfig = SchedulingConfig()
     lidar_filter: LidarFilterConfig = LidarFilterConfig()

@@ -4,7 +4,9 @@ Odometry messages move the dead-reckoned odometry pose continuously. A scan is *
 the vehicle has moved ``linear_update_m`` / turned ``angular_update_rad`` (or ``temporal_update_s``
 passed) since the last processed scan: every particle samples the odometry motion, fits the scan
 onto its own map (scan-matched proposal), is weighted by how well the scan fits there, the set is
-resampled when the effective sample size drops, and the scan is inserted into every map. Other
+resampled when the effective sample size drops, and the scan is inserted into every map. The
+odometry increments are first corrected for the systematic heading error that the matches have
+measured so far (:mod:`slam_engine.heading_calibration`). Other
 scans are *skipped*: their pose is the best particle's last pose moved by odometry, refined by a
 match against the best particle's map (no map update).
 
@@ -25,6 +27,7 @@ from slam_engine.config import SlamConfig
 from slam_engine.drive_log import DriveLog, LidarModel
 from slam_engine.errors import ConfigError
 from slam_engine.grid import ParticleGrids
+from slam_engine.heading_calibration import HeadingCalibration
 from slam_engine.lidar_points import ScanProjector
 from slam_engine.messages import EncoderMessage, GyroMessage, Message, OdometryMessage, ScanMessage
 from slam_engine.motion_models import odometry_increments, sample_odometry_motion
@@ -84,6 +87,9 @@ class SlamFilter:
         self.matcher = ScanMatcher(m.search_xy_m, m.search_theta_rad, m.min_score, m.beam_skip)
         mo = config.motion
         self.alphas = (mo.rot_from_rot, mo.rot_from_trans, mo.trans_from_trans, mo.trans_from_rot)
+        hc = config.heading_calibration
+        self.heading_calibration = HeadingCalibration(hc.prior_scale_rad2, hc.prior_drift_m2, hc.scale_band,
+                                                      hc.drift_band_rad_per_m, hc.enabled)
         # weight of one scan: -(mean squared residual) * independent beams * (res / sigma)^2 / 2
         self.likelihood_gain = m.independent_beams * (g.resolution_m / m.sigma_m) ** 2 / 2.0
         self.particles = np.zeros((n, 3))
@@ -193,11 +199,13 @@ class SlamFilter:
 
     def _process(self, scan: ScanMessage, odom: np.ndarray, projected) -> None:
         n = self.config.particles
-        predicted = sample_odometry_motion(self.particles, self._last_odom, odom, self.alphas, self.rng)
+        target = self.heading_calibration.corrected_target(self._last_odom, odom)
+        predicted = sample_odometry_motion(self.particles, self._last_odom, target, self.alphas, self.rng)
         hits = self._match_points(projected)
         if len(hits) >= 3:
             poses, sq_residual, score, accepted = self.matcher.match(self.grids, np.arange(n), predicted, hits)
             log_lik = -self.likelihood_gain * sq_residual / len(hits)
+            self.heading_calibration.observe(self._last_odom, odom, self.particles, poses, accepted)
         else:
             poses, score, accepted, log_lik = predicted, np.zeros(n), np.zeros(n, bool), np.zeros(n)
         self.particles = poses
@@ -241,7 +249,8 @@ class SlamFilter:
     def _skip(self, scan: ScanMessage, odom: np.ndarray, projected) -> None:
         best = self.best_particle()
         current = self.particles[best]  # equals its recorded pose at the last processed step
-        predicted = compose(current, relative(self._last_odom, odom))
+        predicted = compose(current, relative(self._last_odom,
+                                              self.heading_calibration.corrected_target(self._last_odom, odom)))
         pose = predicted
         hits = self._match_points(projected)
         if len(hits) >= 3:

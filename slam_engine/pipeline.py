@@ -115,7 +115,8 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
         peak_memory_bytes=_peak_rss_bytes(),
         warnings=warnings,
         input_summary={**log.summary(), "grid_memory_bytes": slam.grids.memory_bytes(),
-                       "scans_processed": slam.steps_processed, "texture": texture_status},
+                       "scans_processed": slam.steps_processed, "texture": texture_status,
+                       "odometry_calibration": slam.heading_calibration.summary()},
     )
 
 
