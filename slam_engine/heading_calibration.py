@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from slam_engine.motion_models import apply_odometry_increments, odometry_increments
+from slam_engine.poses import wrap_angle
 
 # a step counts only when most particles' matches were accepted
 MIN_ACCEPTED_SHARE = 0.5
@@ -76,7 +77,7 @@ class HeadingCalibration:
             return
         rot1, trans, rot2 = odometry_increments(odom_from, odom_to)
         odom_turn = float(rot1 + rot2)
-        turns = np.angle(np.exp(1j * (after[accepted, 2] - before[accepted, 2])))
+        turns = wrap_angle(after[accepted, 2] - before[accepted, 2])
         x = np.array([odom_turn, float(trans)])
         self._normal += np.outer(x, x)
         self._rhs += x * float(np.mean(turns))

@@ -87,9 +87,7 @@ class SlamFilter:
         self.matcher = ScanMatcher(m.search_xy_m, m.search_theta_rad, m.min_score, m.beam_skip)
         mo = config.motion
         self.alphas = (mo.rot_from_rot, mo.rot_from_trans, mo.trans_from_trans, mo.trans_from_rot)
-        hc = config.heading_calibration
-        self.heading_calibration = HeadingCalibration(hc.prior_scale_rad2, hc.prior_drift_m2, hc.scale_band,
-                                                      hc.drift_band_rad_per_m, hc.enabled)
+        self.heading_calibration = HeadingCalibration(**config.heading_calibration.model_dump())
         # weight of one scan: -(mean squared residual) * independent beams * (res / sigma)^2 / 2
         self.likelihood_gain = m.independent_beams * (g.resolution_m / m.sigma_m) ** 2 / 2.0
         self.particles = np.zeros((n, 3))

@@ -16,12 +16,17 @@ from slam_engine.formats import load_log
 from slam_engine.pipeline import run_slam
 
 
-def test_malaga_walls_agree_between_the_two_halves_of_the_drive(dataset) -> None:
-    log = load_log(dataset("malaga/malaga-telecom-one-loop.clf"))
+def _map_with_half_agreements(path):
+    """Map ``path`` (10 particles, seed 0); the half agreement of the SLAM trajectory and of dead reckoning."""
+    log = load_log(path)
     result = run_slam(log, SlamConfig(particles=10), rng=np.random.default_rng(0))
-
     slam = half_agreement(scan_endpoints_world(log, result.trajectory, 30.0))
     dead = half_agreement(scan_endpoints_world(log, result.dead_reckoning, 30.0))
+    return result, slam, dead
+
+
+def test_malaga_walls_agree_between_the_two_halves_of_the_drive(dataset) -> None:
+    result, slam, dead = _map_with_half_agreements(dataset("malaga/malaga-telecom-one-loop.clf"))
     print(f"malaga half agreement: SLAM {slam['half_agreement']:.3f}, dead reckoning {dead['half_agreement']:.3f}")
     assert slam["half_agreement"] > 0.75
     assert slam["half_agreement"] > 2 * dead["half_agreement"]
@@ -33,11 +38,7 @@ def test_breezyslam_exp2_walls_are_single_and_agree_better_than_odometry(dataset
     """A URG-04LX (5.6 m, 55 % no-return beams) on a fast-turning rover whose scans lag its wheel ticks
     by about 0.15 s: walls stay one cell thick, and the halves agree clearly better than odometry's
     (measured 0.32 vs 0.20; the lag limits both)."""
-    log = load_log(dataset("breezyslam/exp2.dat"))
-    result = run_slam(log, SlamConfig(particles=10), rng=np.random.default_rng(0))
-
-    slam = half_agreement(scan_endpoints_world(log, result.trajectory, 30.0))
-    dead = half_agreement(scan_endpoints_world(log, result.dead_reckoning, 30.0))
+    result, slam, dead = _map_with_half_agreements(dataset("breezyslam/exp2.dat"))
     print(f"exp2 half agreement: SLAM {slam['half_agreement']:.3f}, dead reckoning {dead['half_agreement']:.3f}")
     assert slam["half_agreement"] > 1.4 * dead["half_agreement"]
     assert slam["half_mean_offset_m"] < dead["half_mean_offset_m"]
