@@ -24,7 +24,8 @@ from pathlib import Path
 
 from bench.cases import datasets_root
 
-BENCHMARK = {"intel": "benchmark/intel.clf", "freiburg": "benchmark/freiburg-079.clf"}
+BENCHMARK = {"intel": "benchmark/intel.clf", "freiburg": "benchmark/freiburg-079.clf",
+             "aces": "benchmark/aces-rough.clf", "corridor": "benchmark/infinite-corridor-rough.clf"}
 MAPS_ONLY = {"exp2": "breezyslam/exp2.dat", "malaga": "malaga/malaga-telecom-one-loop.clf"}
 
 
@@ -90,6 +91,7 @@ def run_one(name: str, seed: int, particles: int, overrides: dict, heading_error
         rel = relation_errors(result.trajectory, read_relations(stem.with_suffix(".relations")))
         record["trans_m"], record["rot_deg"] = rel.all.trans_mean_m, rel.all.rot_mean_deg
         record["loop_rot_deg"] = rel.loop.rot_mean_deg
+        record["local_m"], record["loop_m"] = rel.local.trans_mean_m, rel.loop.trans_mean_m
     if truth is not None:
         record["ate_m"] = absolute_trajectory_error(result.trajectory, truth)
         record["dr_ate_m"] = absolute_trajectory_error(result.dead_reckoning, truth)
@@ -131,7 +133,8 @@ def main(argv: list[str] | None = None) -> int:
             records.append(rec)
             acc = ""
             if "trans_m" in rec:
-                acc = f"trans {rec['trans_m']:.4f} m rot {rec['rot_deg']:.3f} deg"
+                acc = (f"trans {rec['trans_m']:.4f} m rot {rec['rot_deg']:.3f} deg "
+                       f"local {rec['local_m']:.4f} m loop {rec['loop_m']:.4f} m")
             if "ate_m" in rec:
                 acc += f" ATE {rec['ate_m']:.3f} m (odometry {rec['dr_ate_m']:.3f})"
             print(f"{name} seed {seed}: {acc} cpu {rec['cpu_s']:.1f} s wall {rec['wall_s']:.1f} s "

@@ -62,8 +62,17 @@ class HeadingCalibrationConfig(_Section):
 class MatcherConfig(_Section):
     """Scan-matched proposal: local search around each particle's odometry prediction."""
 
-    search_xy_m: float = Field(0.3, ge=0.0, le=5.0, description="Half width of the xy search window [m].")
-    search_theta_rad: float = Field(0.2, ge=0.0, le=1.5, description="Half width of the heading window [rad].")
+    search_xy_m: float = Field(0.3, ge=0.0, le=5.0, description="Smallest half width of the xy search window "
+                               "[m]; the window is search_sigmas standard deviations of the predicted motion "
+                               "error, at least this and at most max_search_xy_m.")
+    search_theta_rad: float = Field(0.2, ge=0.0, le=1.5, description="Smallest half width of the heading "
+                                    "window [rad] (likewise).")
+    search_sigmas: float = Field(3.0, gt=0.0, le=10.0, description="Search window in standard deviations of "
+                                 "the motion model's predicted error.")
+    max_search_xy_m: float = Field(1.5, ge=0.0, le=10.0, description="Largest half width of the xy window [m].")
+    max_search_theta_rad: float = Field(0.6, ge=0.0, le=3.0, description="Largest half width of the heading "
+                                        "window [rad]. Windows wider than the smallest are searched "
+                                        "correlatively on the coarsest map level before the fit.")
     sigma_m: float = Field(0.05, gt=0.0, le=2.0, description="Std. dev. of the endpoint likelihood [m]; an end "
                            "point's distance to the wall is taken as (1 - M) cells, M = map value in [0, 1].")
     beam_skip: int = Field(1, ge=1, le=50, description="Use every n-th beam for matching.")
@@ -74,6 +83,56 @@ class MatcherConfig(_Section):
                                      "correlated; fewer = smoother weights).")
     min_score: float = Field(0.3, ge=0.0, le=1.0, description="Below this normalised score the "
                              "odometry proposal is used instead of the match.")
+
+
+class LoopClosingConfig(_Section):
+    """The back end: submaps along the front end's key frames, loop closures verified by a global
+    correlative match, and a pose graph with a robust loss (:mod:`slam_engine.backend`)."""
+
+    enabled: bool = Field(True, description="Close loops and optimise the trajectory after the filter.")
+    submap_length_m: float = Field(8.0, gt=0.0, le=1000.0, description="Travel per submap [m].")
+    submap_max_nodes: int = Field(80, ge=2, le=100000, description="At most this many key frames per submap.")
+    search_every_m: float = Field(0.5, ge=0.0, le=100.0, description="Look for loops every this much travel [m].")
+    min_loop_travel_m: float = Field(10.0, ge=0.0, le=10000.0, description="A submap is a loop candidate once "
+                                     "the drive has gone this far since its last key frame [m].")
+    candidates_per_search: int = Field(3, ge=1, le=50, description="Match at most this many nearest submaps.")
+    overlap_m: float = Field(3.0, ge=0.0, le=100.0, description="A submap is in reach when one of its key frames "
+                             "lies within the search window plus this distance [m].")
+    base_window_m: float = Field(0.5, gt=0.0, le=50.0, description="Search half width right after a closure [m].")
+    window_per_m: float = Field(0.05, ge=0.0, le=1.0, description="Growth of the search half width per metre "
+                                "travelled since the last closure [m/m].")
+    max_window_m: float = Field(8.0, gt=0.0, le=100.0, description="Largest search half width [m].")
+    base_window_rad: float = Field(0.1, gt=0.0, le=3.2, description="Heading search half width right after a "
+                                   "closure [rad].")
+    window_rad_per_m: float = Field(0.005, ge=0.0, le=1.0, description="Its growth per metre travelled [rad/m].")
+    max_window_rad: float = Field(0.5, gt=0.0, le=3.2, description="Largest heading search half width [rad].")
+    match_range_m: float = Field(20.0, gt=0.5, le=200.0, description="End points farther than this from the "
+                                 "LiDAR are not used for loop closing [m].")
+    max_points: int = Field(250, ge=10, le=100000, description="A key frame matches with at most this many points.")
+    min_score: float = Field(0.6, ge=0.0, le=1.0, description="Lowest mean blurred hit value under the scan's end "
+                             "points for a closure.")
+    ambiguity_m: float = Field(1.0, ge=0.0, le=100.0, description="A second pose this far from the best [m] ...")
+    ambiguity_rad: float = Field(0.15, ge=0.0, le=3.2, description="... or this far in heading [rad] ...")
+    runner_up_ratio: float = Field(0.9, gt=0.0, le=1.0, description="... scoring at least this share of the "
+                                   "best makes the match ambiguous: rejected.")
+    confirm_window_m: float = Field(1.5, ge=0.0, le=100.0, description="Closures found with a wider window "
+                                    "than this [m] wait for a second, agreeing one.")
+    confirm_m: float = Field(0.3, gt=0.0, le=10.0, description="Two closures agree within this distance [m] ...")
+    confirm_rad: float = Field(0.05, gt=0.0, le=3.2, description="... and this heading difference [rad].")
+    confirm_travel_m: float = Field(5.0, gt=0.0, le=1000.0, description="The agreeing closure must come within "
+                                    "this much travel [m].")
+    reoptimize_m: float = Field(0.05, ge=0.0, le=100.0, description="Optimise the graph at once when a closure "
+                                "moves its key frame more than this [m] ...")
+    reoptimize_rad: float = Field(0.01, ge=0.0, le=3.2, description="... or turns it more than this [rad].")
+    motion_sd_m: float = Field(0.01, gt=0.0, le=10.0, description="Front-end motion edges: sd [m] ...")
+    motion_sd_per_m: float = Field(0.02, ge=0.0, le=10.0, description="... plus this per metre moved [m/m].")
+    motion_sd_rad: float = Field(0.003, gt=0.0, le=3.2, description="Heading sd of a motion edge [rad] ...")
+    motion_sd_rad_per_rad: float = Field(0.02, ge=0.0, le=10.0, description="... plus this per radian turned ...")
+    motion_sd_rad_per_m: float = Field(0.005, ge=0.0, le=10.0, description="... plus this per metre [rad/m].")
+    closure_sd_m: float = Field(0.05, gt=0.0, le=10.0, description="Closure edges: sd [m].")
+    closure_sd_rad: float = Field(0.01, gt=0.0, le=3.2, description="Closure edges: heading sd [rad].")
+    cauchy_scale: float = Field(1.0, gt=0.0, le=100.0, description="Scale of the Cauchy loss on closure edges "
+                                "(in standard deviations).")
 
 
 class SchedulingConfig(_Section):
@@ -142,6 +201,7 @@ class SlamConfig(_Section):
     heading_calibration: HeadingCalibrationConfig = HeadingCalibrationConfig()
     matcher: MatcherConfig = MatcherConfig()
     scheduling: SchedulingConfig = SchedulingConfig()
+    loop_closing: LoopClosingConfig = LoopClosingConfig()
     lidar_filter: LidarFilterConfig = LidarFilterConfig()
     texture: TextureConfig = TextureConfig()
     snapshot_every_scans: int = Field(0, ge=0, le=100000, description="Keep a map snapshot every n "

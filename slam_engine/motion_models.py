@@ -136,6 +136,19 @@ def sample_odometry_motion(
     )
 
 
+def odometry_motion_covariance(odom_from: np.ndarray, odom_to: np.ndarray,
+                               alphas: tuple[float, float, float, float]) -> np.ndarray:
+    """(3, 3) covariance of the motion ``odom_from -> odom_to`` as the rot1-trans-rot2 model of
+    :func:`sample_odometry_motion` spreads it, in the frame of the start pose [m^2, m rad, rad^2]."""
+    rot1, trans, rot2 = (float(v) for v in odometry_increments(odom_from, odom_to))
+    a1, a2, a3, a4 = alphas
+    sd = np.array([a1 * abs(rot1) + a2 * abs(trans), a3 * abs(trans) + a4 * (abs(rot1) + abs(rot2)),
+                   a1 * abs(rot2) + a2 * abs(trans)])
+    c, s = math.cos(rot1), math.sin(rot1)
+    J = np.array([[-trans * s, c, 0.0], [trans * c, s, 0.0], [1.0, 0.0, 1.0]])  # d(dx, dy, dtheta)/d(rot1, trans, rot2)
+    return J @ np.diag(sd**2) @ J.T
+
+
 def propagate(pose: np.ndarray, odom_from: np.ndarray, odom_to: np.ndarray) -> np.ndarray:
     """Move ``pose`` by the odometry motion ``odom_from -> odom_to`` without noise."""
     return compose(pose, relative(odom_from, odom_to))

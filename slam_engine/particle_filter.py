@@ -28,17 +28,19 @@ from slam_engine.drive_log import DriveLog, LidarModel
 from slam_engine.errors import ConfigError
 from slam_engine.grid import ParticleGrids
 from slam_engine.heading_calibration import HeadingCalibration
-from slam_engine.lidar_points import ScanProjector
+from slam_engine.lidar_points import ProjectedScan, ScanProjector
 from slam_engine.messages import EncoderMessage, GyroMessage, Message, OdometryMessage, ScanMessage
-from slam_engine.motion_models import odometry_increments, sample_odometry_motion
+from slam_engine.motion_models import odometry_increments, odometry_motion_covariance, sample_odometry_motion
 from slam_engine.odometry import OdometryIntegrator, make_integrator
-from slam_engine.poses import compose, relative
+from slam_engine.poses import compose, relative, wrap_angle
 from slam_engine.raycast import insert_scan
 from slam_engine.resampling import low_variance_resample, n_eff, normalize_log_weights
 from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, Trajectory
 from slam_engine.scan_matcher import ScanMatcher
 
 THREADS_ENV = "LIDARMAP_THREADS"
+# added to the motion covariance [m^2, m^2, rad^2]: a vehicle standing still still has a pose to fuse
+MOTION_COV_FLOOR = np.array([1e-6, 1e-6, 1e-7])
 
 
 def engine_threads() -> int:
@@ -97,6 +99,7 @@ class SlamFilter:
         self._parents: list[np.ndarray] = []
         self._next_parents = np.arange(n)
         self._records: list[_ScanRecord] = []
+        self.key_frame_scans: list[ProjectedScan] = []  # the scan of every processed step (for the back end)
         self._last_odom: np.ndarray | None = None
         self._last_t_s: float | None = None
         self._pending: ScanMessage | None = None
@@ -176,11 +179,12 @@ class SlamFilter:
         insert_scan(self.grids, self.particles[:1], self.projector.origin_v, projected.ends_v, projected.is_hit,
                     g.log_odds_hit, g.log_odds_miss, g.log_odds_min, g.log_odds_max, projected.free_from_m)
         self.grids.resample(np.zeros(self.config.particles, np.int64))  # every particle shares that map
-        self._record_step(scan.t_s, odom)
+        self._record_step(scan.t_s, odom, projected)
         self._stats.append((scan.t_s, float(self.config.particles), False, 1.0, False, 0.0))
 
-    def _record_step(self, t_s: float, odom: np.ndarray) -> None:
+    def _record_step(self, t_s: float, odom: np.ndarray, projected: ProjectedScan) -> None:
         self._history.append(self.particles.copy())
+        self.key_frame_scans.append(projected)
         self._parents.append(self._next_parents)
         self._next_parents = np.arange(self.config.particles)
         self._records.append(_ScanRecord(t_s, len(self._history) - 1, np.zeros(3)))
@@ -198,14 +202,15 @@ class SlamFilter:
     def _process(self, scan: ScanMessage, odom: np.ndarray, projected) -> None:
         n = self.config.particles
         target = self.heading_calibration.corrected_target(self._last_odom, odom)
-        predicted = sample_odometry_motion(self.particles, self._last_odom, target, self.alphas, self.rng)
+        sampled = sample_odometry_motion(self.particles, self._last_odom, target, self.alphas, self.rng)
         hits = self._match_points(projected)
         if len(hits) >= 3:
-            poses, sq_residual, score, accepted = self.matcher.match(self.grids, np.arange(n), predicted, hits)
-            log_lik = -self.likelihood_gain * sq_residual / len(hits)
+            motion_cov = odometry_motion_covariance(self._last_odom, target, self.alphas)
+            predicted = compose(self.particles, relative(self._last_odom, target))
+            poses, log_lik, score, accepted = self._propose(predicted, sampled, motion_cov, hits)
             self.heading_calibration.observe(self._last_odom, odom, self.particles, poses, accepted)
         else:
-            poses, score, accepted, log_lik = predicted, np.zeros(n), np.zeros(n, bool), np.zeros(n)
+            poses, score, accepted, log_lik = sampled, np.zeros(n), np.zeros(n, bool), np.zeros(n)
         self.particles = poses
         self.log_weights = self.log_weights + log_lik
         self.path_log_likelihood = self.path_log_likelihood + log_lik
@@ -214,7 +219,7 @@ class SlamFilter:
         neff = n_eff(weights)
         resampled = neff < self.config.resample_threshold * n
         # the history holds the poses before resampling; the next step's parents say who survived
-        self._record_step(scan.t_s, odom)
+        self._record_step(scan.t_s, odom, projected)
         clones_of = None
         if resampled:
             ancestors = low_variance_resample(weights, self.rng)
@@ -226,6 +231,72 @@ class SlamFilter:
             clones_of = ancestors
         self._insert(projected, clones_of)
         self._stats.append((scan.t_s, neff, bool(resampled), float(score[best]), bool(accepted[best]), 0.0))
+
+    def _search_window(self, motion_cov: np.ndarray) -> tuple[float, float]:
+        """Half widths [m, rad] of the matcher's window: ``search_sigmas`` standard deviations of the
+        predicted motion error, within the configured smallest and largest windows."""
+        m = self.config.matcher
+        sd_xy = float(np.sqrt(max(np.linalg.eigvalsh(motion_cov[:2, :2]).max(), 0.0)))
+        sd_theta = float(np.sqrt(max(motion_cov[2, 2], 0.0)))
+        return (float(np.clip(m.search_sigmas * sd_xy, m.search_xy_m, max(m.search_xy_m, m.max_search_xy_m))),
+                float(np.clip(m.search_sigmas * sd_theta, m.search_theta_rad,
+                              max(m.search_theta_rad, m.max_search_theta_rad))))
+
+    def _propose(self, predicted: np.ndarray, sampled: np.ndarray, motion_cov: np.ndarray, hits: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The scan-matched proposal (Grisetti et al. 2007): each particle's scan is fitted from its
+        noise-free prediction ``predicted`` (N, 3) within a window sized by the motion covariance
+        ``motion_cov`` (3, 3, start frame); an accepted match is fused with the prediction by their
+        information (the fit's Gauss-Newton matrix, the inverse motion covariance) and the pose is
+        drawn from that Gaussian, weighted by the Laplace estimate of ``p(z | x', u)``. A rejected
+        match keeps the motion model's sample ``sampled`` weighted by its likelihood.
+        Returns (poses, log weights increments, mean scores, accepted)."""
+        m = self.config.matcher
+        n = len(predicted)
+        gain = self.likelihood_gain / len(hits)
+        window_xy, window_theta = self._search_window(motion_cov)
+        # motion covariance in the world frame of each particle's start, with a floor (standing still)
+        c, s = np.cos(self.particles[:, 2]), np.sin(self.particles[:, 2])
+        R = np.zeros((n, 3, 3))
+        R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+        cov_o = R @ motion_cov @ R.transpose(0, 2, 1) + np.diag(MOTION_COV_FLOOR)
+        info_o = np.linalg.inv(cov_o)
+        presearch = None
+        if window_xy > m.search_xy_m or window_theta > m.search_theta_rad:
+            mean_info = info_o.mean(axis=0)
+            presearch = np.array([window_xy, window_theta, self.likelihood_gain, mean_info[0, 0], mean_info[1, 1],
+                                  mean_info[2, 2]])
+        fit = self.matcher.fit(self.grids, np.arange(n), predicted, hits, window_xy, window_theta, presearch)
+        info_m = 2.0 * gain * fit.jtj
+        info_f = info_m + info_o
+        cov_f = np.linalg.inv(info_f)
+        to_match = fit.poses - predicted
+        to_match[:, 2] = wrap_angle(to_match[:, 2])
+        shift = np.einsum("nij,njk,nk->ni", cov_f, info_m, to_match)  # fused mean - prediction
+        mean = predicted + shift
+        draw = np.einsum("nij,nj->ni", np.linalg.cholesky(cov_f), self.rng.standard_normal((n, 3)))
+        import os
+        if os.environ.get("DBG_SPREAD"):
+            draw *= float(os.environ["DBG_SPREAD"])
+        if os.environ.get("DBG_PRINT") and self.rng.random() < 0.05:
+            print("sd_f", np.round(np.sqrt(np.median(np.diagonal(cov_f, axis1=1, axis2=2), axis=0)), 4),
+                  "sd_o", np.round(np.sqrt(np.median(np.diagonal(cov_o, axis1=1, axis2=2), axis=0)), 4),
+                  "acc", fit.accepted.mean(), "win", round(window_xy, 2), round(window_theta, 2))
+        from_mean = mean - fit.poses
+        from_mean[:, 2] = wrap_angle(from_mean[:, 2])
+        log_eta = (-gain * fit.sq_residual - 0.5 * np.einsum("ni,nij,nj->n", from_mean, info_m, from_mean)
+                   - 0.5 * np.einsum("ni,nij,nj->n", shift, info_o, shift)
+                   + 0.5 * (np.linalg.slogdet(cov_f)[1] - np.linalg.slogdet(cov_o)[1]))
+        poses = mean + draw
+        poses[:, 2] = wrap_angle(poses[:, 2])
+        rejected = ~fit.accepted
+        log_lik = np.where(fit.accepted, log_eta, 0.0)
+        score = fit.mean_score.copy()
+        if rejected.any():
+            e, score[rejected] = self.matcher.score(self.grids, np.flatnonzero(rejected), sampled[rejected], hits)
+            poses[rejected] = sampled[rejected]
+            log_lik[rejected] = -gain * e
+        return poses, log_lik, score, fit.accepted
 
     def _insert(self, projected, clones_of: np.ndarray | None) -> None:
         """Insert the scan into every particle's map. Particles with the same ``clones_of`` entry
@@ -268,8 +339,8 @@ class SlamFilter:
         candidates = np.flatnonzero(self.log_weights >= top - 1e-9)
         return int(candidates[np.argmax(self.path_log_likelihood[candidates])])
 
-    def _best_path(self) -> np.ndarray:
-        """(steps, 3) poses of the best particle's ancestry at every processed scan."""
+    def key_frame_path(self) -> np.ndarray:
+        """(steps, 3) poses of the best particle's ancestry at every processed scan (key frame)."""
         k_total = len(self._history)
         path = np.empty((k_total, 3))
         idx = self._parent_of_current(self.best_particle())
@@ -278,11 +349,12 @@ class SlamFilter:
             idx = int(self._parents[k][idx])
         return path
 
-    def trajectory(self) -> Trajectory:
-        """Best particle's trajectory, one pose per scan handled so far."""
+    def trajectory(self, key_frame_poses: np.ndarray | None = None) -> Trajectory:
+        """Best particle's trajectory, one pose per scan handled so far; with ``key_frame_poses``
+        (steps, 3), e.g. the back end's optimised key frames, the scans between them follow those."""
         if not self._records:
             return Trajectory(t_s=np.zeros(0), poses=np.zeros((0, 3)))
-        path = self._best_path()
+        path = self.key_frame_path() if key_frame_poses is None else key_frame_poses
         steps = np.array([r.step for r in self._records])
         offsets = np.array([r.offset for r in self._records])
         return Trajectory(t_s=np.array([r.t_s for r in self._records]), poses=compose(path[steps], offsets))

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slam_engine.backend.loop_closer import close_loops
+from slam_engine.backend.map_builder import render_occupancy
 from slam_engine.config import SlamConfig
 from slam_engine.drive_log import DriveLog
 from slam_engine.errors import ConfigError
@@ -96,12 +98,17 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     filter itself, message by message as they arrived. ``started_s`` is the run's
     ``time.perf_counter()`` at its start (for the wall time)."""
     warnings = list(log.warnings)
-    trajectory = slam.trajectory()
+    backend = close_loops(slam.key_frame_path(), [scan.hits_v for scan in slam.key_frame_scans], config.loop_closing,
+                          config.grid.resolution_m)
+    trajectory = slam.trajectory(backend.poses)
     resampled = slam.scan_stats().resampled
     if len(resampled) > 1 and resampled.mean() > 0.9:
         warnings.append("the particle set was resampled after almost every scan: the map may be unreliable "
                         "(odometry much worse than the motion noise assumes?)")
-    grid = slam.best_grid()
+    if any(c.accepted for c in backend.closures):
+        grid = render_occupancy(slam.key_frame_scans, backend.poses, slam.projector.origin_v, config.grid)
+    else:  # the poses are the best particle's: its own map is the same grid
+        grid = slam.best_grid()
     texture, texture_status = _ground_texture(log, trajectory, grid, config, warnings)
     return SlamResult(
         trajectory=trajectory,
@@ -116,7 +123,8 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
         warnings=warnings,
         input_summary={**log.summary(), "grid_memory_bytes": slam.grids.memory_bytes(),
                        "scans_processed": slam.steps_processed, "texture": texture_status,
-                       "odometry_calibration": slam.heading_calibration.summary()},
+                       "odometry_calibration": slam.heading_calibration.summary(),
+                       "loop_closing": backend.summary()},
     )
 
 

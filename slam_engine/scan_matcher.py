@@ -15,6 +15,7 @@ below a threshold or when it left the search window.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
@@ -30,6 +31,7 @@ def _squash_table() -> np.ndarray:
 
 
 SQUASH = _squash_table()
+PRESEARCH_STEP_RAD = 0.03  # heading step of the coarse correlative search [rad] (~1.7 deg)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -167,25 +169,86 @@ def _fit_level(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def match_particles(squash, levels0, levels1, levels2, levels3, tables, tile_x0, tile_y0, particles, init_poses,
-                    points_v, resolution_m, coarsest_level, iterations, strides, prior_w, out_poses, out_e, out_mean):
+                    points_v, resolution_m, coarsest_level, iterations, strides, prior_w, presearch, out_poses, out_e,
+                    out_mean, out_H):
     """Fit the scan ``points_v`` (B, 2, vehicle frame [m]) onto the map of each particle index in
     ``particles`` starting from ``init_poses`` (P, 3). Writes the fitted poses, the level-0
-    sum of squared residuals over all points and the mean map value at the end points.
+    sum of squared residuals over all points, the mean map value at the end points and the
+    Gauss-Newton matrix ``J^T J`` (3, 3) of the residuals at the fitted pose.
+    ``presearch`` = (half width xy [m], half width theta [rad], gain, info_x, info_y, info_theta):
+    with a positive half width, a correlative search on the coarsest level picks the start of the
+    fit first (:func:`_presearch`).
     Particles run in parallel threads (maps are only read; row k of the outputs is written by one
     thread), with the same results as a serial loop."""
     for k in nb.prange(particles.shape[0]):
         _match_one(squash, levels0, levels1, levels2, levels3, tables, tile_x0, tile_y0, particles[k], init_poses[k],
-                   points_v, resolution_m, coarsest_level, iterations, strides, prior_w, out_poses, out_e, out_mean, k)
+                   points_v, resolution_m, coarsest_level, iterations, strides, prior_w, presearch, out_poses, out_e,
+                   out_mean, out_H, k)
+
+
+@nb.njit(cache=True, nogil=True)
+def _presearch(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride, init_pose, presearch,
+               step_xy, step_theta, start):
+    """Correlative search around ``init_pose`` on one (coarse) level: every heading step_theta apart
+    and every translation step_xy apart within the half widths, scored by the log-likelihood
+    ``-gain * mean (1 - M)^2`` plus the motion prior ``-0.5 d^T diag(info) d``; writes the best into
+    ``start``."""
+    win_xy, win_th, gain = presearch[0], presearch[1], presearch[2]
+    nx = int(win_xy / step_xy)
+    na = int(win_th / step_theta)
+    n_pts = (points_v.shape[0] + stride - 1) // stride
+    rx = np.empty(n_pts)
+    ry = np.empty(n_pts)
+    best = -1e300
+    start[0] = init_pose[0]
+    start[1] = init_pose[1]
+    start[2] = init_pose[2]
+    for a in range(-na, na + 1):
+        dth = a * step_theta
+        th = init_pose[2] + dth
+        c = math.cos(th)
+        s = math.sin(th)
+        for i in range(n_pts):
+            px = points_v[i * stride, 0]
+            py = points_v[i * stride, 1]
+            rx[i] = c * px - s * py
+            ry[i] = s * px + c * py
+        for ix in range(-nx, nx + 1):
+            dx = ix * step_xy
+            for iy in range(-nx, nx + 1):
+                dy = iy * step_xy
+                x = init_pose[0] + dx
+                y = init_pose[1] + dy
+                e = 0.0
+                for i in range(n_pts):
+                    m, _, _ = _sample(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, x + rx[i], y + ry[i])
+                    e += (1.0 - m) * (1.0 - m)
+                value = -gain * e / n_pts - 0.5 * (presearch[3] * dx * dx + presearch[4] * dy * dy
+                                                   + presearch[5] * dth * dth)
+                if value > best:
+                    best = value
+                    start[0] = x
+                    start[1] = y
+                    start[2] = th
 
 
 @nb.njit(cache=True, nogil=True)
 def _match_one(squash, levels0, levels1, levels2, levels3, tables, tile_x0, tile_y0, p, init_pose, points_v,
-               resolution_m, coarsest_level, iterations, strides, prior_w, out_poses, out_e, out_mean, k):
+               resolution_m, coarsest_level, iterations, strides, prior_w, presearch, out_poses, out_e, out_mean,
+               out_H, k):
     """:func:`match_particles` for particle p from ``init_pose``; writes row k of the outputs."""
     H = np.zeros((3, 3))
     g = np.zeros(3)
     pose = init_pose.copy()
     prior = init_pose.copy()
+    if presearch[0] > 0.0 or presearch[1] > 0.0:
+        shift = TILE_SHIFT - coarsest_level
+        cell = resolution_m * (1 << coarsest_level)
+        pool = levels3 if coarsest_level == 3 else (levels2 if coarsest_level == 2 else
+                                                    (levels1 if coarsest_level == 1 else levels0))
+        stride = max(strides[coarsest_level], points_v.shape[0] // 60)
+        _presearch(squash, pool, tables, p, tile_x0, tile_y0, shift, 1.0 / cell, points_v, stride, init_pose,
+                   presearch, 0.5 * cell, PRESEARCH_STEP_RAD, pose)
     for level in range(coarsest_level, -1, -1):
         shift = TILE_SHIFT - level
         inv_res = 1.0 / (resolution_m * (1 << level))
@@ -206,6 +269,9 @@ def _match_one(squash, levels0, levels1, levels2, levels3, tables, tile_x0, tile
     out_poses[k, 2] = pose[2]
     out_e[k] = e
     out_mean[k] = m_sum / max(n, 1)
+    for a in range(3):
+        for b in range(3):
+            out_H[k, a, b] = H[a, b]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -219,6 +285,19 @@ def score_particles(squash, levels0, tables, tile_x0, tile_y0, particles, poses,
                                 points_v, 1, poses[k, 0], poses[k, 1], poses[k, 2], H, g)
         out_e[k] = e
         out_mean[k] = m_sum / max(n, 1)
+
+
+@dataclass
+class ParticleMatches:
+    """Scan matches of P particles: ``poses`` (P, 3), level-0 ``sq_residual`` (P,) = sum (1 - M)^2,
+    ``mean_score`` (P,) mean M, ``accepted`` (P,), ``jtj`` (P, 3, 3) Gauss-Newton matrix of the
+    residuals at the fitted pose (the information of the match up to the likelihood's gain)."""
+
+    poses: np.ndarray
+    sq_residual: np.ndarray
+    mean_score: np.ndarray
+    accepted: np.ndarray
+    jtj: np.ndarray
 
 
 class ScanMatcher:
@@ -239,16 +318,30 @@ class ScanMatcher:
         self.iterations = np.asarray(iterations, np.int64)
         # coarse levels only need every other point: their cells are large
         self.strides = np.array([beam_skip * (2 if k >= 2 else 1) for k in range(N_LEVELS)], np.int64)
-        sxy = max(self.search_xy_m, 1e-3)
-        sth = max(self.search_theta_rad, 1e-3)
-        self.prior_w = np.array([prior_weight / sxy**2, prior_weight / sxy**2, prior_weight / sth**2])
+        self.prior_weight = float(prior_weight)
+        self.prior_w = self._prior_weights(self.search_xy_m, self.search_theta_rad)
 
-    def match(self, grids: ParticleGrids, particles: np.ndarray, predicted: np.ndarray,
-              points_v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Fit ``points_v`` (B, 2) for each particle index in ``particles`` from ``predicted`` (P, 3).
+    def _prior_weights(self, window_xy_m: float, window_theta_rad: float) -> np.ndarray:
+        """Weights of the weak prior that holds the fit near its start where the scan leaves a
+        direction unconstrained: one window width costs ``prior_weight``."""
+        sxy = max(window_xy_m, 1e-3)
+        sth = max(window_theta_rad, 1e-3)
+        return np.array([self.prior_weight / sxy**2, self.prior_weight / sxy**2, self.prior_weight / sth**2])
 
-        Returns ``(poses, sum_sq_residual, mean_score, accepted)``; where a match is not accepted the
-        pose is the prediction and the residual and score are those of the prediction."""
+    def fit(self, grids: ParticleGrids, particles: np.ndarray, predicted: np.ndarray, points_v: np.ndarray,
+            window_xy_m: float | None = None, window_theta_rad: float | None = None,
+            presearch: np.ndarray | None = None) -> ParticleMatches:
+        """Fit ``points_v`` (B, 2) for each particle index in ``particles`` from ``predicted`` (P, 3),
+        accepting moves up to ``window_xy_m`` / ``window_theta_rad`` (default: the matcher's own).
+        ``presearch`` = (half width xy [m], half width theta [rad], gain, info_x, info_y, info_theta)
+        turns on a coarse correlative search over that window before the fit (None: off).
+
+        Where a match is not accepted the pose is the prediction and the residual and score are
+        those of the prediction."""
+        win_xy = self.search_xy_m if window_xy_m is None else float(window_xy_m)
+        win_th = self.search_theta_rad if window_theta_rad is None else float(window_theta_rad)
+        prior_w = self.prior_w if window_xy_m is None else self._prior_weights(win_xy, win_th)
+        pre = np.zeros(6) if presearch is None else np.ascontiguousarray(presearch, np.float64)
         particles = np.ascontiguousarray(particles, np.int64)
         predicted = np.ascontiguousarray(predicted, np.float64)
         points_v = np.ascontiguousarray(points_v, np.float64)
@@ -256,22 +349,36 @@ class ScanMatcher:
         poses = np.empty((n, 3))
         e = np.empty(n)
         mean = np.empty(n)
+        jtj = np.empty((n, 3, 3))
         lv = grids.levels
         match_particles(SQUASH, lv[0], lv[1], lv[2], lv[3], grids.tables, grids.tile_x0, grids.tile_y0, particles,
                         predicted, points_v, grids.resolution_m, self.coarsest_level, self.iterations, self.strides,
-                        self.prior_w, poses, e, mean)
+                        prior_w, pre, poses, e, mean, jtj)
         moved = poses - predicted
         moved[:, 2] = (moved[:, 2] + np.pi) % (2 * np.pi) - np.pi
-        accepted = ((mean >= self.min_score) & (np.hypot(moved[:, 0], moved[:, 1]) <= self.search_xy_m)
-                    & (np.abs(moved[:, 2]) <= self.search_theta_rad))
+        accepted = ((mean >= self.min_score) & (np.hypot(moved[:, 0], moved[:, 1]) <= win_xy)
+                    & (np.abs(moved[:, 2]) <= win_th))
         if not accepted.all():
             rejected = ~accepted
-            e_pred = np.empty(int(rejected.sum()))
-            mean_pred = np.empty_like(e_pred)
-            score_particles(SQUASH, lv[0], grids.tables, grids.tile_x0, grids.tile_y0, particles[rejected],
-                            predicted[rejected], points_v, grids.resolution_m, e_pred, mean_pred)
+            e[rejected], mean[rejected] = self.score(grids, particles[rejected], predicted[rejected], points_v)
             poses[rejected] = predicted[rejected]
-            e[rejected] = e_pred
-            mean[rejected] = mean_pred
         poses[:, 2] = (poses[:, 2] + np.pi) % (2 * np.pi) - np.pi
-        return poses, e, mean, accepted
+        return ParticleMatches(poses, e, mean, accepted, jtj)
+
+    def score(self, grids: ParticleGrids, particles: np.ndarray, poses: np.ndarray, points_v: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Level-0 sum of squared residuals and mean map value of ``points_v`` at ``poses`` (no fit)."""
+        particles = np.ascontiguousarray(particles, np.int64)
+        e = np.empty(len(particles))
+        mean = np.empty(len(particles))
+        score_particles(SQUASH, grids.levels[0], grids.tables, grids.tile_x0, grids.tile_y0, particles,
+                        np.ascontiguousarray(poses, np.float64), np.ascontiguousarray(points_v, np.float64),
+                        grids.resolution_m, e, mean)
+        return e, mean
+
+    def match(self, grids: ParticleGrids, particles: np.ndarray, predicted: np.ndarray,
+              points_v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`fit` within the matcher's own window, as ``(poses, sum_sq_residual, mean_score,
+        accepted)``."""
+        m = self.fit(grids, particles, predicted, points_v)
+        return m.poses, m.sq_residual, m.mean_score, m.accepted

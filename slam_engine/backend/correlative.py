@@ -1,0 +1,336 @@
+"""Exhaustive correlative scan matching over a wide window (Olson 2009), made fast by
+branch and bound over a precomputed max pyramid (Hess et al. 2016, Cartographer).
+
+A :class:`MatchGrid` holds a map as uint8 values in [0, 255] (255 = surely occupied, 0 = free or
+unknown) and its pyramid: ``levels[h][y, x]`` is the largest value in the ``2**h`` x ``2**h`` cells
+whose lowest corner is ``(x, y)``. The score of a pose is the mean value under the scan's end points;
+a node of the search tree at level ``h`` stands for ``2**h x 2**h`` translations at one heading, and its
+score on ``levels[h]`` bounds the score of every translation below it, so whole blocks of the window are
+discarded once a better leaf is known. The result is the best pose on the grid's lattice (cell size,
+angular step from the scan's reach); :func:`refine_pose` then fits it continuously (sub-cell).
+
+Frames: the grid lives in its own frame ("submap frame"); poses are ``[x_m, y_m, theta_rad]`` of the
+scan's vehicle frame in that frame; points are (B, 2) [m] in the vehicle frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+MAX_VALUE = 255
+
+
+def max_pyramid(values: np.ndarray, n_levels: int) -> np.ndarray:
+    """(n_levels, H, W) uint8: level h holds the maximum of ``values`` over the ``2**h`` square block
+    starting at each cell (cells beyond the edge count as 0)."""
+    h, w = values.shape
+    out = np.zeros((n_levels, h, w), np.uint8)
+    out[0] = values
+    for level in range(1, n_levels):
+        half = 1 << (level - 1)
+        prev = out[level - 1]
+        cur = prev.copy()
+        cur[:, : w - half] = np.maximum(cur[:, : w - half], prev[:, half:])
+        shifted = cur.copy()
+        shifted[: h - half, :] = np.maximum(shifted[: h - half, :], cur[half:, :])
+        out[level] = shifted
+    return out
+
+
+@dataclass
+class MatchGrid:
+    """A map to match against: ``values`` (H, W) uint8 (row = y), cell (0, 0)'s lower corner at
+    ``origin_m`` in the grid's frame, cells of ``resolution_m``; ``pyramid`` from :func:`max_pyramid`."""
+
+    values: np.ndarray
+    origin_m: np.ndarray
+    resolution_m: float
+    pyramid: np.ndarray
+
+    @classmethod
+    def from_values(cls, values: np.ndarray, origin_m: np.ndarray, resolution_m: float, n_levels: int = 7
+                    ) -> MatchGrid:
+        values = np.ascontiguousarray(values, np.uint8)
+        return cls(values, np.asarray(origin_m, np.float64), float(resolution_m), max_pyramid(values, n_levels))
+
+    @property
+    def n_levels(self) -> int:
+        return int(self.pyramid.shape[0])
+
+
+@dataclass(frozen=True)
+class CorrelativeMatch:
+    """Best pose found (submap frame), its score (mean value in [0, 1]) and the best score found
+    farther than the ambiguity distance from it (0 when none came close: a unique match)."""
+
+    pose: np.ndarray
+    score: float
+    runner_up_score: float
+
+
+@nb.njit(cache=True, nogil=True)
+def _rotated_cells(points_v, x0, y0, theta0, angle_step, n_angles_half, origin_x, origin_y, inv_res):
+    """(A, B, 2) int32 cells of the points rotated by theta0 + a * step and placed at (x0, y0)."""
+    n_angles = 2 * n_angles_half + 1
+    n = points_v.shape[0]
+    out = np.empty((n_angles, n, 2), np.int32)
+    for a in range(n_angles):
+        th = theta0 + (a - n_angles_half) * angle_step
+        c = math.cos(th)
+        s = math.sin(th)
+        for i in range(n):
+            px = points_v[i, 0]
+            py = points_v[i, 1]
+            out[a, i, 0] = int(math.floor((x0 + c * px - s * py - origin_x) * inv_res))
+            out[a, i, 1] = int(math.floor((y0 + s * px + c * py - origin_y) * inv_res))
+    return out
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _score(pyramid, level, cells, a, dx, dy):
+    h = pyramid.shape[1]
+    w = pyramid.shape[2]
+    total = 0
+    for i in range(cells.shape[1]):
+        x = cells[a, i, 0] + dx
+        y = cells[a, i, 1] + dy
+        if 0 <= x < w and 0 <= y < h:
+            total += pyramid[level, y, x]
+    return total
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _inside_exclusion(a, dx, dy, size, ex_a, ex_x, ex_y, ex_angles, ex_cells):
+    """Whether every translation of the node (a, [dx, dx+size) x [dy, dy+size)) lies within the
+    exclusion box around (ex_a, ex_x, ex_y)."""
+    if ex_angles < 0:
+        return False
+    return (abs(a - ex_a) <= ex_angles and dx >= ex_x - ex_cells and dx + size - 1 <= ex_x + ex_cells
+            and dy >= ex_y - ex_cells and dy + size - 1 <= ex_y + ex_cells)
+
+
+@nb.njit(cache=True, nogil=True)
+def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angles, ex_cells):
+    """Best (a, dx, dy, total) over headings a and integer translations |dx|, |dy| <= window_cells,
+    whose total exceeds ``min_total``; (-1, 0, 0, min_total) when none does. Nodes entirely inside the
+    exclusion box (``ex_angles`` >= 0) are skipped: a second search with it finds the best match
+    that is *not* the first one."""
+    top = pyramid.shape[0] - 1
+    while top > 0 and (1 << top) > 2 * window_cells + 1:
+        top -= 1
+    size_top = 1 << top
+    n_angles = cells.shape[0]
+    per_axis = (2 * window_cells) // size_top + 1
+    cap = n_angles * per_axis * per_axis + 4 * (top + 2)
+    st_a = np.empty(cap, np.int64)
+    st_x = np.empty(cap, np.int64)
+    st_y = np.empty(cap, np.int64)
+    st_h = np.empty(cap, np.int64)
+    st_s = np.empty(cap, np.int64)
+    # initial candidates: every heading, the window tiled by top-level blocks; pushed worst first
+    m = 0
+    for a in range(n_angles):
+        for ix in range(per_axis):
+            for iy in range(per_axis):
+                dx = -window_cells + ix * size_top
+                dy = -window_cells + iy * size_top
+                if _inside_exclusion(a, dx, dy, size_top, ex_a, ex_x, ex_y, ex_angles, ex_cells):
+                    continue
+                st_a[m] = a
+                st_x[m] = dx
+                st_y[m] = dy
+                st_h[m] = top
+                st_s[m] = _score(pyramid, top, cells, a, dx, dy)
+                m += 1
+    order = np.argsort(st_s[:m])
+    st_a[:m] = st_a[:m][order]
+    st_x[:m] = st_x[:m][order]
+    st_y[:m] = st_y[:m][order]
+    st_h[:m] = st_h[:m][order]
+    st_s[:m] = st_s[:m][order]
+    best_total = min_total
+    best_a, best_x, best_y = -1, 0, 0
+    ca = np.empty(4, np.int64)
+    cx = np.empty(4, np.int64)
+    cy = np.empty(4, np.int64)
+    cs = np.empty(4, np.int64)
+    while m > 0:
+        m -= 1
+        s = st_s[m]
+        if s <= best_total:
+            continue
+        h = st_h[m]
+        a, dx, dy = st_a[m], st_x[m], st_y[m]
+        if h == 0:
+            best_total, best_a, best_x, best_y = s, a, dx, dy
+            continue
+        half = 1 << (h - 1)
+        k = 0
+        for i in range(2):
+            for j in range(2):
+                x = dx + i * half
+                y = dy + j * half
+                if x > window_cells or y > window_cells:
+                    continue
+                if _inside_exclusion(a, x, y, half, ex_a, ex_x, ex_y, ex_angles, ex_cells):
+                    continue
+                sc = _score(pyramid, h - 1, cells, a, x, y)
+                if sc <= best_total:
+                    continue
+                ca[k], cx[k], cy[k], cs[k] = a, x, y, sc
+                k += 1
+        # push the k children worst first, so that the best is expanded next
+        for _ in range(k):
+            lo = 0
+            for q in range(1, k):
+                if cs[q] < cs[lo]:
+                    lo = q
+            st_a[m], st_x[m], st_y[m], st_h[m], st_s[m] = ca[lo], cx[lo], cy[lo], h - 1, cs[lo]
+            m += 1
+            cs[lo] = np.iinfo(np.int64).max
+    return best_a, best_x, best_y, best_total
+
+
+def angular_step_rad(points_v: np.ndarray, resolution_m: float, reach_cap_m: float = 15.0) -> float:
+    """Heading step that moves the farthest point (capped at ``reach_cap_m``) by about one cell."""
+    reach = float(np.max(np.hypot(points_v[:, 0], points_v[:, 1]))) if len(points_v) else 1.0
+    reach = min(max(reach, 3.0 * resolution_m), reach_cap_m)
+    return float(math.acos(max(-1.0, 1.0 - resolution_m**2 / (2.0 * reach**2))))
+
+
+def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, window_m: float, window_rad: float,
+           min_score: float, ambiguity_m: float = 0.0, ambiguity_rad: float = 0.0,
+           runner_up_share: float = 0.0) -> CorrelativeMatch | None:
+    """Best pose of ``points_v`` within ``window_m`` / ``window_rad`` of ``initial_pose`` scoring
+    above ``min_score``, or None. With ``ambiguity_m`` > 0 a second search reports the best score
+    of a pose more than ``ambiguity_m`` / ``ambiguity_rad`` from the best one (at least
+    ``runner_up_share`` of the best score to count; else 0)."""
+    points_v = np.ascontiguousarray(points_v, np.float64)
+    n = len(points_v)
+    if n == 0:
+        return None
+    res = grid.resolution_m
+    step = angular_step_rad(points_v, res)
+    n_half = max(0, int(math.ceil(window_rad / step)))
+    window_cells = max(0, int(math.ceil(window_m / res)))
+    x0, y0, th0 = (float(v) for v in initial_pose)
+    cells = _rotated_cells(points_v, x0, y0, th0, step, n_half, float(grid.origin_m[0]), float(grid.origin_m[1]),
+                           1.0 / res)
+    min_total = int(min_score * MAX_VALUE * n)
+    a, dx, dy, total = branch_and_bound(grid.pyramid, cells, window_cells, min_total, 0, 0, 0, -1, 0)
+    if a < 0:
+        return None
+    pose = np.array([x0 + dx * res, y0 + dy * res, th0 + (a - n_half) * step])
+    score = total / (MAX_VALUE * n)
+    runner_up = 0.0
+    if ambiguity_m > 0:
+        floor = int(max(min_total, runner_up_share * total))
+        ex_cells = int(math.ceil(ambiguity_m / res))
+        ex_angles = int(math.ceil(ambiguity_rad / step))
+        a2, _, _, total2 = branch_and_bound(grid.pyramid, cells, window_cells, floor, a, dx, dy, ex_angles, ex_cells)
+        if a2 >= 0:
+            runner_up = total2 / (MAX_VALUE * n)
+    return CorrelativeMatch(pose=pose, score=float(score), runner_up_score=float(runner_up))
+
+
+@nb.njit(cache=True, nogil=True)
+def _dense_residuals(values, origin_x, origin_y, inv_res, points_v, x, y, theta, H, g):
+    """Sum of (1 - v)^2 at the points (v bilinear in [0, 1]) and the Gauss-Newton system."""
+    c = math.cos(theta)
+    s = math.sin(theta)
+    for a in range(3):
+        g[a] = 0.0
+        for b in range(3):
+            H[a, b] = 0.0
+    rows = values.shape[0]
+    cols = values.shape[1]
+    e = 0.0
+    for i in range(points_v.shape[0]):
+        px = points_v[i, 0]
+        py = points_v[i, 1]
+        wx = x + c * px - s * py
+        wy = y + s * px + c * py
+        u = (wx - origin_x) * inv_res - 0.5
+        v = (wy - origin_y) * inv_res - 0.5
+        i0 = int(math.floor(u))
+        j0 = int(math.floor(v))
+        fu = u - i0
+        fv = v - j0
+        if i0 < 0 or j0 < 0 or i0 + 1 >= cols or j0 + 1 >= rows:
+            e += 1.0
+            continue
+        v00 = values[j0, i0] / 255.0
+        v10 = values[j0, i0 + 1] / 255.0
+        v01 = values[j0 + 1, i0] / 255.0
+        v11 = values[j0 + 1, i0 + 1] / 255.0
+        m = (1.0 - fv) * ((1.0 - fu) * v00 + fu * v10) + fv * ((1.0 - fu) * v01 + fu * v11)
+        mx = ((1.0 - fv) * (v10 - v00) + fv * (v11 - v01)) * inv_res
+        my = ((1.0 - fu) * (v01 - v00) + fu * (v11 - v10)) * inv_res
+        r = 1.0 - m
+        jt = mx * (-s * px - c * py) + my * (c * px - s * py)
+        H[0, 0] += mx * mx
+        H[0, 1] += mx * my
+        H[0, 2] += mx * jt
+        H[1, 1] += my * my
+        H[1, 2] += my * jt
+        H[2, 2] += jt * jt
+        g[0] += mx * r
+        g[1] += my * r
+        g[2] += jt * r
+        e += r * r
+    H[1, 0] = H[0, 1]
+    H[2, 0] = H[0, 2]
+    H[2, 1] = H[1, 2]
+    return e
+
+
+@nb.njit(cache=True, nogil=True)
+def _refine(values, origin_x, origin_y, inv_res, points_v, pose, iterations):
+    H = np.zeros((3, 3))
+    g = np.zeros(3)
+    H2 = np.zeros((3, 3))
+    g2 = np.zeros(3)
+    e = _dense_residuals(values, origin_x, origin_y, inv_res, points_v, pose[0], pose[1], pose[2], H, g)
+    lam = 1e-3
+    A = np.zeros((3, 3))
+    cand = np.zeros(3)
+    for _ in range(iterations):
+        for a in range(3):
+            for b in range(3):
+                A[a, b] = H[a, b]
+            A[a, a] += lam * (H[a, a] + 1e-9) + 1e-9
+        step = np.linalg.solve(A, g)
+        for a in range(3):
+            cand[a] = pose[a] + step[a]
+        e2 = _dense_residuals(values, origin_x, origin_y, inv_res, points_v, cand[0], cand[1], cand[2], H2, g2)
+        if e2 < e:
+            for a in range(3):
+                pose[a] = cand[a]
+                g[a] = g2[a]
+                for b in range(3):
+                    H[a, b] = H2[a, b]
+            e = e2
+            lam *= 0.3
+            if abs(step[0]) + abs(step[1]) < 1e-4 and abs(step[2]) < 1e-5:
+                break
+        else:
+            lam *= 8.0
+            if lam > 1e4:
+                break
+    return e
+
+
+def refine_pose(grid: MatchGrid, points_v: np.ndarray, pose: np.ndarray, iterations: int = 20) -> np.ndarray:
+    """Sub-cell fit of ``pose`` (Levenberg-Marquardt on the bilinear grid values), kept within one
+    cell and one angular step of the start (a lattice match is already that close)."""
+    start = np.asarray(pose, np.float64)
+    fitted = start.copy()
+    _refine(grid.values, float(grid.origin_m[0]), float(grid.origin_m[1]), 1.0 / grid.resolution_m,
+            np.ascontiguousarray(points_v, np.float64), fitted, iterations)
+    if np.hypot(*(fitted[:2] - start[:2])) > 1.5 * grid.resolution_m or abs(fitted[2] - start[2]) > 0.02:
+        return start
+    return fitted

@@ -1,0 +1,233 @@
+"""Loop closing over the front end's key frames: the back end of the SLAM pipeline.
+
+Walks the key frames in time order, as a live system would. Each key frame's pose is predicted
+from the last optimised one by the front end's relative motion. Every ``search_every_m`` of travel
+the key frame looks for loops: submaps finished at least ``min_loop_travel_m`` of travel ago whose
+key frames come within reach of its predicted pose. The reach, in metres and radians, grows with
+the travel since the last accepted closure (drift accumulates; a closure resets it) and is bounded.
+Each candidate is verified by a global correlative match of the scan against the submap over that
+window (:mod:`slam_engine.backend.correlative`); it is accepted only when
+
+- its score (mean blurred hit value under the scan's end points) reaches ``min_score``,
+- it is unique: no other pose farther than ``ambiguity_m`` / ``ambiguity_rad`` scores within
+  ``runner_up_ratio`` of it (symmetric corridors, repeated rooms), and
+- when the window was wider than ``confirm_window_m``, the next searching key frame finds a closure
+  that implies the same correction (one lucky match never bends the map).
+
+An accepted closure becomes a robust (Cauchy) edge from the submap's anchor to the key frame in the
+pose graph (:mod:`slam_engine.backend.pose_graph`), which is optimised when the correction is
+noticeable, and once more at the end.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from slam_engine.backend.correlative import refine_pose, search
+from slam_engine.backend.pose_graph import PoseGraph
+from slam_engine.backend.submaps import SubmapGrids, split_into_submaps
+from slam_engine.config import LoopClosingConfig
+from slam_engine.poses import compose, relative, wrap_angle
+
+
+@dataclass(frozen=True)
+class Closure:
+    """One loop candidate that was matched: key frame ``node`` against ``submap`` (anchor key frame
+    ``anchor``), its score and runner-up score, the search window [m, rad], whether it was accepted
+    (and why not), and the correction it implied for the key frame's predicted pose [m, rad]."""
+
+    node: int
+    submap: int
+    anchor: int
+    score: float
+    runner_up_score: float
+    window_m: float
+    window_rad: float
+    accepted: bool
+    reason: str
+    correction_m: float
+    correction_rad: float
+
+    def as_dict(self) -> dict:
+        return {"node": self.node, "submap": self.submap, "anchor": self.anchor, "score": round(self.score, 4),
+                "runner_up_score": round(self.runner_up_score, 4), "window_m": round(self.window_m, 3),
+                "window_rad": round(self.window_rad, 4), "accepted": self.accepted, "reason": self.reason,
+                "correction_m": round(self.correction_m, 4), "correction_rad": round(self.correction_rad, 5)}
+
+
+@dataclass
+class LoopClosingResult:
+    """Optimised key-frame poses (K, 3) and every closure tried."""
+
+    poses: np.ndarray
+    closures: list[Closure] = field(default_factory=list)
+    optimizations: int = 0
+    submaps: int = 0
+
+    def summary(self) -> dict:
+        accepted = [c for c in self.closures if c.accepted]
+        reasons: dict[str, int] = {}
+        for c in self.closures:
+            if not c.accepted:
+                reasons[c.reason] = reasons.get(c.reason, 0) + 1
+        return {"submaps": self.submaps, "candidates_matched": len(self.closures),
+                "closures_accepted": len(accepted), "closures_rejected": reasons,
+                "optimizations": self.optimizations,
+                "largest_correction_m": round(max((c.correction_m for c in accepted), default=0.0), 4),
+                "closures": [c.as_dict() for c in self.closures if c.accepted or c.reason != "no match"]}
+
+
+def _thin(points: np.ndarray, budget: int) -> np.ndarray:
+    if len(points) > budget:
+        return points[:: int(math.ceil(len(points) / budget))]
+    return points
+
+
+class LoopCloser:
+    """Loop closing over key frames with poses ``path`` (K, 3, world frame, from the front end)
+    and end points ``points_v`` (K lists of (B, 2) [m], vehicle frame)."""
+
+    def __init__(self, path: np.ndarray, points_v: list[np.ndarray], config: LoopClosingConfig, resolution_m: float):
+        self.config = config
+        self.path = np.asarray(path, np.float64)
+        c = config
+        in_reach = [p[np.hypot(p[:, 0], p[:, 1]) <= c.match_range_m] for p in points_v]
+        self.points_v = [_thin(p, c.max_points) for p in in_reach]
+        step = np.hypot(*np.diff(self.path[:, :2], axis=0).T) if len(self.path) > 1 else np.zeros(0)
+        self.travel_m = np.concatenate([[0.0], np.cumsum(step)])
+        self.submaps = split_into_submaps(self.travel_m, c.submap_length_m, c.submap_max_nodes)
+        self.submap_of = np.empty(len(self.path), np.int64)
+        for s in self.submaps:
+            self.submap_of[s.first: s.last + 1] = s.index
+        self.grids = SubmapGrids(self.submaps, self.path, in_reach, resolution_m, margin_m=1.0)
+        self.graph = PoseGraph(self.path, cauchy_scale=c.cauchy_scale)
+        for k in range(1, len(self.path)):
+            motion = relative(self.path[k - 1], self.path[k])
+            self.graph.add_edge(k - 1, k, motion, self._motion_sigmas(motion))
+
+    def _motion_sigmas(self, motion: np.ndarray) -> np.ndarray:
+        c = self.config
+        d = float(np.hypot(motion[0], motion[1]))
+        sd_xy = c.motion_sd_m + c.motion_sd_per_m * d
+        sd_th = c.motion_sd_rad + c.motion_sd_rad_per_rad * abs(float(motion[2])) + c.motion_sd_rad_per_m * d
+        return np.array([sd_xy, sd_xy, sd_th])
+
+    def run(self) -> LoopClosingResult:
+        c = self.config
+        n = len(self.path)
+        est = self.path.copy()
+        closures: list[Closure] = []
+        optimizations = 0
+        last_search_m = -np.inf
+        last_closure_m = 0.0
+        # (node, anchor, T_anchor_from_node, record index) of a closure awaiting an agreeing second one
+        pending: tuple[int, int, np.ndarray, int] | None = None
+        for k in range(1, n):
+            est[k] = compose(est[k - 1], relative(self.path[k - 1], self.path[k]))
+            if self.travel_m[k] - last_search_m < c.search_every_m or not len(self.points_v[k]):
+                continue
+            last_search_m = self.travel_m[k]
+            drift_travel = self.travel_m[k] - last_closure_m
+            found = self._search_node(k, est, drift_travel, closures)
+            if found is None:
+                continue
+            anchor, T_anchor_from_node, window_m, record = found
+            if window_m > c.confirm_window_m:
+                if pending is None or not self._agrees(pending, (k, anchor, T_anchor_from_node), est):
+                    if pending is not None:
+                        closures[pending[3]] = replace(closures[pending[3]], reason="not confirmed")
+                    pending = (k, anchor, T_anchor_from_node, record)
+                    closures[record] = replace(closures[record], accepted=False, reason="awaiting confirmation")
+                    continue
+                self._add_closure(*pending[:3])
+                closures[pending[3]] = replace(closures[pending[3]], accepted=True, reason="accepted (confirmed)")
+            pending = None
+            self._add_closure(k, anchor, T_anchor_from_node)
+            last_closure_m = self.travel_m[k]
+            target = compose(est[anchor], T_anchor_from_node)
+            if (np.hypot(*(target[:2] - est[k, :2])) > c.reoptimize_m
+                    or abs(wrap_angle(target[2] - est[k, 2])) > c.reoptimize_rad):
+                est[: k + 1] = self.graph.optimize(est, nodes=k + 1)
+                optimizations += 1
+        if any(cl.accepted for cl in closures):
+            est = self.graph.optimize(est)
+            optimizations += 1
+        return LoopClosingResult(poses=est, closures=closures, optimizations=optimizations, submaps=len(self.submaps))
+
+    def _candidates(self, k: int, est: np.ndarray, window_m: float) -> list[int]:
+        """Finished submaps, far enough back along the drive, with a key frame within reach of k."""
+        c = self.config
+        out: list[tuple[float, int]] = []
+        for s in self.submaps:
+            if s.last >= k or self.travel_m[k] - self.travel_m[s.last] < c.min_loop_travel_m:
+                continue
+            nodes = est[s.first: s.last + 1, :2]
+            dist = float(np.min(np.hypot(*(nodes - est[k, :2]).T)))
+            if dist <= window_m + c.overlap_m:
+                out.append((dist, s.index))
+        out.sort()
+        return [index for _, index in out[: c.candidates_per_search]]
+
+    def _search_node(self, k: int, est: np.ndarray, drift_travel_m: float, closures: list[Closure]
+                     ) -> tuple[int, np.ndarray, float, int] | None:
+        """Match key frame k against its candidate submaps; the best verified one, or None."""
+        c = self.config
+        best: tuple[float, int, np.ndarray, float, int] | None = None
+        for s_index in self._candidates(k, est, c.max_window_m):
+            s = self.submaps[s_index]
+            travel = min(drift_travel_m, self.travel_m[k] - self.travel_m[s.last])
+            window_m = min(c.base_window_m + c.window_per_m * travel, c.max_window_m)
+            window_rad = min(c.base_window_rad + c.window_rad_per_m * travel, c.max_window_rad)
+            nodes = est[s.first: s.last + 1, :2]
+            if float(np.min(np.hypot(*(nodes - est[k, :2]).T))) > window_m + c.overlap_m:
+                continue
+            grid = self.grids.grid(s_index)
+            if grid is None:
+                continue
+            initial = relative(est[s.anchor], est[k])
+            match = search(grid, self.points_v[k], initial, window_m, window_rad, c.min_score,
+                           ambiguity_m=c.ambiguity_m, ambiguity_rad=c.ambiguity_rad,
+                           runner_up_share=c.runner_up_ratio)
+            if match is None:
+                continue
+            pose = refine_pose(grid, self.points_v[k], match.pose)
+            delta = relative(initial, pose)
+            unique = match.runner_up_score < c.runner_up_ratio * match.score
+            closures.append(Closure(k, s_index, s.anchor, match.score, match.runner_up_score, window_m, window_rad,
+                                    unique, "accepted" if unique else "ambiguous",
+                                    float(np.hypot(delta[0], delta[1])), float(abs(delta[2]))))
+            if unique and (best is None or match.score > best[0]):
+                best = (match.score, s.anchor, pose, window_m, len(closures) - 1)
+        if best is None:
+            return None
+        return best[1], best[2], best[3], best[4]
+
+    def _agrees(self, first: tuple, second: tuple, est: np.ndarray) -> bool:
+        """Whether two closures ``(node, anchor, T_anchor_from_node, ...)`` imply the same correction:
+        the second key frame's pose from the first closure and the front end's motion agrees with its
+        pose from the second closure (which came within ``confirm_travel_m``)."""
+        c = self.config
+        k1, a1, T1 = first[:3]
+        k2, a2, T2 = second[:3]
+        if self.travel_m[k2] - self.travel_m[k1] > c.confirm_travel_m:
+            return False
+        via_first = compose(compose(est[a1], T1), relative(self.path[k1], self.path[k2]))
+        via_second = compose(est[a2], T2)
+        return bool(np.hypot(*(via_first[:2] - via_second[:2])) <= c.confirm_m
+                    and abs(wrap_angle(via_first[2] - via_second[2])) <= c.confirm_rad)
+
+    def _add_closure(self, node: int, anchor: int, T_anchor_from_node: np.ndarray) -> None:
+        c = self.config
+        self.graph.add_edge(anchor, node, T_anchor_from_node,
+                            np.array([c.closure_sd_m, c.closure_sd_m, c.closure_sd_rad]), robust=True)
+
+
+def close_loops(path: np.ndarray, points_v: list[np.ndarray], config: LoopClosingConfig, resolution_m: float
+                ) -> LoopClosingResult:
+    """Optimised key-frame poses for the front end's ``path`` (K, 3) and key-frame end points."""
+    if not config.enabled or len(path) < 3:
+        return LoopClosingResult(poses=np.asarray(path, np.float64).copy())
+    return LoopCloser(path, points_v, config, resolution_m).run()

@@ -1,0 +1,22 @@
+"""The occupancy grid re-rendered from the key frames' scans at their optimised poses."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slam_engine.config import GridConfig
+from slam_engine.grid import ParticleGrids
+from slam_engine.lidar_points import ProjectedScan
+from slam_engine.raycast import insert_scan
+from slam_engine.result import OccupancyGrid
+
+
+def render_occupancy(scans: list[ProjectedScan], poses: np.ndarray, origin_v: np.ndarray, grid: GridConfig
+                     ) -> OccupancyGrid:
+    """Log-odds grid of every scan in ``scans`` inserted at its vehicle pose ``poses`` (K, 3, world
+    frame); ``origin_v`` (2,) is the LiDAR's position in the vehicle frame [m]."""
+    grids = ParticleGrids(1, grid.resolution_m)
+    for scan, pose in zip(scans, np.asarray(poses, np.float64), strict=True):
+        insert_scan(grids, pose[None, :], origin_v, scan.ends_v, scan.is_hit, grid.log_odds_hit, grid.log_odds_miss,
+                    grid.log_odds_min, grid.log_odds_max, scan.free_from_m)
+    return grids.occupancy_grid(0)

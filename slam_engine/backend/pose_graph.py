@@ -1,0 +1,72 @@
+"""A sparse 2-D pose graph (GTSAM): key-frame poses tied by the front end's relative motions and by
+loop closures, the closures under a robust (Cauchy) loss so that a wrong one cannot drag the map.
+
+Nodes are key-frame poses ``[x_m, y_m, theta_rad]`` in the world frame; an edge ``i -> j`` says
+``T_i_from_j`` (the pose of j in i's frame) with standard deviations ``[sd_x_m, sd_y_m, sd_theta_rad]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from slam_engine.poses import relative
+
+
+@dataclass(frozen=True)
+class Edge:
+    """``T_i_from_j`` measured with standard deviations ``sigmas`` (3,); ``robust``: Cauchy loss."""
+
+    i: int
+    j: int
+    T_i_from_j: np.ndarray
+    sigmas: np.ndarray
+    robust: bool
+
+
+class PoseGraph:
+    """Key frames 0..K-1 with an initial guess; node 0 is held where it is."""
+
+    def __init__(self, initial_poses: np.ndarray, cauchy_scale: float = 1.0):
+        self.initial = np.asarray(initial_poses, np.float64).copy()
+        self.cauchy_scale = float(cauchy_scale)
+        self.edges: list[Edge] = []
+
+    def add_edge(self, i: int, j: int, T_i_from_j: np.ndarray, sigmas: np.ndarray, robust: bool = False) -> None:
+        self.edges.append(Edge(int(i), int(j), np.asarray(T_i_from_j, np.float64), np.asarray(sigmas, np.float64),
+                               bool(robust)))
+
+    def optimize(self, estimate: np.ndarray | None = None, nodes: int | None = None,
+                 max_iterations: int = 100) -> np.ndarray:
+        """Optimised poses of nodes ``0..nodes-1`` (default all; edges reaching beyond are left out),
+        starting from ``estimate`` (default the initial guess)."""
+        start = self.initial if estimate is None else np.asarray(estimate, np.float64)
+        n = len(start) if nodes is None else int(nodes)
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        anchor_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-4, 1e-4, 1e-5]))
+        graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*start[0]), anchor_noise))
+        for k in range(n):
+            values.insert(k, gtsam.Pose2(*start[k]))
+        for e in self.edges:
+            if e.i >= n or e.j >= n:
+                continue
+            noise = gtsam.noiseModel.Diagonal.Sigmas(e.sigmas)
+            if e.robust:
+                noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.cauchy_scale),
+                                                       noise)
+            graph.add(gtsam.BetweenFactorPose2(e.i, e.j, gtsam.Pose2(*e.T_i_from_j), noise))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        out = np.empty((n, 3))
+        for k in range(n):
+            p = result.atPose2(k)
+            out[k] = (p.x(), p.y(), p.theta())
+        return out
+
+    def edge_residual(self, edge: Edge, poses: np.ndarray) -> np.ndarray:
+        """``[dx_m, dy_m, dtheta_rad]`` between the edge's measurement and what ``poses`` say."""
+        return relative(np.asarray(edge.T_i_from_j), relative(poses[edge.i], poses[edge.j]))

@@ -1,0 +1,125 @@
+"""Submaps: short, locally consistent stretches of the drive, matched against as one piece.
+
+A submap is a run of consecutive key frames (processed scans) whose poses relative to its first
+key frame (its *anchor*) come from the front end; those relative poses are trusted, and the pose
+graph moves each submap as a rigid whole through its anchor. For matching, a submap is a grid of
+its scans' end points in the anchor's frame (``T_anchor_from_vehicle`` applied to each key frame's
+points), blurred by about a cell and stored as uint8 with its max pyramid
+(:class:`~slam_engine.backend.correlative.MatchGrid`). Grids are built on demand and a few are kept
+(:class:`SubmapGrids`), so memory does not grow with the drive.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam_engine.backend.correlative import MatchGrid
+from slam_engine.poses import compose, relative
+
+# weights of the blur around each end point's cell, by squared offset in cells (a Gaussian of
+# about 0.8 cells): matches a cell off still score, but less
+_BLUR = {0: 1.0, 1: 0.45, 2: 0.2}
+
+
+@dataclass(frozen=True)
+class Submap:
+    """Key frames ``first``..``last`` (inclusive); ``anchor = first``."""
+
+    index: int
+    first: int
+    last: int
+
+    @property
+    def anchor(self) -> int:
+        return self.first
+
+    def nodes(self) -> range:
+        return range(self.first, self.last + 1)
+
+
+def split_into_submaps(path_length_m: np.ndarray, length_m: float, max_nodes: int) -> list[Submap]:
+    """Consecutive submaps of about ``length_m`` of travel (and at most ``max_nodes`` key frames)
+    over key frames whose cumulative travel is ``path_length_m`` (K,)."""
+    submaps: list[Submap] = []
+    first = 0
+    for k in range(1, len(path_length_m)):
+        if path_length_m[k] - path_length_m[first] >= length_m or k - first + 1 > max_nodes:
+            submaps.append(Submap(len(submaps), first, k - 1))
+            first = k
+    submaps.append(Submap(len(submaps), first, len(path_length_m) - 1))
+    return submaps
+
+
+def submap_points(submap: Submap, poses: np.ndarray, points_v: list[np.ndarray]) -> np.ndarray:
+    """(N, 2) end points of the submap's key frames in its anchor frame [m], placed by ``poses``."""
+    anchor = poses[submap.anchor]
+    parts = []
+    for k in submap.nodes():
+        T = relative(anchor, poses[k])
+        pts = points_v[k]
+        c, s = np.cos(T[2]), np.sin(T[2])
+        parts.append(np.stack([T[0] + c * pts[:, 0] - s * pts[:, 1], T[1] + s * pts[:, 0] + c * pts[:, 1]], axis=1))
+    return np.concatenate(parts) if parts else np.zeros((0, 2))
+
+
+def match_grid_from_points(points_m: np.ndarray, resolution_m: float, margin_m: float, n_levels: int = 7
+                           ) -> MatchGrid:
+    """A blurred hit grid of ``points_m`` (N, 2) [m] with ``margin_m`` of empty border."""
+    lo = points_m.min(axis=0) - margin_m
+    hi = points_m.max(axis=0) + margin_m
+    shape = (int(np.ceil((hi[1] - lo[1]) / resolution_m)) + 1, int(np.ceil((hi[0] - lo[0]) / resolution_m)) + 1)
+    ix = np.floor((points_m[:, 0] - lo[0]) / resolution_m).astype(np.int64)
+    iy = np.floor((points_m[:, 1] - lo[1]) / resolution_m).astype(np.int64)
+    hit = np.zeros(shape, bool)
+    hit[iy, ix] = True
+    values = np.zeros(shape, np.float32)
+    h, w = shape
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            weight = _BLUR.get(dx * dx + dy * dy)
+            if weight is None:
+                continue
+            src = hit[max(0, -dy): h - max(0, dy), max(0, -dx): w - max(0, dx)]
+            dst = values[max(0, dy): h - max(0, -dy), max(0, dx): w - max(0, -dx)]
+            np.maximum(dst, weight * src, out=dst)
+    return MatchGrid.from_values(np.round(values * 255).astype(np.uint8), lo, resolution_m, n_levels)
+
+
+class SubmapGrids:
+    """Match grids of submaps, built when first asked for and kept for the ``keep`` most recently
+    used. ``poses`` are the front end's key-frame poses (only relative poses within a submap matter)."""
+
+    def __init__(self, submaps: list[Submap], poses: np.ndarray, points_v: list[np.ndarray], resolution_m: float,
+                 margin_m: float, keep: int = 8):
+        self.submaps = submaps
+        self.poses = poses
+        self.points_v = points_v
+        self.resolution_m = resolution_m
+        self.margin_m = margin_m
+        self.keep = keep
+        self._cache: OrderedDict[int, MatchGrid | None] = OrderedDict()
+
+    def grid(self, index: int) -> MatchGrid | None:
+        """The submap's match grid (None when it holds no end point)."""
+        if index in self._cache:
+            self._cache.move_to_end(index)
+            return self._cache[index]
+        pts = submap_points(self.submaps[index], self.poses, self.points_v)
+        grid = match_grid_from_points(pts, self.resolution_m, self.margin_m) if len(pts) else None
+        self._cache[index] = grid
+        if len(self._cache) > self.keep:
+            self._cache.popitem(last=False)
+        return grid
+
+
+def node_in_submap_frame(anchor_pose: np.ndarray, node_pose: np.ndarray) -> np.ndarray:
+    """``T_anchor_from_node`` of two world poses."""
+    return relative(anchor_pose, node_pose)
+
+
+def world_from_submap(anchor_pose: np.ndarray, pose_in_submap: np.ndarray) -> np.ndarray:
+    """A pose given in the submap (anchor) frame, in the world frame."""
+    return compose(anchor_pose, pose_in_submap)
