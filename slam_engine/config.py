@@ -73,6 +73,12 @@ class MatcherConfig(_Section):
     max_search_theta_rad: float = Field(0.6, ge=0.0, le=3.0, description="Largest half width of the heading "
                                         "window [rad]. Windows wider than the smallest are searched "
                                         "correlatively on the coarsest map level before the fit.")
+    proposal: Literal["match", "fused"] = Field("match", description="'match': a particle takes its fitted pose; "
+                                                "'fused': the fit combined with the motion sample by their "
+                                                "information (keeps precise odometry where the scan adds little).")
+    proposal_information: float = Field(5.0, gt=0.0, le=1000.0, description="With proposal 'fused': the fit's "
+                                        "information is its Gauss-Newton matrix times the likelihood gain times "
+                                        "this.")
     sigma_m: float = Field(0.05, gt=0.0, le=2.0, description="Std. dev. of the endpoint likelihood [m]; an end "
                            "point's distance to the wall is taken as (1 - M) cells, M = map value in [0, 1].")
     beam_skip: int = Field(1, ge=1, le=50, description="Use every n-th beam for matching.")

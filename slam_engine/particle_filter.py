@@ -206,8 +206,7 @@ class SlamFilter:
         hits = self._match_points(projected)
         if len(hits) >= 3:
             motion_cov = odometry_motion_covariance(self._last_odom, target, self.alphas)
-            predicted = compose(self.particles, relative(self._last_odom, target))
-            poses, log_lik, score, accepted = self._propose(predicted, sampled, motion_cov, hits)
+            poses, log_lik, score, accepted = self._propose(sampled, motion_cov, hits)
             self.heading_calibration.observe(self._last_odom, odom, self.particles, poses, accepted)
         else:
             poses, score, accepted, log_lik = sampled, np.zeros(n), np.zeros(n, bool), np.zeros(n)
@@ -242,61 +241,42 @@ class SlamFilter:
                 float(np.clip(m.search_sigmas * sd_theta, m.search_theta_rad,
                               max(m.search_theta_rad, m.max_search_theta_rad))))
 
-    def _propose(self, predicted: np.ndarray, sampled: np.ndarray, motion_cov: np.ndarray, hits: np.ndarray
+    def _propose(self, sampled: np.ndarray, motion_cov: np.ndarray, hits: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The scan-matched proposal (Grisetti et al. 2007): each particle's scan is fitted from its
-        noise-free prediction ``predicted`` (N, 3) within a window sized by the motion covariance
-        ``motion_cov`` (3, 3, start frame); an accepted match is fused with the prediction by their
-        information (the fit's Gauss-Newton matrix, the inverse motion covariance) and the pose is
-        drawn from that Gaussian, weighted by the Laplace estimate of ``p(z | x', u)``. A rejected
-        match keeps the motion model's sample ``sampled`` weighted by its likelihood.
-        Returns (poses, log weights increments, mean scores, accepted)."""
+        """The scan-matched proposal: each particle's scan is fitted from its motion sample
+        ``sampled`` (N, 3) within a window sized by the motion covariance ``motion_cov`` (3, 3, start
+        frame), searched correlatively first where that window is wider than the Gauss-Newton basin.
+        With ``matcher.proposal = "fused"`` the fit is then combined with the sample by their
+        information (the fit's Gauss-Newton matrix, the inverse motion covariance; Grisetti et al.
+        2007), so that precise odometry is kept along directions the scan leaves open. A rejected
+        match keeps the motion sample. Weights: the likelihood of the scan at the fitted pose.
+        Returns (poses, log weight increments, mean scores, accepted)."""
         m = self.config.matcher
-        n = len(predicted)
+        n = len(sampled)
         gain = self.likelihood_gain / len(hits)
         window_xy, window_theta = self._search_window(motion_cov)
-        # motion covariance in the world frame of each particle's start, with a floor (standing still)
-        c, s = np.cos(self.particles[:, 2]), np.sin(self.particles[:, 2])
-        R = np.zeros((n, 3, 3))
-        R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
-        cov_o = R @ motion_cov @ R.transpose(0, 2, 1) + np.diag(MOTION_COV_FLOOR)
-        info_o = np.linalg.inv(cov_o)
         presearch = None
+        info_o = None
+        if window_xy > m.search_xy_m or window_theta > m.search_theta_rad or m.proposal == "fused":
+            # motion covariance in the world frame of each particle's start, with a floor (standing still)
+            c, s = np.cos(self.particles[:, 2]), np.sin(self.particles[:, 2])
+            R = np.zeros((n, 3, 3))
+            R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+            info_o = np.linalg.inv(R @ motion_cov @ R.transpose(0, 2, 1) + np.diag(MOTION_COV_FLOOR))
         if window_xy > m.search_xy_m or window_theta > m.search_theta_rad:
             mean_info = info_o.mean(axis=0)
             presearch = np.array([window_xy, window_theta, self.likelihood_gain, mean_info[0, 0], mean_info[1, 1],
                                   mean_info[2, 2]])
-        fit = self.matcher.fit(self.grids, np.arange(n), predicted, hits, window_xy, window_theta, presearch)
-        info_m = 2.0 * gain * fit.jtj
-        info_f = info_m + info_o
-        cov_f = np.linalg.inv(info_f)
-        to_match = fit.poses - predicted
-        to_match[:, 2] = wrap_angle(to_match[:, 2])
-        shift = np.einsum("nij,njk,nk->ni", cov_f, info_m, to_match)  # fused mean - prediction
-        mean = predicted + shift
-        draw = np.einsum("nij,nj->ni", np.linalg.cholesky(cov_f), self.rng.standard_normal((n, 3)))
-        import os
-        if os.environ.get("DBG_SPREAD"):
-            draw *= float(os.environ["DBG_SPREAD"])
-        if os.environ.get("DBG_PRINT") and self.rng.random() < 0.05:
-            print("sd_f", np.round(np.sqrt(np.median(np.diagonal(cov_f, axis1=1, axis2=2), axis=0)), 4),
-                  "sd_o", np.round(np.sqrt(np.median(np.diagonal(cov_o, axis1=1, axis2=2), axis=0)), 4),
-                  "acc", fit.accepted.mean(), "win", round(window_xy, 2), round(window_theta, 2))
-        from_mean = mean - fit.poses
-        from_mean[:, 2] = wrap_angle(from_mean[:, 2])
-        log_eta = (-gain * fit.sq_residual - 0.5 * np.einsum("ni,nij,nj->n", from_mean, info_m, from_mean)
-                   - 0.5 * np.einsum("ni,nij,nj->n", shift, info_o, shift)
-                   + 0.5 * (np.linalg.slogdet(cov_f)[1] - np.linalg.slogdet(cov_o)[1]))
-        poses = mean + draw
-        poses[:, 2] = wrap_angle(poses[:, 2])
-        rejected = ~fit.accepted
-        log_lik = np.where(fit.accepted, log_eta, 0.0)
-        score = fit.mean_score.copy()
-        if rejected.any():
-            e, score[rejected] = self.matcher.score(self.grids, np.flatnonzero(rejected), sampled[rejected], hits)
-            poses[rejected] = sampled[rejected]
-            log_lik[rejected] = -gain * e
-        return poses, log_lik, score, fit.accepted
+        fit = self.matcher.fit(self.grids, np.arange(n), sampled, hits, window_xy, window_theta, presearch)
+        poses = fit.poses.copy()
+        if m.proposal == "fused":
+            info_m = m.proposal_information * 2.0 * gain * fit.jtj
+            to_match = fit.poses - sampled
+            to_match[:, 2] = wrap_angle(to_match[:, 2])
+            fused = sampled + np.einsum("nij,njk,nk->ni", np.linalg.inv(info_m + info_o), info_m, to_match)
+            fused[:, 2] = wrap_angle(fused[:, 2])
+            poses = np.where(fit.accepted[:, None], fused, poses)
+        return poses, -gain * fit.sq_residual, fit.mean_score, fit.accepted
 
     def _insert(self, projected, clones_of: np.ndarray | None) -> None:
         """Insert the scan into every particle's map. Particles with the same ``clones_of`` entry
