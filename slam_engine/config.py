@@ -57,6 +57,11 @@ class HeadingCalibrationConfig(_Section):
                               "scan matcher).")
     drift_band_rad_per_m: float = Field(0.01, ge=0.0, le=1.0, description="Dead band of the drift "
                                         "correction [rad/m]: the estimate is used once it is this far from 0.")
+    prior_distance_m2: float = Field(20.0, gt=0.0, le=100000.0, description="Weight of the prior 'distance "
+                                     "scale = 1', in squared metres of travel it is worth (the distance scale "
+                                     "is measured where the scan constrains the direction of travel).")
+    distance_band: float = Field(0.01, ge=0.0, le=1.0, description="Dead band of the distance-scale "
+                                 "correction: used once the estimate is this far from 1.")
 
 
 class MatcherConfig(_Section):
@@ -117,6 +122,11 @@ class LoopClosingConfig(_Section):
     max_points: int = Field(250, ge=10, le=100000, description="A key frame matches with at most this many points.")
     min_score: float = Field(0.6, ge=0.0, le=1.0, description="Lowest mean blurred hit value under the scan's end "
                              "points for a closure.")
+    min_score_wide: float = Field(0.7, ge=0.0, le=1.0, description="Lowest score of a closure found with a "
+                                  "window wider than confirm_window_m (more poses tried, more chance of a false "
+                                  "match).")
+    edge_share: float = Field(0.9, gt=0.0, le=1.0, description="A match this far out in its window (share of "
+                              "the half width) is rejected: the best pose may lie beyond it.")
     ambiguity_m: float = Field(1.0, ge=0.0, le=100.0, description="A second pose this far from the best [m] ...")
     ambiguity_rad: float = Field(0.15, ge=0.0, le=3.2, description="... or this far in heading [rad] ...")
     runner_up_ratio: float = Field(0.9, gt=0.0, le=1.0, description="... scoring at least this share of the "

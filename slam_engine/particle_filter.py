@@ -206,8 +206,9 @@ class SlamFilter:
         hits = self._match_points(projected)
         if len(hits) >= 3:
             motion_cov = odometry_motion_covariance(self._last_odom, target, self.alphas)
-            poses, log_lik, score, accepted = self._propose(sampled, motion_cov, hits)
+            poses, log_lik, score, accepted, jtj = self._propose(sampled, motion_cov, hits)
             self.heading_calibration.observe(self._last_odom, odom, self.particles, poses, accepted)
+            self.heading_calibration.observe_distance(self._last_odom, odom, self.particles, poses, accepted, jtj)
         else:
             poses, score, accepted, log_lik = sampled, np.zeros(n), np.zeros(n, bool), np.zeros(n)
         self.particles = poses
@@ -242,7 +243,7 @@ class SlamFilter:
                               max(m.search_theta_rad, m.max_search_theta_rad))))
 
     def _propose(self, sampled: np.ndarray, motion_cov: np.ndarray, hits: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The scan-matched proposal: each particle's scan is fitted from its motion sample
         ``sampled`` (N, 3) within a window sized by the motion covariance ``motion_cov`` (3, 3, start
         frame), searched correlatively first where that window is wider than the Gauss-Newton basin.
@@ -250,7 +251,7 @@ class SlamFilter:
         information (the fit's Gauss-Newton matrix, the inverse motion covariance; Grisetti et al.
         2007), so that precise odometry is kept along directions the scan leaves open. A rejected
         match keeps the motion sample. Weights: the likelihood of the scan at the fitted pose.
-        Returns (poses, log weight increments, mean scores, accepted)."""
+        Returns (poses, log weight increments, mean scores, accepted, the fits' J^T J (N, 3, 3))."""
         m = self.config.matcher
         n = len(sampled)
         gain = self.likelihood_gain / len(hits)
@@ -276,7 +277,7 @@ class SlamFilter:
             fused = sampled + np.einsum("nij,njk,nk->ni", np.linalg.inv(info_m + info_o), info_m, to_match)
             fused[:, 2] = wrap_angle(fused[:, 2])
             poses = np.where(fit.accepted[:, None], fused, poses)
-        return poses, -gain * fit.sq_residual, fit.mean_score, fit.accepted
+        return poses, -gain * fit.sq_residual, fit.mean_score, fit.accepted, fit.jtj
 
     def _insert(self, projected, clones_of: np.ndarray | None) -> None:
         """Insert the scan into every particle's map. Particles with the same ``clones_of`` entry

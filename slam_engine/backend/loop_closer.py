@@ -195,11 +195,19 @@ class LoopCloser:
                 continue
             pose = refine_pose(grid, self.points_v[k], match.pose)
             delta = relative(initial, pose)
-            unique = match.runner_up_score < c.runner_up_ratio * match.score
+            shift = np.abs(match.pose - initial)
+            reason = "accepted"
+            if window_m > c.confirm_window_m and match.score < c.min_score_wide:
+                reason = "low score for a wide window"
+            elif max(shift[0], shift[1]) > c.edge_share * window_m or abs(wrap_angle(shift[2])) > c.edge_share * \
+                    window_rad:
+                reason = "at the window's edge"
+            elif match.runner_up_score >= c.runner_up_ratio * match.score:
+                reason = "ambiguous"
+            ok = reason == "accepted"
             closures.append(Closure(k, s_index, s.anchor, match.score, match.runner_up_score, window_m, window_rad,
-                                    unique, "accepted" if unique else "ambiguous",
-                                    float(np.hypot(delta[0], delta[1])), float(abs(delta[2]))))
-            if unique and (best is None or match.score > best[0]):
+                                    ok, reason, float(np.hypot(delta[0], delta[1])), float(abs(delta[2]))))
+            if ok and (best is None or match.score > best[0]):
                 best = (match.score, s.anchor, pose, window_m, len(closures) - 1)
         if best is None:
             return None
