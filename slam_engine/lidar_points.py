@@ -18,7 +18,10 @@ With ``no_return_bounded`` a beam without a return clears only what it is eviden
 either side of it in the same scan (:func:`bracketed_no_return_m`; stopping short keeps the wall
 cells near that line, which the beam meets at a slant, from being cleared). A window or glass door
 in a wall is bracketed by the wall's returns, so its beams stop at the wall instead of drawing rays
-around the building; a scan without any return clears the full ``no_return_clear_m``.
+around the building; a scan without any return clears the full ``no_return_clear_m``. Only level
+LiDARs are bounded so: a tilted LiDAR's no-return beams are mostly beams into the sky (the car's
+LMS511 fans up over the street between the facades that bracket it) and already stop where they
+leave the height band; bounding them would take the street ahead out of the map.
 """
 
 from __future__ import annotations
@@ -82,7 +85,7 @@ class ScanProjector:
         returned = np.isfinite(r) & (r >= self.lidar.range_min_m) & (r <= self.lidar.range_max_m)
         is_hit = returned & (r <= self.max_range_m)
         no_return_m = np.full(r.shape, self.no_return_clear_m)
-        if self.no_return_bounded and self.no_return_clear_m > 0 and not returned.all():
+        if self.no_return_bounded and self.planar and self.no_return_clear_m > 0 and not returned.all():
             bound = bracketed_no_return_m(r, returned, self.dirs_lidar) - self.no_return_stop_short_m
             no_return_m = np.minimum(no_return_m, np.maximum(bound, 0.0))
         length = np.where(is_hit, r, np.where(returned, self.clear_range_m, no_return_m))
@@ -119,9 +122,10 @@ class ScanProjector:
 
 def bracketed_no_return_m(ranges_m: np.ndarray, returned: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """(B,) for each beam, the distance [m] along it to the line joining the end points of the nearest
-    returned beams before and after it (``dirs`` (B, 2) unit beam directions, ``returned`` (B,) bool);
-    the one bracketing return's range where only one side has a return (scan edges), ``inf`` where the
-    scan has no return at all. Meaningful for the beams that did not return."""
+    returned beams before and after it (``dirs`` (B, 2) unit beam directions in the scan plane,
+    ``returned`` (B,) bool); the one bracketing return's range where only one side has a return
+    (scan edges); ``inf`` where the scan has no return at all. Meaningful for the beams that did not
+    return."""
     n = ranges_m.shape[0]
     index = np.arange(n)
     before = np.maximum.accumulate(np.where(returned, index, -1))
@@ -139,8 +143,7 @@ def bracketed_no_return_m(ranges_m: np.ndarray, returned: np.ndarray, dirs: np.n
         t = numerator / denominator
     farther = np.maximum(r[b], r[a])
     both = np.where(np.isfinite(t) & (t > 0), np.minimum(t, farther), farther)
-    return np.where(has_before & has_after, both,
-                    np.where(has_before, r[b], np.where(has_after, r[a], np.inf)))
+    return np.where(has_before & has_after, both, np.where(has_before, r[b], np.where(has_after, r[a], np.inf)))
 
 
 def free_space_start_m(n_beams: int, angle_increment_rad: float, resolution_m: float) -> np.ndarray:

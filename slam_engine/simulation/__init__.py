@@ -187,5 +187,5 @@ def floor_beside_log(log_path: str | Path) -> FloorRgb | None:
     return SCENARIOS[scenario]().floor_rgb
 
 
-__all__ = ["SimulatedDrive", "floor_beside_log", "rig_for_format", "relations", "simulate", "write_simulated", "RIGS",
-           "SCENARIOS"]
+__all__ = ["GROUND_TEXTURE_FILE", "SimulatedDrive", "floor_beside_log", "rig_for_format", "relations", "simulate",
+           "write_simulated", "RIGS", "SCENARIOS"]
