@@ -12,6 +12,16 @@ cross up to ``max_range_m`` and never add a hit or take part in matching. Beams 
 all; nothing for scanners whose ``range_max_m`` is below ``no_return_min_sensor_range_m``): many
 scanners also report "no return" for dark or glass surfaces close by, and clearing far
 along such beams erases real walls.
+
+With ``no_return_bounded`` a beam without a return clears only what it is evidence for: up to
+``no_return_stop_short_m`` short of the line joining the returns of the nearest returned beams on
+either side of it in the same scan (:func:`bracketed_no_return_m`; stopping short keeps the wall
+cells near that line, which the beam meets at a slant, from being cleared). A window or glass door
+in a wall is bracketed by the wall's returns, so its beams stop at the wall instead of drawing rays
+around the building; a scan without any return clears the full ``no_return_clear_m``. Only level
+LiDARs are bounded so: a tilted LiDAR's no-return beams are mostly beams into the sky (the car's
+LMS511 fans up over the street between the facades that bracket it) and already stop where they
+leave the height band; bounding them would take the street ahead out of the map.
 """
 
 from __future__ import annotations
@@ -45,7 +55,8 @@ class ScanProjector:
 
     def __init__(self, lidar: LidarModel, max_range_m: float, ground_z_m: float, ceiling_z_m: float,
                  resolution_m: float, no_return_clear_m: float | None = None,
-                 no_return_min_sensor_range_m: float = 0.0):
+                 no_return_min_sensor_range_m: float = 0.0, no_return_bounded: bool = False,
+                 no_return_stop_short_m: float = 0.5):
         self.lidar = lidar
         self.T = np.asarray(lidar.T_vehicle_from_lidar, dtype=np.float64)
         self.planar = is_planar_4x4(self.T)
@@ -59,6 +70,8 @@ class ScanProjector:
             float(min(no_return_clear_m, self.clear_range_m))
         if lidar.range_max_m < no_return_min_sensor_range_m:
             self.no_return_clear_m = 0.0
+        self.no_return_bounded = bool(no_return_bounded)
+        self.no_return_stop_short_m = float(no_return_stop_short_m)
         self.ground_z_m = float(ground_z_m)
         self.ceiling_z_m = float(ceiling_z_m)
         self.free_from_m = free_space_start_m(lidar.num_beams, lidar.angle_increment_rad, resolution_m)
@@ -71,7 +84,11 @@ class ScanProjector:
                              f"has {self.lidar.num_beams} beams")
         returned = np.isfinite(r) & (r >= self.lidar.range_min_m) & (r <= self.lidar.range_max_m)
         is_hit = returned & (r <= self.max_range_m)
-        length = np.where(is_hit, r, np.where(returned, self.clear_range_m, self.no_return_clear_m))
+        no_return_m = np.full(r.shape, self.no_return_clear_m)
+        if self.no_return_bounded and self.planar and self.no_return_clear_m > 0 and not returned.all():
+            bound = bracketed_no_return_m(r, returned, self.dirs_lidar) - self.no_return_stop_short_m
+            no_return_m = np.minimum(no_return_m, np.maximum(bound, 0.0))
+        length = np.where(is_hit, r, np.where(returned, self.clear_range_m, no_return_m))
         keep = length > 0
         if not keep.all():
             length, is_hit = length[keep], is_hit[keep]
@@ -101,6 +118,32 @@ class ScanProjector:
             frac = np.clip(np.divide(limit, dz, out=np.ones_like(dz), where=dz != 0), 0.0, 1.0)
             ends[free_tilted] = self.origin_v + (ends[free_tilted] - self.origin_v) * frac[:, None]
         return ProjectedScan(ends_v=ends[keep], is_hit=is_hit[keep], free_from_m=self.free_from_m[beams][keep])
+
+
+def bracketed_no_return_m(ranges_m: np.ndarray, returned: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """(B,) for each beam, the distance [m] along it to the line joining the end points of the nearest
+    returned beams before and after it (``dirs`` (B, 2) unit beam directions in the scan plane,
+    ``returned`` (B,) bool); the one bracketing return's range where only one side has a return
+    (scan edges); ``inf`` where the scan has no return at all. Meaningful for the beams that did not
+    return."""
+    n = ranges_m.shape[0]
+    index = np.arange(n)
+    before = np.maximum.accumulate(np.where(returned, index, -1))
+    after = np.minimum.accumulate(np.where(returned, index, n)[::-1])[::-1]
+    has_before, has_after = before >= 0, after < n
+    b, a = np.clip(before, 0, n - 1), np.clip(after, 0, n - 1)
+    r = np.where(returned, ranges_m, 0.0)
+    p_before = dirs[b] * r[b, None]
+    p_after = dirs[a] * r[a, None]
+    edge = p_after - p_before
+    # beam t * d meets p_before + u * edge where t * cross(d, edge) = cross(p_before, edge)
+    denominator = dirs[:, 0] * edge[:, 1] - dirs[:, 1] * edge[:, 0]
+    numerator = p_before[:, 0] * edge[:, 1] - p_before[:, 1] * edge[:, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = numerator / denominator
+    farther = np.maximum(r[b], r[a])
+    both = np.where(np.isfinite(t) & (t > 0), np.minimum(t, farther), farther)
+    return np.where(has_before & has_after, both, np.where(has_before, r[b], np.where(has_after, r[a], np.inf)))
 
 
 def free_space_start_m(n_beams: int, angle_increment_rad: float, resolution_m: float) -> np.ndarray:

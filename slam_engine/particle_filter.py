@@ -83,7 +83,8 @@ class SlamFilter:
         g = config.grid
         self.projector = ScanProjector(lidar, g.max_range_m, config.lidar_filter.ground_z_m,
                                        config.lidar_filter.ceiling_z_m, g.resolution_m,
-                                       g.no_return_clear_m, g.no_return_min_sensor_range_m)
+                                       g.no_return_clear_m, g.no_return_min_sensor_range_m, g.no_return_bounded,
+                                       g.no_return_stop_short_m)
         self.grids = ParticleGrids(n, g.resolution_m)
         m = config.matcher
         self.matcher = ScanMatcher(m.search_xy_m, m.search_theta_rad, m.min_score, m.beam_skip)

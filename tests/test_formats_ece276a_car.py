@@ -44,7 +44,7 @@ def test_lidar_beam_count_must_fit_the_stated_resolution(dataset) -> None:
 
 @pytest.fixture(scope="module")
 def car_drive():
-    return simulate(seed=1, rig="car", scenario="campus", max_duration_s=8.0)
+    return simulate(seed=1, rig="car", scenario="campus", max_duration_s=8.0, cameras=False)
 
 
 def test_simulated_log_with_the_real_param_folder(dataset, car_drive, tmp_path) -> None:

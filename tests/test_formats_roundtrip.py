@@ -27,7 +27,8 @@ def drives():
 
     def get(format: str):
         if format not in cache:
-            cache[format] = simulate(seed=3, rig=rig_for_format(format), scenario=None, max_duration_s=12.0)
+            cache[format] = simulate(seed=3, rig=rig_for_format(format), scenario=None, max_duration_s=12.0,
+                                     cameras=False)
         return cache[format]
 
     return get

@@ -6,7 +6,7 @@ import numpy as np
 
 from slam_engine.drive_log import LidarModel
 from slam_engine.grid import ParticleGrids
-from slam_engine.lidar_points import ScanProjector, free_space_start_m
+from slam_engine.lidar_points import ScanProjector, bracketed_no_return_m, free_space_start_m
 from slam_engine.raycast import insert_scan
 
 
@@ -142,3 +142,68 @@ def test_no_return_beams_of_a_short_range_scanner_clear_nothing() -> None:
                                   no_return_clear_m=30.0, no_return_min_sensor_range_m=10.0)
         projected = projector.project(ranges)
         assert len(projected.ends_v) == expected_rays and projected.is_hit.sum() == 1
+
+
+def _fan(n: int = 61, range_max_m: float = 80.0) -> LidarModel:
+    """A level LiDAR at the vehicle origin, beams from -30 to +30 deg, 1 deg apart."""
+    return LidarModel(num_beams=n, angle_min_rad=np.radians(-30.0), angle_increment_rad=np.radians(1.0),
+                      range_min_m=0.1, range_max_m=range_max_m)
+
+
+def test_no_return_beams_through_a_window_stop_short_of_the_wall() -> None:
+    """A wall at x = 5 m with a window between -10 and +10 deg: the window's beams clear up to 0.5 m
+    (``no_return_stop_short_m``) before the wall's line, not 30 m beyond it."""
+    lidar = _fan()
+    angles = lidar.beam_angles_rad
+    ranges = 5.0 / np.cos(angles)
+    window = np.abs(np.degrees(angles)) < 10.5
+    ranges[window] = np.inf
+    projector = ScanProjector(lidar, max_range_m=30.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05,
+                              no_return_clear_m=30.0, no_return_bounded=True, no_return_stop_short_m=0.5)
+    scan = projector.project(ranges)
+    free_ends = scan.ends_v[~scan.is_hit]
+    assert len(free_ends) == window.sum() == 21
+    length = np.hypot(*free_ends.T)
+    np.testing.assert_allclose(length, 5.0 / np.cos(angles[window]) - 0.5, atol=1e-9)
+    # unbounded (the old behaviour) they run 30 m, through the wall
+    unbounded = ScanProjector(lidar, max_range_m=30.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05,
+                              no_return_clear_m=30.0).project(ranges)
+    np.testing.assert_allclose(np.hypot(*unbounded.ends_v[~unbounded.is_hit].T), 30.0)
+
+
+def test_bracketed_no_return_bounds_at_edges_and_in_open_space() -> None:
+    lidar = _fan(5)
+    dirs = np.stack([np.cos(lidar.beam_angles_rad), np.sin(lidar.beam_angles_rad)], axis=1)
+    # a run at the scan's edge: the one bracketing return's range; no return at all: no bound
+    ranges = np.array([np.inf, np.inf, 4.0, 6.0, np.inf])
+    bound = bracketed_no_return_m(ranges, np.isfinite(ranges), dirs)
+    assert bound[0] == bound[1] == 4.0 and bound[4] == 6.0
+    assert np.isinf(bracketed_no_return_m(np.full(5, np.inf), np.zeros(5, bool), dirs)).all()
+    # between returns at 2 m and 8 m the bound is where the beam meets the line joining them
+    ranges = np.array([2.0, np.inf, np.inf, np.inf, 8.0])
+    bound = bracketed_no_return_m(ranges, np.isfinite(ranges), dirs)
+    a, b = dirs[0] * 2.0, dirs[4] * 8.0
+    for k in (1, 2, 3):
+        point = dirs[k] * bound[k]
+        cross = (b - a)[0] * (point - a)[1] - (b - a)[1] * (point - a)[0]
+        assert abs(cross) < 1e-9 and 2.0 < bound[k] < 8.0
+    projector = ScanProjector(lidar, max_range_m=30.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05,
+                              no_return_clear_m=30.0, no_return_bounded=True)
+    scan = projector.project(np.full(5, np.inf))  # open field: every beam clears the whole 30 m
+    np.testing.assert_allclose(np.hypot(*scan.ends_v.T), 30.0)
+
+
+def test_tilted_lidars_keep_clearing_their_sky_beams() -> None:
+    """The car's LMS511 fans up over the street: its no-return beams stay as long as the height band
+    allows, bounded or not (bounding them would drop the street ahead)."""
+    pitch = np.radians(30.0)
+    T = np.eye(4)
+    T[:3, :3] = [[np.cos(pitch), 0, -np.sin(pitch)], [0, 1, 0], [np.sin(pitch), 0, np.cos(pitch)]]  # looks up
+    T[2, 3] = 1.0
+    lidar = LidarModel(num_beams=3, angle_min_rad=-0.1, angle_increment_rad=0.1, range_min_m=0.1, range_max_m=80.0,
+                       T_vehicle_from_lidar=T)
+    ranges = np.array([3.0, np.inf, 3.0])
+    ends = [ScanProjector(lidar, 30.0, 0.2, 20.0, 0.05, 30.0, no_return_bounded=bounded).project(ranges).ends_v
+            for bounded in (False, True)]
+    np.testing.assert_allclose(ends[0], ends[1])
+    assert ends[1][1, 0] > 25.0  # leaves the 20 m ceiling about 33 m out

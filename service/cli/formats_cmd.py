@@ -16,9 +16,11 @@ def register(app: typer.Typer) -> None:
         seed: int = typer.Option(0, help="Random seed: same seed, same drive."),
         scenario: str | None = typer.Option(None, help="office or campus (default: the vehicle's own)."),
         duration: float | None = typer.Option(None, help="Stop the drive after this many seconds."),
+        cameras: bool = typer.Option(True, help="Render the vehicle's cameras (the car's stereo pair, "
+                                     "THOR's Kinect) from the floor texture; about a second per frame."),
     ) -> None:
         """Simulate a drive with exact ground truth and write it as a log, with ground_truth.txt and
-        a .relations file."""
+        a .relations file (and ground_texture.json when cameras were rendered)."""
         from slam_engine.errors import SlamEngineError
         from slam_engine.simulation import rig_for_format, write_simulated
         from slam_engine.simulation import simulate as simulate_drive
@@ -26,7 +28,8 @@ def register(app: typer.Typer) -> None:
         try:
             if out.exists() and (not out.is_dir() or any(out.iterdir())):
                 raise SlamEngineError(f"{out}: output folder exists and is not empty")
-            drive = simulate_drive(scenario=scenario, seed=seed, rig=rig_for_format(format), max_duration_s=duration)
+            drive = simulate_drive(scenario=scenario, seed=seed, rig=rig_for_format(format), max_duration_s=duration,
+                                  cameras=cameras)
             out.mkdir(parents=True, exist_ok=True)
             path = write_simulated(drive, format, out)
         except SlamEngineError as error:

@@ -2,7 +2,9 @@
 
 A relations file beside the log (``NAME.relations``, or the one ``*.relations`` in its folder) and a
 ground-truth file (``NAME.gt.txt`` / ``ground_truth.txt``) are used automatically for run.json's
-accuracy figures (``slam_engine.evaluation.files_beside_log``, as the benchmark finds them).
+accuracy figures (``slam_engine.evaluation.files_beside_log``, as the benchmark finds them). A
+simulated log's ``ground_texture.json`` adds the texture's colour error and placement against the
+simulator's floor (``accuracy.texture``).
 """
 
 from __future__ import annotations
@@ -94,6 +96,20 @@ def run_with_progress(drive_log, config):
         return run_slam(drive_log, config, rng=np.random.default_rng(config.seed), progress=on_progress)
 
 
+def texture_figures(result, truth, floor) -> dict | None:
+    """Colour error and placement of the run's texture against a simulated floor (None when the
+    run made no texture, or there is no floor or ground truth to compare with)."""
+    if result.texture is None or truth is None or floor is None:
+        return None
+    from slam_engine.texture.accuracy import map_to_truth_frame, texture_accuracy
+
+    try:
+        rotation, translation = map_to_truth_frame(result.trajectory, truth)
+    except ValueError as error:
+        return {"error": str(error)}
+    return texture_accuracy(result.texture, floor, rotation, translation).as_dict()
+
+
 def print_summary(result, written: dict[str, Path], out: Path) -> None:
     """Products written, speed, and accuracy when known (stdout)."""
     import json
@@ -121,6 +137,10 @@ def print_summary(result, written: dict[str, Path], out: Path) -> None:
                       f"({stats['n_relations']} relations, {stats['n_failed']} failed)")
     if accuracy.get("ate_m") is not None:
         console.print(f"absolute trajectory error: {accuracy['ate_m']:.3f} m")
+    texture = accuracy.get("texture") or {}
+    if "colour_error_mean" in texture:
+        console.print(f"texture: colour error {texture['colour_error_mean']:.1f} of 255 over "
+                      f"{texture['observed_cells']} cells, placed {texture['placement_offset_m']:.2f} m off")
 
 
 def _fmt(value: float | None, spec: str) -> str:
@@ -153,6 +173,7 @@ def register(app: typer.Typer) -> None:
         from slam_engine import evaluation
         from slam_engine.formats import load_log
         from slam_engine.products import write_products
+        from slam_engine.simulation import floor_beside_log
 
         with bad_input_exits(verbose):
             geo = geo_origin(lat, lon, heading)
@@ -167,7 +188,8 @@ def register(app: typer.Typer) -> None:
             if snapshot_every is None and slam_config.snapshot_every_scans == 0 and drive_log.scans is not None:
                 every = max(1, len(drive_log.scans) // SNAPSHOT_FRAMES)
                 slam_config = slam_config.model_copy(update={"snapshot_every_scans": every})
+            floor = floor_beside_log(log)
             result = run_with_progress(drive_log, slam_config)
             written = write_products(result, out, geo=geo, relations=relation_table, ground_truth=truth,
-                                     log=drive_log)
+                                     log=drive_log, texture_accuracy=texture_figures(result, truth, floor))
             print_summary(result, written, out)

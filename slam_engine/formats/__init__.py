@@ -57,7 +57,7 @@ _MODULES = {
 # Most specific first: folder formats, then archives, then text formats with loose sniffers.
 _DETECTION_ORDER = ("drivelog", "rosbag", "thor", "ece276a-car", "carmen", "breezyslam")
 # Side files that lidarmap simulate / products write next to a log; never a log themselves.
-_SIDE_FILES = {"ground_truth.txt", "README.md", "config.json"}
+_SIDE_FILES = {"ground_truth.txt", "ground_texture.json", "README.md", "config.json"}
 
 
 def list_formats() -> list[FormatInfo]:

@@ -255,7 +255,9 @@ def _extrinsic_text(title: str, T: np.ndarray, note: str = "") -> str:
 def write(log: DriveLog, out_dir: Path) -> Path:
     """Write ``out_dir/sensor_data/*.csv`` and ``out_dir/param/*.txt``; returns ``out_dir``.
 
-    Stereo images and their calibration are not written (the texture package owns the camera files).
+    A stereo stream is written as ``stereo_images/stereo_left|stereo_right/<ns>.png`` (frames as
+    they are: raw Bayer stays single-channel) with ``param/left_camera.yaml``, ``right_camera.yaml``,
+    ``stereo_param.txt`` and ``Vehicle2Stereo.txt``.
     """
     out_dir = Path(out_dir)
     vehicle = log.vehicle
@@ -300,7 +302,38 @@ def write(log: DriveLog, out_dir: Path) -> Path:
             f"Lidar sensor ({lidar.name}) extrinsic calibration parameter from vehicle", lidar.T_vehicle_from_lidar))
         ranges = np.where(np.isfinite(log.scans.ranges_m), log.scans.ranges_m, 0.0)
         _write_rows(data / "lidar.csv", log.scans.t_s, ranges, "%.3f")
+    if log.stereo is not None:
+        _write_stereo(log.stereo, out_dir)
     return out_dir
+
+
+def _write_stereo(stereo: StereoStream, out_dir: Path) -> None:
+    """Stereo frames named by their nanosecond stamps, and the pair's calibration files."""
+    import cv2
+
+    from slam_engine.texture.calibration import write_camera_yaml
+    from slam_engine.texture.images import read_frame
+
+    cal, param = stereo.calibration, out_dir / "param"
+    write_camera_yaml(param / "left_camera.yaml", cal.image_size_wh, cal.K_left, cal.D_left, cal.R_left, cal.P_left,
+                      "/stereo/left")
+    write_camera_yaml(param / "right_camera.yaml", cal.image_size_wh, cal.K_right, cal.D_right, cal.R_right,
+                      cal.P_right, "/stereo/right")
+    (param / "stereo_param.txt").write_text(f"Baseline of stereo cameras: {cal.baseline_m * 1000.0:.12g} (mm)\n")
+    (param / "Vehicle2Stereo.txt").write_text(_extrinsic_text(
+        "Stereo camera (based on left camera) extrinsic calibration parameter from vehicle",
+        cal.T_vehicle_from_camera))
+    ns = np.round(np.asarray(stereo.t_s, dtype=np.float64) * 1e9).astype(np.int64)
+    if np.unique(ns).size != ns.size:
+        raise LogFormatError("two stereo frames share one nanosecond stamp", path=str(out_dir / "stereo_images"))
+    for side, frames in (("stereo_left", stereo.left_images), ("stereo_right", stereo.right_images)):
+        folder = out_dir / "stereo_images" / side
+        folder.mkdir(parents=True, exist_ok=True)
+        for k, (stamp, frame) in enumerate(zip(ns.tolist(), frames, strict=True)):
+            image = read_frame(frame, f"{side} frame {k}")
+            if image.ndim == 3:
+                image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+            cv2.imwrite(str(folder / f"{stamp}.png"), image)
 
 
 def _write_rows(path: Path, t_s: np.ndarray, values: np.ndarray, fmt: str) -> None:

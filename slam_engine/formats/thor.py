@@ -277,7 +277,9 @@ def _kinect(path: Path, folder: Path, set_number: int, warnings: list[str]) -> R
 
 def write(log: DriveLog, out_dir: Path, variant: str = "mat", set_number: int = 20) -> Path:
     """Write set ``set_number`` into ``out_dir`` as .mat (ESE650) or .npz (ECE276A) files; returns
-    ``out_dir``. Ticks are written as int16 per-sample deltas; missing ranges as 0."""
+    ``out_dir``. Ticks are written as int16 per-sample deltas; missing ranges as 0. A Kinect stream
+    is written as ``KinectNN`` (its timestamps) and ``dataRGBD/DisparityNN/disparityNN_k.png``
+    (uint16 raw disparity), ``dataRGBD/RGBNN/rgbNN_k.png``, k from 1."""
     out_dir = Path(out_dir)
     if variant not in ("mat", "npz"):
         raise LogFormatError(f"THOR variant must be 'mat' or 'npz', not {variant!r}")
@@ -318,6 +320,8 @@ def write(log: DriveLog, out_dir: Path, variant: str = "mat", set_number: int = 
                 "angle_min": lidar.angle_min_rad, "angle_increment": lidar.angle_increment_rad,
                 "angle_max": float(lidar.beam_angles_rad[-1]), "range_min": lidar.range_min_m,
                 "range_max": lidar.range_max_m, "ranges": ranges, "time_stamps": t_scan}
+    if log.rgbd is not None:
+        arrays[f"Kinect{set_number}"] = _write_kinect_images(log.rgbd, out_dir, set_number)
     for stem, content in arrays.items():
         if variant == "mat":
             from scipy.io import savemat
@@ -326,6 +330,27 @@ def write(log: DriveLog, out_dir: Path, variant: str = "mat", set_number: int = 
         else:
             np.savez(out_dir / f"{stem}.npz", **content)
     return out_dir
+
+
+def _write_kinect_images(rgbd: RgbdStream, out_dir: Path, set_number: int) -> dict[str, np.ndarray]:
+    """Write the Kinect frames under ``dataRGBD/``; returns the KinectNN file's timestamp arrays."""
+    import cv2
+
+    from slam_engine.texture.images import read_frame
+
+    for kind, stamps, frames in (("Disparity", rgbd.depth_t_s, rgbd.depth_images), ("RGB", rgbd.rgb_t_s,
+                                                                                     rgbd.rgb_images)):
+        folder = out_dir / "dataRGBD" / f"{kind}{set_number}"
+        folder.mkdir(parents=True, exist_ok=True)
+        if len(frames) != len(stamps):
+            raise LogFormatError(f"{len(frames)} {kind} frames for {len(stamps)} timestamps", path=str(folder))
+        for k, frame in enumerate(frames):
+            image = read_frame(frame, f"{kind} frame {k}")
+            if image.ndim == 3:
+                image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+            cv2.imwrite(str(folder / f"{kind.lower()}{set_number}_{k + 1}.png"), image)
+    return {"disparity_time_stamps": np.asarray(rgbd.depth_t_s, dtype=np.float64),
+            "rgb_time_stamps": np.asarray(rgbd.rgb_t_s, dtype=np.float64)}
 
 
 def estimate_effective_track_width(log: DriveLog, window_s: float = 0.5, min_turn_rad: float = 0.05) -> float:

@@ -63,12 +63,14 @@ def accuracy_figures(trajectory: Trajectory, relations=None, ground_truth=None) 
 
 
 def write_products(result: SlamResult, out_dir: str | Path, geo: GeoOrigin | None = None,
-                   relations=None, ground_truth=None, log=None) -> dict[str, Path]:
+                   relations=None, ground_truth=None, log=None,
+                   texture_accuracy: dict | None = None) -> dict[str, Path]:
     """Write every product of ``result`` into ``out_dir``; returns {file name: path}.
 
     ``geo`` places the GeoTIFFs in UTM (else the local map frame); ``relations`` / ``ground_truth``
-    add accuracy figures to run.json; ``log`` (the DriveLog) fills run.json's input summary when the
-    result carries none.
+    add accuracy figures to run.json, ``texture_accuracy`` (colour error and placement against a known
+    floor, :mod:`slam_engine.texture.accuracy`) as its ``accuracy.texture``; ``log`` (the DriveLog)
+    fills run.json's input summary when the result carries none.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -99,9 +101,12 @@ def write_products(result: SlamResult, out_dir: str | Path, geo: GeoOrigin | Non
         written["animation.gif"] = write_animation_gif(result.snapshots, result.grid, result.trajectory,
                                                        out / "animation.gif")
     input_summary = result.input_summary or (log.summary() if log is not None else {})
+    accuracy = accuracy_figures(result.trajectory, relations, ground_truth)
+    if texture_accuracy is not None:
+        accuracy = {**(accuracy or {}), "texture": to_jsonable(texture_accuracy)}
     report = build_run_report(result, input_summary=input_summary,
                               georeference=georef.describe(),
-                              accuracy=accuracy_figures(result.trajectory, relations, ground_truth),
+                              accuracy=accuracy,
                               products=sorted([*written, "run.json"]))
     written["run.json"] = write_run_json(report, out / "run.json")
     return written

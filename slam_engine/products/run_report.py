@@ -3,7 +3,8 @@
 Top-level keys: ``config`` (the SlamConfig used), ``input`` (the log's summary), ``timings``
 (wall time, scans, scans/s, per-step time percentiles), ``memory`` (peak bytes), ``filter`` (resamples,
 match rate, N_eff), ``map`` (size, resolution, origin, cell counts), ``georeference``, ``accuracy``
-(relation errors and/or ATE when relations / ground truth were given, else null), ``warnings``,
+(relation errors and/or ATE when relations / ground truth were given, ``texture`` colour error and
+placement for a simulated log with a known floor; else null), ``warnings``,
 ``scan_stats`` (per processed scan, columnar: t_s, n_eff, resampled, match_score, matched,
 step_time_s) and ``products`` (the files written).
 """

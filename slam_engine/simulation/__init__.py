@@ -4,22 +4,27 @@ through it, and sensors with realistic errors, written out in any supported log 
 ``simulate(scenario="office", seed=0, rig="robot")`` returns a :class:`SimulatedDrive` whose ``log``
 is what the rig's sensors recorded and whose ``ground_truth`` is the true pose at every scan.
 ``write_simulated(drive, format, out_dir)`` writes the log in a format, ``ground_truth.txt``
-(``t x y theta`` per scan) and ``<scenario>.relations`` (Kuemmerle et al. 2009:
-``t1 t2 x y z roll pitch yaw``, consecutive scans and loop closures).
+(``t x y theta`` per scan), ``<scenario>.relations`` (Kuemmerle et al. 2009:
+``t1 t2 x y z roll pitch yaw``, consecutive scans and loop closures) and, when the rig has a camera
+(the car's stereo pair, THOR's Kinect, rendered from the world's floor texture),
+``ground_texture.json`` naming the scenario whose floor the frames show
+(:func:`floor_beside_log` gives its colour function back, for the texture's accuracy).
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from slam_engine.drive_log import DriveLog
-from slam_engine.errors import ConfigError
+from slam_engine.errors import ConfigError, LogFormatError
 from slam_engine.formats import write_log
 from slam_engine.poses import relative, wrap_angle
 from slam_engine.result import Trajectory
+from slam_engine.simulation.camera_render import FloorRgb, render_rgbd_stream, render_stereo_stream
 from slam_engine.simulation.motion import Motion, drive_route
 from slam_engine.simulation.rigs import FORMAT_RIGS, RIGS, Rig
 from slam_engine.simulation.sensors import (
@@ -35,6 +40,7 @@ from slam_engine.simulation.world import SCENARIOS, World
 LOOP_MIN_DT_S = 20.0
 LOOP_MAX_DISTANCE_M = 1.5
 LOOP_MAX_ANGLE_RAD = np.radians(45.0)
+GROUND_TEXTURE_FILE = "ground_texture.json"
 
 
 @dataclass(frozen=True)
@@ -64,12 +70,14 @@ def rig_for_format(format: str) -> str:
 
 def simulate(scenario: str | None = "office", seed: int = 0, rig: str = "robot",
              max_duration_s: float | None = None, scan_hz: float | None = None,
-             rng: np.random.Generator | None = None) -> SimulatedDrive:
+             rng: np.random.Generator | None = None, cameras: bool = True) -> SimulatedDrive:
     """Simulate one drive along the scenario's route (a loop with a closure).
 
     ``scenario`` None picks the rig's own (``office`` for robots, ``campus`` for the car);
-    ``max_duration_s`` cuts the drive short (tests); ``scan_hz`` overrides the LiDAR rate.
-    Same seed, same drive.
+    ``max_duration_s`` cuts the drive short (tests); ``scan_hz`` overrides the LiDAR rate;
+    ``cameras`` False leaves the rig's cameras out (rendering costs about a second a frame).
+    Same seed, same drive (the camera frames are drawn last: with or without them, the other
+    streams are the same).
     """
     if rig not in RIGS:
         raise ConfigError(f"unknown rig {rig!r}; rigs: {', '.join(RIGS)}")
@@ -101,8 +109,17 @@ def simulate(scenario: str | None = "office", seed: int = 0, rig: str = "robot",
     if the_rig.log_odometry_hz:
         odometry = odometry_stream(motion, sample_times(motion, the_rig.log_odometry_hz, the_rig.t0_s, rng),
                                    the_rig, rng)
+    stereo = rgbd = None
+    if cameras and the_rig.camera_hz and (the_rig.stereo is not None or the_rig.rgbd is not None):
+        t_camera = sample_times(motion, the_rig.camera_hz, the_rig.t0_s, rng)
+        x, y, theta, _ = motion.at(t_camera - the_rig.t0_s)
+        at_frames = Trajectory(t_s=t_camera, poses=np.column_stack([x, y, wrap_angle(theta)]))
+        if the_rig.stereo is not None:
+            stereo = render_stereo_stream(world.floor_rgb, at_frames, the_rig.stereo)
+        if the_rig.rgbd is not None:
+            rgbd = render_rgbd_stream(world.floor_rgb, at_frames, the_rig.rgbd)
     log = DriveLog(vehicle=the_rig.vehicle, lidar=the_rig.lidar, scans=scans, encoders=encoders, gyro=gyro,
-                   odometry=odometry, source_format="simulated", source_path=None)
+                   odometry=odometry, stereo=stereo, rgbd=rgbd, source_format="simulated", source_path=None)
     x, y, theta, _ = motion.at(t_scan - the_rig.t0_s)
     truth = Trajectory(t_s=t_scan.copy(), poses=np.column_stack([x, y, wrap_angle(theta)]))
     return SimulatedDrive(log=log, ground_truth=truth, world=world, rig=the_rig, motion=motion,
@@ -146,7 +163,29 @@ def write_simulated(drive: SimulatedDrive, format: str, out_dir: str | Path) -> 
     np.savetxt(out_dir / f"{drive.scenario}.relations",
                np.column_stack([rel[:, 0], rel[:, 1], rel[:, 2], rel[:, 3], zeros, zeros, zeros, rel[:, 4]]),
                fmt="%.6f")
+    if drive.log.stereo is not None or drive.log.rgbd is not None:
+        (out_dir / GROUND_TEXTURE_FILE).write_text(json.dumps({
+            "scenario": drive.scenario,
+            "frame": "world frame of ground_truth.txt; the floor colour is World.floor_rgb of the scenario"}) + "\n")
     return path
 
 
-__all__ = ["SimulatedDrive", "rig_for_format", "relations", "simulate", "write_simulated", "RIGS", "SCENARIOS"]
+def floor_beside_log(log_path: str | Path) -> FloorRgb | None:
+    """The floor colour function (x_m, y_m in the ground truth's frame -> (N, 3) uint8) of a
+    simulated log, from the ``ground_texture.json`` in its folder; None when there is none.
+    A damaged file raises :class:`LogFormatError`."""
+    log_path = Path(log_path)
+    path = (log_path if log_path.is_dir() else log_path.parent) / GROUND_TEXTURE_FILE
+    if not path.is_file():
+        return None
+    try:
+        scenario = json.loads(path.read_text(encoding="utf-8"))["scenario"]
+    except (ValueError, KeyError, TypeError) as error:
+        raise LogFormatError(f"not a ground-texture file ({type(error).__name__}: {error})", path) from None
+    if scenario not in SCENARIOS:
+        raise LogFormatError(f"unknown scenario {scenario!r}; scenarios: {', '.join(SCENARIOS)}", path, "scenario")
+    return SCENARIOS[scenario]().floor_rgb
+
+
+__all__ = ["GROUND_TEXTURE_FILE", "SimulatedDrive", "floor_beside_log", "rig_for_format", "relations", "simulate",
+           "write_simulated", "RIGS", "SCENARIOS"]

@@ -7,9 +7,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam_engine.drive_log import LidarModel, MotionModelKind, VehicleModel
+from slam_engine.drive_log import LidarModel, MotionModelKind, RgbdCalibration, StereoCalibration, VehicleModel
 from slam_engine.formats.breezyslam import MINES_ROVER, urg_04lx
 from slam_engine.formats.thor import EFFECTIVE_TRACK_M, THOR_VEHICLE, UTM_30LX
+from slam_engine.texture.calibration import ece276a_car_stereo_calibration, thor_kinect_calibration
 
 # UCSD ECE276A car calibration (param/Vehicle2Lidar.txt, Vehicle2FOG.txt), vehicle <- sensor.
 CAR_R_VEHICLE_FROM_LIDAR = np.array([[0.00130201, 0.796097, 0.605167],
@@ -35,7 +36,8 @@ class Rig:
     ``vehicle``/``lidar`` are the *declared* calibration written into logs; ``true_track_m`` and
     ``wheel_scale_errors`` (per wheel, relative; their left/right difference of 0.1-0.3 % bends the
     wheel-only heading by roughly 10-30 deg over the office loop) make the real motion differ from it.
-    Rates in Hz; ``None`` = sensor absent.
+    Rates in Hz; ``None`` = sensor absent. ``stereo`` / ``rgbd``: the calibration of the rig's
+    stereo pair / Kinect, which see the world's floor texture at ``camera_hz``.
     ``log_odometry_hz`` logs dead-reckoned odometry poses (CARMEN ODOM, ROS Odometry) instead of
     encoder ticks.
     """
@@ -60,6 +62,9 @@ class Rig:
     lateral_accel_m_s2: float = 0.4
     accel_m_s2: float = 0.4
     default_scenario: str = "office"
+    stereo: StereoCalibration | None = None
+    rgbd: RgbdCalibration | None = None
+    camera_hz: float | None = None
 
 
 def _two_wheels(ticks: float, d_left: float, d_right: float, track: float, name: str) -> VehicleModel:
@@ -95,7 +100,8 @@ def _rigs() -> dict[str, Rig]:
             "thor", THOR_VEHICLE, UTM_30LX,
             scan_hz=10, encoder_hz=40, gyro_hz=100, log_odometry_hz=None, true_track_m=EFFECTIVE_TRACK_M,
             wheel_scale_errors=(0.006, 0.004, 0.007, 0.004), slip_noise=0.08, gyro_bias_rad_s=0.0012,
-            gyro_noise_rad_s=0.02, range_noise_m=0.01, dropout_probability=0.01, t0_s=1_298_445_274.54),
+            gyro_noise_rad_s=0.02, range_noise_m=0.01, dropout_probability=0.01, t0_s=1_298_445_274.54,
+            rgbd=thor_kinect_calibration(), camera_hz=1.0),
         "car": Rig(
             "car", VehicleModel(kind=MotionModelKind.DIFFERENTIAL, ticks_per_revolution=4096,
                                 wheel_diameters_m=(0.623479, 0.622806), wheel_names=("left", "right"),
@@ -106,7 +112,8 @@ def _rigs() -> dict[str, Rig]:
             scan_hz=10, encoder_hz=100, gyro_hz=100, log_odometry_hz=None, true_track_m=1.52439,
             wheel_scale_errors=(0.002, 0.001), slip_noise=0.01, gyro_bias_rad_s=0.0003, gyro_noise_rad_s=0.002,
             range_noise_m=0.03, dropout_probability=0.01, t0_s=1_544_582_648.0, turn_radius_m=8.0,
-            lateral_accel_m_s2=2.0, accel_m_s2=1.5, default_scenario="campus"),
+            lateral_accel_m_s2=2.0, accel_m_s2=1.5, default_scenario="campus",
+            stereo=ece276a_car_stereo_calibration(), camera_hz=1.0),
         "ros-robot": Rig(
             "ros-robot", VehicleModel(kind=MotionModelKind.ODOMETRY, name="ROS robot"),
             LidarModel(360, _deg(-180), _deg(1.0), 0.15, 12.0, transform(t=(0.05, 0.0, 0.25)), "RPLIDAR"),

@@ -34,6 +34,33 @@ THOR_KINECT_CY_PX = 242.94140713
 THOR_KINECT_IMAGE_WH = (640, 480)
 
 
+# UCSD ECE276A car stereo pair (param/left_camera.yaml, right_camera.yaml, stereo_param.txt,
+# Vehicle2Stereo.txt of the course data): 1280 x 560 raw Bayer "BG" frames.
+CAR_STEREO_IMAGE_WH = (1280, 560)
+CAR_STEREO_K_LEFT = ((816.90378992770002, 0.50510166700000003, 608.50726281690004),
+                     (0.0, 811.56803828490001, 263.47599764440002), (0.0, 0.0, 1.0))
+CAR_STEREO_D_LEFT = (-0.056143027800000002, 0.13952563200000001, -0.0012155906999999999,
+                     -0.00097281389999999998, -0.080878168799999997)
+CAR_STEREO_R_LEFT = ((0.99996942080938533, 0.00036208456669806118, -0.0078119357978017733),
+                     (-0.00034412461339106772, 0.99999729518344416, 0.0023002617343453663),
+                     (0.0078127475572218850, -0.0022975031148170580, 0.99996684067775188))
+CAR_STEREO_K_RIGHT = ((813.78205539589999, 0.34880336220000002, 613.86419539320002),
+                      (0.0, 808.52165574269998, 249.41049348650000), (0.0, 0.0, 1.0))
+CAR_STEREO_D_RIGHT = (-0.054921981799999998, 0.14243657430000001, 0.000075412299999999996,
+                      -0.00067560530000000001, -0.085665408299999996)
+CAR_STEREO_R_RIGHT = ((0.99998812489422739, 0.0024089155522231892, -0.0042364131513853301),
+                      (-0.0024186483057924992, 0.99999444433315865, -0.0022937835970734117),
+                      (0.0042308640843048539, 0.0023040027516418276, 0.99998839561287933))
+CAR_STEREO_FOCAL_PX = 775.37235550066748  # rectified (P) focal length and principal point
+CAR_STEREO_RECT_CX_PX = 619.47309112548828
+CAR_STEREO_RECT_CY_PX = 257.18049049377441
+CAR_STEREO_RIGHT_TX_PX = -368.41758740842312  # P_right[0, 3] = -f * baseline, as calibrated
+CAR_STEREO_BASELINE_M = 0.475143600050775
+CAR_STEREO_R_VEHICLE_FROM_LEFT = ((-0.00680499, -0.0153215, 0.99985), (-0.999977, 0.000334627, -0.00680066),
+                                  (-0.000230383, -0.999883, -0.0153234))
+CAR_STEREO_T_VEHICLE_FROM_LEFT_M = (1.64239, 0.247401, 1.58411)
+
+
 def rotation_from_rpy(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
     """3x3 rotation ``Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (fixed-axis XYZ roll, pitch, yaw)."""
     cr, sr = np.cos(roll_rad), np.sin(roll_rad)
@@ -70,6 +97,44 @@ def thor_kinect_calibration() -> RgbdCalibration:
         T_vehicle_from_camera=T_vehicle_from_camera,
         model="kinect_v1_thor",
     )
+
+
+def ece276a_car_stereo_calibration() -> StereoCalibration:
+    """The ECE276A car's stereo pair as its ``param`` folder states it (constants above): what
+    :func:`load_ece276a_stereo_calibration` reads from the course data, for the simulated car."""
+    f, cx, cy = CAR_STEREO_FOCAL_PX, CAR_STEREO_RECT_CX_PX, CAR_STEREO_RECT_CY_PX
+    P_left = np.array([[f, 0.0, cx, 0.0], [0.0, f, cy, 0.0], [0.0, 0.0, 1.0, 0.0]])
+    P_right = P_left.copy()
+    P_right[0, 3] = CAR_STEREO_RIGHT_TX_PX
+    return StereoCalibration(
+        image_size_wh=CAR_STEREO_IMAGE_WH,
+        K_left=np.array(CAR_STEREO_K_LEFT), D_left=np.array(CAR_STEREO_D_LEFT), R_left=np.array(CAR_STEREO_R_LEFT),
+        P_left=P_left,
+        K_right=np.array(CAR_STEREO_K_RIGHT), D_right=np.array(CAR_STEREO_D_RIGHT),
+        R_right=np.array(CAR_STEREO_R_RIGHT), P_right=P_right,
+        baseline_m=CAR_STEREO_BASELINE_M,
+        T_vehicle_from_camera=homogeneous(np.array(CAR_STEREO_R_VEHICLE_FROM_LEFT), CAR_STEREO_T_VEHICLE_FROM_LEFT_M),
+        bayer_pattern="BG",
+    )
+
+
+def write_camera_yaml(path: str | Path, image_size_wh: tuple[int, int], K: np.ndarray, D: np.ndarray,
+                      R: np.ndarray, P: np.ndarray, camera_name: str) -> Path:
+    """Write one camera's OpenCV/ROS calibration YAML (what :func:`load_ece276a_stereo_calibration`
+    reads: image size, K, plumb_bob D, rectification R, projection P); returns the path."""
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    try:
+        storage.write("image_width", int(image_size_wh[0]))
+        storage.write("image_height", int(image_size_wh[1]))
+        storage.write("camera_name", camera_name)
+        storage.write("camera_matrix", np.asarray(K, dtype=np.float64).reshape(3, 3))
+        storage.write("distortion_model", "plumb_bob")
+        storage.write("distortion_coefficients", np.asarray(D, dtype=np.float64).reshape(1, -1))
+        storage.write("rectification_matrix", np.asarray(R, dtype=np.float64).reshape(3, 3))
+        storage.write("projection_matrix", np.asarray(P, dtype=np.float64).reshape(3, 4))
+    finally:
+        storage.release()
+    return Path(path)
 
 
 def load_ece276a_stereo_calibration(param_dir: str | Path) -> StereoCalibration:

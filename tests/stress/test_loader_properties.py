@@ -100,7 +100,7 @@ def samples(tmp_path_factory) -> list[Sample]:
     exp1.write_text("".join(require_dataset("breezyslam/exp1.dat").open().readlines()[:15]))
     out.append(Sample("breezyslam: exp1.dat head", exp1, exp1))
     for fmt in ("drivelog", "rosbag", "ece276a-car", "thor"):
-        drive = simulate(None, seed=2, rig=rig_for_format(fmt), max_duration_s=3.0)
+        drive = simulate(None, seed=2, rig=rig_for_format(fmt), max_duration_s=3.0, cameras=False)
         path = write_simulated(drive, fmt, base / fmt)
         if fmt == "drivelog":
             out.append(Sample("drivelog archive", path, path))
@@ -209,7 +209,8 @@ WRITABLE = ("drivelog", "carmen", "breezyslam", "rosbag", "thor")
 def drives() -> dict:
     from slam_engine.simulation import rig_for_format, simulate
 
-    return {fmt: simulate(None, seed=4, rig=rig_for_format(fmt), max_duration_s=3.0) for fmt in WRITABLE}
+    return {fmt: simulate(None, seed=4, rig=rig_for_format(fmt), max_duration_s=3.0, cameras=False)
+            for fmt in WRITABLE}
 
 
 @settings(max_examples=50, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
