@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from service.chunks import read_chunk_messages, stream_state
-from service.products import GRID_FILE, TEXTURE_FILE, save_grid, save_texture
+from service.products import COMPILING_FILE, GRID_FILE, TEXTURE_FILE, save_grid, save_texture
 from service.storage import write_atomic
 from service.stream_log import drive_log_from_messages
 from service.worker import JobContext
@@ -93,7 +93,24 @@ class LiveMap:
 
 
 def run_mapping_job(ctx: JobContext) -> None:
-    """Job function for the worker: input -> run_slam -> products (names as the API serves them)."""
+    """Job function for the worker: input -> run_slam -> products (names as the API serves them).
+    While the engine compiles a kernel (no warm cache), the job's status says so."""
+    from slam_engine.kernels import compile_notices
+
+    marker = ctx.data.live_dir(ctx.job_id) / COMPILING_FILE
+
+    def on_compiling(compiling: bool) -> None:
+        if compiling:
+            marker.parent.mkdir(parents=True, exist_ok=True)
+            marker.touch()
+        else:
+            marker.unlink(missing_ok=True)
+
+    with compile_notices(on_compiling):
+        _run_mapping_job(ctx)
+
+
+def _run_mapping_job(ctx: JobContext) -> None:
     if ctx.job["config"].get("live"):
         from service.live_job import run_live_job
 
