@@ -9,7 +9,9 @@ followed in seq order as they arrive until the stream is finished or idle
 
 from __future__ import annotations
 
+import contextlib
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -92,9 +94,10 @@ class LiveMap:
         write_trajectory_json(snapshot.trajectory, self.live_dir / "trajectory.json", frame="map (so far)")
 
 
-def run_mapping_job(ctx: JobContext) -> None:
-    """Job function for the worker: input -> run_slam -> products (names as the API serves them).
-    While the engine compiles a kernel (no warm cache), the job's status says so."""
+@contextlib.contextmanager
+def compiling_status(ctx: JobContext) -> Iterator[None]:
+    """Within the block, the job's status says 'compiling' while the engine compiles a kernel (a
+    marker file in its live folder, :func:`service.products.engine_compiling`)."""
     from slam_engine.kernels import compile_notices
 
     marker = ctx.data.live_dir(ctx.job_id) / COMPILING_FILE
@@ -106,7 +109,17 @@ def run_mapping_job(ctx: JobContext) -> None:
         else:
             marker.unlink(missing_ok=True)
 
-    with compile_notices(on_compiling):
+    try:
+        with compile_notices(on_compiling):
+            yield
+    finally:
+        marker.unlink(missing_ok=True)
+
+
+def run_mapping_job(ctx: JobContext) -> None:
+    """Job function for the worker: input -> run_slam -> products (names as the API serves them).
+    While the engine compiles a kernel (no warm cache), the job's status says so."""
+    with compiling_status(ctx):
         _run_mapping_job(ctx)
 
 
