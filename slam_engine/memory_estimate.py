@@ -3,7 +3,8 @@ can refuse or bound a job it cannot hold).
 
 Where a run's memory goes (whole process, measured on the benchmark logs):
 
-- the imported libraries (numba/llvmlite, numpy, scipy, pydantic, Pillow, tifffile): ~160 MB;
+- the imported libraries (numba/llvmlite, numpy, scipy, pydantic, Pillow, tifffile): ~130 MB, and
+  the numba kernels loaded from the cache: ~65 MB;
 - the log: its arrays, plus the parser's temporaries while loading (about 3x the arrays);
 - the map: the particles' copy-on-write tile pool (the area seen, times the fraction of tiles
   particles hold privately), the per-particle tile tables, the best particle's dense grid
@@ -22,10 +23,10 @@ from slam_engine.config import SlamConfig
 from slam_engine.drive_log import DriveLog
 from slam_engine.grid import N_LEVELS, POOL_DTYPE, TILE
 
-BASE_BYTES = 200 * 1024**2  # imports and interpreter, with room
+BASE_BYTES = 280 * 1024**2  # interpreter and imports (~130 MB) plus the loaded numba kernels (~65 MB), with room
 LOG_LOAD_FACTOR = 3.0  # peak while loading / the log's arrays
 DENSE_BYTES_PER_CELL = 4 + 4 + 12  # final grid float32 + newest snapshot float32 + product rasters
-PRIVATE_TILE_FRACTION = 0.25  # tiles that particles hold privately beyond the shared map (diverged)
+PRIVATE_TILE_FRACTION = 0.03  # per particle: tiles held privately beyond the shared map (measured: pool ~1.8x the area at 30)
 MARGIN = 1.25
 TILE_BYTES = sum((TILE >> k) ** 2 for k in range(N_LEVELS)) * np.dtype(POOL_DTYPE).itemsize
 
@@ -40,14 +41,21 @@ def log_array_bytes(log: DriveLog) -> int:
     return total
 
 
+REACH_PERCENTILE = 95  # the map reaches about this percentile of the scans' return ranges past the track
+
+
 def map_extent_m(log: DriveLog, config: SlamConfig) -> tuple[float, float]:
     """(width, height) [m] of the area the map will likely cover: the dead-reckoning track's
-    bounding box grown by the range the map uses on every side."""
+    bounding box grown on every side by the 95th percentile of the returns' ranges (at most
+    ``max_range_m``). Odometry drift makes the box larger than the map: an estimate on the high side."""
     from slam_engine.odometry import dead_reckoning
 
-    reach = config.grid.max_range_m
-    if log.lidar is not None:
-        reach = min(reach, max(log.lidar.range_max_m, 0.0))
+    reach = 0.0
+    if log.scans is not None and log.lidar is not None and len(log.scans):
+        ranges = log.scans.ranges_m[:: max(1, len(log.scans) // 500)]  # a sample of scans is enough
+        returns = ranges[np.isfinite(ranges) & (ranges > 0) & (ranges < log.lidar.range_max_m)]
+        if returns.size:
+            reach = min(float(np.percentile(returns, REACH_PERCENTILE)), config.grid.max_range_m)
     try:
         poses = dead_reckoning(log).poses
     except Exception:  # no odometry: nothing will be mapped beyond one scan
