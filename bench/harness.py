@@ -146,6 +146,7 @@ def summarise(case: BenchCase, records: list[dict]) -> dict:
         "scans_per_s": _spread([r.get("scans_per_s") for r in ok], False)["median"],
         "realtime_factor": _spread([r.get("realtime_factor") for r in ok], False)["median"],
         "peak_memory_mb": max((r["peak_memory_mb"] for r in records if r.get("peak_memory_mb")), default=None),
+        "peak_run_mb": max((r["peak_run_mb"] for r in ok if r.get("peak_run_mb")), default=None),
         "slam": {name: _spread([_get(r["slam"], path) for r in ok], worse) for name, path, worse in SLAM_METRICS},
         "dead_reckoning": {name: _get(first.get("dead_reckoning"), path) for name, path, _ in SLAM_METRICS},
         "map": {name: _spread([_get(r.get("map"), path) for r in ok], worse) for name, path, worse in MAP_METRICS},

@@ -28,7 +28,7 @@ def _pair(first, second, digits_first: int = 3, digits_second: int = 2) -> str:
 
 
 TIMING_COLUMNS = ("particles", "seeds ok", "process s", "wall s", "products s (% of wall)", "scans/s",
-                  "real-time ×", "peak MB")
+                  "real-time ×", "peak MB run / process")
 
 
 def _timing_cells(summary: dict) -> list[str]:
@@ -37,7 +37,7 @@ def _timing_cells(summary: dict) -> list[str]:
     return [str(summary.get("particles")), f"{summary['seeds_ok']}/{len(summary['seeds'])}",
             fmt(summary.get("process_s"), 1), fmt(summary.get("wall_s"), 2), products,
             fmt(summary.get("scans_per_s"), 1), fmt(summary.get("realtime_factor"), 1),
-            fmt(summary.get("peak_memory_mb"), 0)]
+            f"{fmt(summary.get('peak_run_mb'), 0)} / {fmt(summary.get('peak_memory_mb'), 0)}"]
 
 
 def scored_table(summary: dict) -> Table:

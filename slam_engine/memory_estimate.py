@@ -26,7 +26,7 @@ from slam_engine.grid import N_LEVELS, POOL_DTYPE, TILE
 BASE_BYTES = 280 * 1024**2  # interpreter and imports (~130 MB) plus the loaded numba kernels (~65 MB), with room
 LOG_LOAD_FACTOR = 3.0  # peak while loading / the log's arrays
 DENSE_BYTES_PER_CELL = 4 + 4 + 12  # final grid float32 + newest snapshot float32 + product rasters
-PRIVATE_TILE_FRACTION = 0.03  # per particle: tiles held privately beyond the shared map (measured: pool ~1.8x the area at 30)
+PRIVATE_TILE_FRACTION = 0.03  # per particle: private tiles beyond the shared map (pool ~1.8x the area at 30)
 MARGIN = 1.25
 TILE_BYTES = sum((TILE >> k) ** 2 for k in range(N_LEVELS)) * np.dtype(POOL_DTYPE).itemsize
 
