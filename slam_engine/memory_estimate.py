@@ -23,7 +23,7 @@ from slam_engine.config import SlamConfig
 from slam_engine.drive_log import DriveLog
 from slam_engine.grid import N_LEVELS, POOL_DTYPE, TILE
 
-BASE_BYTES = 280 * 1024**2  # interpreter and imports (~130 MB) plus the loaded numba kernels (~65 MB), with room
+BASE_BYTES = 400 * 1024**2  # interpreter, imports (~130 MB), numba kernels (~65 MB loaded; more while compiling)
 LOG_LOAD_FACTOR = 3.0  # peak while loading / the log's arrays
 DENSE_BYTES_PER_CELL = 4 + 4 + 12  # final grid float32 + newest snapshot float32 + product rasters
 PRIVATE_TILE_FRACTION = 0.03  # per particle: private tiles beyond the shared map (pool ~1.8x the area at 30)
