@@ -12,6 +12,7 @@ $(STAMP): pyproject.toml scripts/setup_env.sh
 setup: $(STAMP)
 
 serve: $(STAMP)
+	$(VENV)/bin/python -m slam_engine.kernels  # numba's cache warm: no job compiles at first use
 	$(VENV)/bin/lidarmap serve --host $(HOST) --port $(PORT)
 
 test:

@@ -65,7 +65,10 @@ class JobPublic(BaseModel):
     scans_done: int
     scans_total: int | None = Field(description="Scans in the input; null while unknown (before the run "
                                     "starts, and for a live job until it succeeds).")
-    eta_s: float | None = Field(description="Estimated seconds left while running.")
+    eta_s: float | None = Field(description="Estimated seconds left while running (null while unknown, "
+                                "e.g. while the engine compiles).")
+    compiling: bool = Field(False, description="The engine is compiling its kernels (the first job after an "
+                            "install whose kernel cache is not warm, about 30 s): no scans are mapped meanwhile.")
     error: str | None = Field(description="Why the job failed or was cancelled.")
     cancel_requested: bool
     config: dict[str, Any] = Field(description="The parameters the job was created with.")

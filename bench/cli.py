@@ -55,6 +55,8 @@ def accuracy(
                                        help="YAML or JSON file with SlamConfig overrides."),
     out: Path | None = typer.Option(None, help="Output folder (default bench/results/<date-time>)."),
     timeout_s: float = typer.Option(3600.0, min=1.0, help="Time limit per run, seconds."),
+    busy: int = typer.Option(0, min=0, max=64, help="CPU-bound processes to run beside every run "
+                             "('while True: pass'): timings on a busy machine."),
     runner: str = typer.Option("slam_engine.pipeline:run_slam", hidden=True,
                                help="SLAM function to benchmark (module:function)."),
     loader: str = typer.Option("slam_engine.formats:load_log", hidden=True, help="Log loader (module:function)."),
@@ -89,15 +91,16 @@ def accuracy(
             raise typer.BadParameter(f"cannot use {dotted!r}: {error}") from None
     cases = readable_cases(cases, loader, console)
     console.print(f"{len(cases)} logs × {len(seed_list)} seeds, {particles or 'default'} particles, "
-                  "one process at a time")
+                  "one process at a time" + (f", {busy} busy processes beside each" if busy else ""))
 
     def progress(record: dict) -> None:
         if record.get("status") == "ok":
-            console.print(f"  {record['case']} seed {record['seed']}: {fmt(record.get('wall_s'), 1)} s, "
-                          f"{fmt(record.get('peak_memory_mb'), 0)} MB", highlight=False)
+            console.print(f"  {record['case']} seed {record['seed']}: process {fmt(record.get('process_s'), 1)} s, "
+                          f"SLAM {fmt(record.get('wall_s'), 1)} s, products {fmt(record.get('products_s'), 2)} s, "
+                          f"peak {fmt(record.get('peak_memory_mb'), 0)} MB", highlight=False)
         else:
             console.print(f"  [red]{record['case']} seed {record['seed']} failed[/red]")
 
     options = BenchOptions(seeds=seed_list, particles=particles, config=overrides or {}, out_dir=out,
-                           timeout_s=timeout_s, runner=runner, loader=loader)
+                           timeout_s=timeout_s, runner=runner, loader=loader, busy=busy)
     print_report(run_benchmark(cases, options, on_run=progress), console)

@@ -6,6 +6,7 @@ what it used and nothing else; runs never overlap, so wall times are not disturb
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
@@ -14,7 +15,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -55,6 +56,7 @@ class BenchOptions:
     out_dir: Path | None = None
     timeout_s: float = 3600.0
     extra_pythonpath: list[str] = field(default_factory=list)
+    busy: int = 0  # CPU-bound processes kept running beside every run (a busy machine)
 
 
 def _get(record: dict | None, path: tuple[str, ...]):
@@ -63,6 +65,21 @@ def _get(record: dict | None, path: tuple[str, ...]):
             return None
         record = record.get(key)
     return record
+
+
+BUSY_LOOP = "while True: pass"
+
+
+@contextlib.contextmanager
+def busy_processes(n: int) -> Iterator[list[subprocess.Popen]]:
+    """``n`` CPU-bound Python processes (``while True: pass``) for the duration of the block."""
+    children = [subprocess.Popen([sys.executable, "-c", BUSY_LOOP]) for _ in range(n)]
+    try:
+        yield children
+    finally:
+        for child in children:
+            child.kill()
+            child.wait()
 
 
 def run_one(case: BenchCase, seed: int, options: BenchOptions, out_dir: Path) -> dict:
@@ -78,7 +95,7 @@ def run_one(case: BenchCase, seed: int, options: BenchOptions, out_dir: Path) ->
                                          *filter(None, [env.get("PYTHONPATH")])])
     log_path = out_dir / f"{stem}.stderr.txt"
     started = time.perf_counter()
-    with log_path.open("w") as stderr:
+    with log_path.open("w") as stderr, busy_processes(options.busy):
         child = subprocess.Popen([sys.executable, "-m", "bench.worker", str(job_path), str(result_path)],
                                  cwd=REPO_ROOT, env=env, stdout=stderr, stderr=subprocess.STDOUT)
         timer = threading.Timer(options.timeout_s, child.kill)
@@ -123,9 +140,13 @@ def summarise(case: BenchCase, records: list[dict]) -> dict:
         "particles": (first or (records[0] if records else {})).get("particles"),
         "scans": first.get("scans"), "duration_s": first.get("duration_s"),
         "wall_s": _spread([r.get("wall_s") for r in ok], True)["median"],
+        "products_s": _spread([r.get("products_s") for r in ok], True)["median"],
+        "products_share": _spread([r.get("products_share") for r in ok], True)["median"],
+        "process_s": _spread([r.get("process_s") for r in ok], True)["median"],
         "scans_per_s": _spread([r.get("scans_per_s") for r in ok], False)["median"],
         "realtime_factor": _spread([r.get("realtime_factor") for r in ok], False)["median"],
         "peak_memory_mb": max((r["peak_memory_mb"] for r in records if r.get("peak_memory_mb")), default=None),
+        "peak_run_mb": max((r["peak_run_mb"] for r in ok if r.get("peak_run_mb")), default=None),
         "slam": {name: _spread([_get(r["slam"], path) for r in ok], worse) for name, path, worse in SLAM_METRICS},
         "dead_reckoning": {name: _get(first.get("dead_reckoning"), path) for name, path, _ in SLAM_METRICS},
         "map": {name: _spread([_get(r.get("map"), path) for r in ok], worse) for name, path, worse in MAP_METRICS},
@@ -177,7 +198,8 @@ def run_benchmark(cases: list[BenchCase], options: BenchOptions,
                     "load_average_at_start": load_at_start, "load_average_at_end": list(os.getloadavg())},
         "code": code_version(),
         "options": {"seeds": options.seeds, "particles": options.particles, "config": options.config,
-                    "loader": options.loader, "runner": options.runner, "timeout_s": options.timeout_s},
+                    "loader": options.loader, "runner": options.runner, "timeout_s": options.timeout_s,
+                    "busy": options.busy},
         "cases": [case.as_dict() for case in cases],
         "summaries": summaries,
         "runs": [finite_or_none(r) for r in runs],

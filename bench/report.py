@@ -27,17 +27,23 @@ def _pair(first, second, digits_first: int = 3, digits_second: int = 2) -> str:
     return f"{fmt(first, digits_first)} / {fmt(second, digits_second)}"
 
 
+TIMING_COLUMNS = ("particles", "seeds ok", "process s", "wall s", "products s (% of wall)", "scans/s",
+                  "real-time ×", "peak MB run / process")
+
+
 def _timing_cells(summary: dict) -> list[str]:
+    share = summary.get("products_share")
+    products = fmt(summary.get("products_s"), 2) + ("" if share is None else f" ({100 * share:.0f} %)")
     return [str(summary.get("particles")), f"{summary['seeds_ok']}/{len(summary['seeds'])}",
-            fmt(summary.get("wall_s"), 2), fmt(summary.get("scans_per_s"), 1),
-            fmt(summary.get("realtime_factor"), 1), fmt(summary.get("peak_memory_mb"), 0)]
+            fmt(summary.get("process_s"), 1), fmt(summary.get("wall_s"), 2), products,
+            fmt(summary.get("scans_per_s"), 1), fmt(summary.get("realtime_factor"), 1),
+            f"{fmt(summary.get('peak_run_mb'), 0)} / {fmt(summary.get('peak_memory_mb'), 0)}"]
 
 
 def scored_table(summary: dict) -> Table:
     """Relation errors (median / worst seed), ATE, local and loop subsets, timing and memory."""
     table = Table(title=_title(summary), title_justify="left")
-    for column in ("method", "particles", "seeds ok", "wall s", "scans/s", "real-time ×", "peak MB",
-                   "trans m (med / worst)", "rot ° (med / worst)", "ATE m (med / worst)",
+    for column in ("method", *TIMING_COLUMNS, "trans m (med / worst)", "rot ° (med / worst)", "ATE m (med / worst)",
                    "local m / °", "loop m / °", "failed rel."):
         table.add_column(column, justify="left" if column == "method" else "right")
     slam = summary["slam"]
@@ -48,7 +54,7 @@ def scored_table(summary: dict) -> Table:
                   _pair(slam["loop_trans_m"]["median"], slam["loop_rot_deg"]["median"]),
                   fmt(slam["failed_relations"]["worst"], 0))
     dr = summary["dead_reckoning"]
-    table.add_row("dead reckoning", "", "", "", "", "", "",
+    table.add_row("dead reckoning", *[""] * len(TIMING_COLUMNS),
                   fmt(dr["trans_mean_m"], 3), fmt(dr["rot_mean_deg"], 2), fmt(dr["ate_m"], 3),
                   _pair(dr["local_trans_m"], dr["local_rot_deg"]), _pair(dr["loop_trans_m"], dr["loop_rot_deg"]),
                   fmt(dr["failed_relations"], 0))
@@ -58,15 +64,15 @@ def scored_table(summary: dict) -> Table:
 def map_table(summary: dict) -> Table:
     """Map numbers for a log without ground truth (median / worst seed)."""
     table = Table(title=_title(summary) + " (no ground truth)", title_justify="left")
-    for column in ("method", "particles", "seeds ok", "wall s", "scans/s", "real-time ×", "peak MB",
-                   "wall thickness m", "occupied w/ neighbour", "half agreement", "half offset m"):
+    for column in ("method", *TIMING_COLUMNS, "wall thickness m", "occupied w/ neighbour", "half agreement",
+                   "half offset m"):
         table.add_column(column, justify="left" if column == "method" else "right")
     quality = summary["map"]
     table.add_row("RBPF SLAM", *_timing_cells(summary),
                   _median_worst(quality["wall_thickness_m"], 3), _median_worst(quality["occupied_with_neighbour"], 3),
                   _median_worst(quality["half_agreement"], 3), _median_worst(quality["half_mean_offset_m"], 3))
     dr = summary.get("dead_reckoning_map") or {}
-    table.add_row("dead reckoning", "", "", "", "", "", "", "", "",
+    table.add_row("dead reckoning", *[""] * len(TIMING_COLUMNS), "", "",
                   fmt(dr.get("half_agreement"), 3), fmt(dr.get("half_mean_offset_m"), 3))
     return table
 

@@ -38,7 +38,14 @@ if [[ -z "$PYTHON" ]]; then
     echo "setup: lidarmap needs Python 3.11 or 3.12 (python3.11 not found on PATH)" >&2
     exit 1
 fi
+# Compile the engine's numba kernels into numba's on-disk cache (beside the sources), so that no run
+# compiles at first use; quick (a few seconds) when the cache is already warm.
+warm_kernels() {
+    .venv/bin/python -m slam_engine.kernels || {
+        echo "setup: compiling the engine's kernels failed (see the messages above)" >&2; exit 1; }
+}
 if [[ -f .venv/.installed && .venv/.installed -nt pyproject.toml && .venv/.installed -nt scripts/setup_env.sh ]]; then
+    warm_kernels
     exit 0  # already installed and up to date
 fi
 [[ -x .venv/bin/python ]] || "$PYTHON" -m venv .venv
@@ -48,3 +55,4 @@ fi
 .venv/bin/python -c "import slam_engine, service, open3d" || {
     echo "setup: installation check failed (see the messages above)" >&2; exit 1; }
 touch .venv/.installed
+warm_kernels

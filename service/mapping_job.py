@@ -9,14 +9,16 @@ followed in seq order as they arrive until the stream is finished or idle
 
 from __future__ import annotations
 
+import contextlib
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from service.chunks import read_chunk_messages, stream_state
-from service.products import GRID_FILE, TEXTURE_FILE, save_grid, save_texture
+from service.products import COMPILING_FILE, GRID_FILE, TEXTURE_FILE, save_grid, save_texture
 from service.storage import write_atomic
 from service.stream_log import drive_log_from_messages
 from service.worker import JobContext
@@ -92,8 +94,36 @@ class LiveMap:
         write_trajectory_json(snapshot.trajectory, self.live_dir / "trajectory.json", frame="map (so far)")
 
 
+@contextlib.contextmanager
+def compiling_status(ctx: JobContext) -> Iterator[None]:
+    """Within the block, the job's status says 'compiling' while the engine compiles a kernel (a
+    marker file in its live folder, :func:`service.products.engine_compiling`)."""
+    from slam_engine.kernels import compile_notices
+
+    marker = ctx.data.live_dir(ctx.job_id) / COMPILING_FILE
+
+    def on_compiling(compiling: bool) -> None:
+        if compiling:
+            marker.parent.mkdir(parents=True, exist_ok=True)
+            marker.touch()
+        else:
+            marker.unlink(missing_ok=True)
+
+    try:
+        with compile_notices(on_compiling):
+            yield
+    finally:
+        marker.unlink(missing_ok=True)
+
+
 def run_mapping_job(ctx: JobContext) -> None:
-    """Job function for the worker: input -> run_slam -> products (names as the API serves them)."""
+    """Job function for the worker: input -> run_slam -> products (names as the API serves them).
+    While the engine compiles a kernel (no warm cache), the job's status says so."""
+    with compiling_status(ctx):
+        _run_mapping_job(ctx)
+
+
+def _run_mapping_job(ctx: JobContext) -> None:
     if ctx.job["config"].get("live"):
         from service.live_job import run_live_job
 

@@ -27,6 +27,15 @@ LIVE_FILES = {"occupancy.png": "occupancy.png", "grid.npz": "grid.npz", "traject
 GRID_FILE, TEXTURE_FILE = "grid.npz", "texture.npz"  # the service's own copies for tiles
 
 
+COMPILING_FILE = "compiling"  # in a running job's live folder while the engine compiles its kernels
+
+
+def engine_compiling(data: DataDir, job: dict[str, Any]) -> bool:
+    """Whether a running job's engine is compiling its numba kernels right now (first use without a
+    warm cache: no scans are mapped meanwhile, so no ETA can be given)."""
+    return job["status"] == "running" and (data.live_dir(job["id"]) / COMPILING_FILE).exists()
+
+
 def live_product_names(data: DataDir, job: dict[str, Any]) -> list[str]:
     """Products a running job can already show."""
     if job["status"] != "running":

@@ -81,8 +81,12 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
     slam = SlamFilter.from_log(log, config, rng)
     odometry_only = DriveLog(vehicle=log.vehicle, encoders=log.encoders, gyro=log.gyro, odometry=log.odometry,
                              scans=log.scans)
+    kept = 0
     for message in odometry_only.messages():
         slam.step(message)
+        if len(slam.snapshots) != kept:
+            kept = len(slam.snapshots)
+            reduce_older_snapshots(slam.snapshots)
         if progress is not None and isinstance(message, ScanMessage):
             progress(RunProgress(slam.scans_seen, scans_total, time.perf_counter() - start,
                                  slam.snapshots[-1] if slam.snapshots else None))
@@ -90,6 +94,15 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
     if progress is not None:
         progress(RunProgress(scans_total, scans_total, time.perf_counter() - start))
     return filter_result(slam, log, config, start)
+
+
+def reduce_older_snapshots(snapshots: list[MapSnapshot]) -> None:
+    """Pool the maps of every kept snapshot but the newest (:meth:`MapSnapshot.reduced`), in place:
+    the animation needs no more, live previews show the newest at full resolution, and memory no
+    longer grows with (snapshots x map size). A caller that steps a filter itself calls this after
+    each new snapshot."""
+    for i in range(len(snapshots) - 1):
+        snapshots[i] = snapshots[i].reduced()
 
 
 def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s: float) -> SlamResult:
@@ -117,7 +130,7 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
         texture=texture,
         scan_stats=slam.scan_stats(),
         config=config,
-        snapshots=slam.snapshots,
+        snapshots=[s.reduced() for s in slam.snapshots],
         wall_time_s=time.perf_counter() - started_s,
         peak_memory_bytes=_peak_rss_bytes(),
         warnings=warnings,

@@ -8,6 +8,7 @@ so row index grows with y (north up means flipping rows for an image).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -15,6 +16,9 @@ import numpy as np
 
 if TYPE_CHECKING:
     from slam_engine.config import SlamConfig
+
+SNAPSHOT_MAX_SIDE_CELLS = 800  # a kept snapshot's map is pooled to at most this (what an animation frame shows)
+_POOL_BAND_ROWS = 256  # pool a grid this many output rows at a time: temporaries stay small
 
 
 @dataclass
@@ -61,6 +65,22 @@ class OccupancyGrid:
         y = self.origin_y_m + (np.asarray(iy) + 0.5) * self.resolution_m
         return x, y
 
+    def pooled(self, factor: int) -> OccupancyGrid:
+        """This grid with cells ``factor`` times larger (same origin): a block's log-odds is the
+        largest among its known cells (obstacles stay visible), 0 (unknown) where none is known."""
+        if factor <= 1:
+            return self
+        h, w = self.shape
+        out = np.zeros((math.ceil(h / factor), math.ceil(w / factor)), np.float32)
+        for r0 in range(0, out.shape[0], _POOL_BAND_ROWS):
+            band = self.log_odds[r0 * factor:(r0 + _POOL_BAND_ROWS) * factor]
+            rows = math.ceil(band.shape[0] / factor)
+            padded = np.full((rows * factor, out.shape[1] * factor), -np.inf, np.float32)
+            padded[:band.shape[0], :w] = np.where(band != 0.0, band, -np.inf)
+            block_max = padded.reshape(rows, factor, out.shape[1], factor).max(axis=(1, 3))
+            out[r0:r0 + rows] = np.where(np.isfinite(block_max), block_max, 0.0)
+        return OccupancyGrid(out, self.resolution_m * factor, self.origin_x_m, self.origin_y_m)
+
 
 @dataclass
 class TextureMap:
@@ -95,6 +115,14 @@ class MapSnapshot:
     t_s: float
     grid: OccupancyGrid
     trajectory: Trajectory
+
+    def reduced(self, max_side_cells: int = SNAPSHOT_MAX_SIDE_CELLS) -> MapSnapshot:
+        """This snapshot with its map pooled (:meth:`OccupancyGrid.pooled`) to at most
+        ``max_side_cells`` cells on the longer side; itself when that small already."""
+        factor = math.ceil(max(self.grid.shape) / max_side_cells)
+        if factor <= 1:
+            return self
+        return MapSnapshot(self.scan_index, self.t_s, self.grid.pooled(factor), self.trajectory)
 
 
 @dataclass

@@ -14,7 +14,7 @@ from rich.console import Console
 
 from bench.cases import cases_for_path
 from bench.cli import parse_seeds
-from bench.harness import BenchOptions, run_benchmark
+from bench.harness import BUSY_LOOP, BenchOptions, busy_processes, run_benchmark
 from bench.map_quality import half_agreement, occupied_with_neighbour, wall_thickness_m
 from bench.report import print_report
 from slam_engine.drive_log import DriveLog, LidarModel, MotionModelKind, OdometryStream, ScanStream, VehicleModel
@@ -93,7 +93,7 @@ def bench_run(tmp_path_factory):
     results = run_benchmark(cases[:1], options)
     options.seeds, options.out_dir = [3], root / "out_map"
     map_results = run_benchmark(cases[1:], options)
-    options.runner, options.out_dir = "fake_engine:broken", root / "out_broken"
+    options.runner, options.out_dir, options.busy = "fake_engine:broken", root / "out_broken", 1
     broken_results = run_benchmark(cases[:1], options)
     return root, results, map_results, broken_results
 
@@ -125,7 +125,7 @@ def test_json_records_every_seed_with_consistent_numbers(bench_run):
         assert run["scans_per_s"] == pytest.approx(N_SCANS / run["wall_s"])
         assert run["realtime_factor"] == pytest.approx(run["duration_s"] / run["wall_s"])
         assert run["peak_memory_mb"] > 10  # a Python process with numpy: measured, not zero
-        assert 10 < run["peak_before_slam_mb"] <= run["peak_memory_mb"]
+        assert 10 < run["peak_before_slam_mb"] <= run["peak_run_mb"] <= run["peak_memory_mb"]
         expected = expected_relation_errors(root, 1.0 + 0.05 * run["seed"])
         assert run["slam"]["relations"]["all"]["trans_mean_m"] == pytest.approx(expected.trans_mean_m, abs=1e-5)
         assert run["slam"]["relations"]["all"]["n_relations"] == N_SCANS
@@ -133,6 +133,14 @@ def test_json_records_every_seed_with_consistent_numbers(bench_run):
         assert run["slam"]["ate_m"] >= 0
         with Image.open(run["map_png"]) as image:
             assert image.size == (40, 40)
+        # the products, as `lidarmap run` writes them, timed apart from SLAM; the whole process too
+        products = root / "out" / f"log_seed{run['seed']}_products"
+        assert (products / "occupancy.png").exists() and (products / "run.json").exists()
+        assert run["products_s"] > 0 and run["products_share"] == pytest.approx(run["products_s"] / run["wall_s"])
+        assert run["process_s"] > run["import_s"] + run["load_s"] + run["wall_s"] + run["products_s"]
+        assert run["config"]["snapshot_every_scans"] == 1  # 12 scans // 40 frames, at least 1
+    summary = written["summaries"][0]
+    assert summary["products_s"] == sorted(r["products_s"] for r in runs)[1]  # median of 3
 
 
 def test_summary_takes_median_and_worst_seed(bench_run):
@@ -157,6 +165,13 @@ def test_map_only_log_gets_map_numbers(bench_run):
     assert summary["map"]["occupied_with_neighbour"]["median"] == 1.0
     assert 0.0 <= summary["map"]["half_agreement"]["median"] <= 1.0
     assert summary["dead_reckoning_map"]["half_agreement"] is not None
+
+
+def test_busy_processes_run_beside_a_run_and_stop_after_it():
+    with busy_processes(2) as children:
+        assert len(children) == 2 and all(child.poll() is None for child in children)
+        assert all(child.args[-1] == BUSY_LOOP for child in children)
+    assert all(child.returncode is not None for child in children)
 
 
 def test_failed_run_is_reported_not_dropped(bench_run):

@@ -16,7 +16,7 @@ import typer
 from service.cli.errors import bad_input_exits
 from slam_engine.errors import ConfigError
 
-SNAPSHOT_FRAMES = 40  # animation frames aimed at when the config sets no snapshot interval
+SNAPSHOT_FRAMES = 40  # = slam_engine.products.animation.ANIMATION_FRAMES (for the help text; not imported here)
 
 
 def load_config(path: Path | None, particles: int | None = None, seed: int | None = None,
@@ -186,7 +186,9 @@ def register(app: typer.Typer) -> None:
             truth = None if ground_truth is None else evaluation.read_ground_truth(ground_truth)
             drive_log = load_log(log, format)
             if snapshot_every is None and slam_config.snapshot_every_scans == 0 and drive_log.scans is not None:
-                every = max(1, len(drive_log.scans) // SNAPSHOT_FRAMES)
+                from slam_engine.products.animation import snapshot_interval
+
+                every = snapshot_interval(len(drive_log.scans))
                 slam_config = slam_config.model_copy(update={"snapshot_every_scans": every})
             floor = floor_beside_log(log)
             result = run_with_progress(drive_log, slam_config)

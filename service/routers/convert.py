@@ -35,13 +35,15 @@ def eta_s(row: dict[str, Any], now: float | None = None) -> float | None:
     return max(0.0, elapsed * (row["scans_total"] - row["scans_done"]) / row["scans_done"])
 
 
-def job_public(row: dict[str, Any], live_products: list[str] | None = None) -> JobPublic:
+def job_public(row: dict[str, Any], live_products: list[str] | None = None, compiling: bool = False) -> JobPublic:
+    """The public view of a job row; ``compiling``: its engine is compiling (no ETA meanwhile)."""
     products = sorted(set(row["products"]) | set(live_products or []))
     following = bool(row["config"].get("live")) and row["status"] != "succeeded"  # total unknown
     return JobPublic(id=row["id"], session_id=row["session_id"], source=row["source"], log_id=row["log_id"],
                      status=row["status"], progress=None if following else row["progress"],
                      scans_done=row["scans_done"],
-                     scans_total=row["scans_total"], eta_s=eta_s(row), error=row["error"],
+                     scans_total=row["scans_total"], eta_s=None if compiling else eta_s(row), compiling=compiling,
+                     error=row["error"],
                      cancel_requested=row["cancel_requested"], config=row["config"], input=row["input"],
                      products=products, created_at=utc(row["created_at"]), started_at=utc(row["started_at"]),
                      finished_at=utc(row["finished_at"]))

@@ -10,7 +10,7 @@ from api_schemas.errors import ErrorResponse
 from api_schemas.jobs import JobCreate, JobPublic, JobSource, JobsPublic, JobStatus
 from service.deps import MAX_OFFSET, DataDep, JobRow, OwnerDep, RunnerDep, SessionRow, StoreDep
 from service.errors import Conflict, NotFound
-from service.products import live_product_names
+from service.products import engine_compiling, live_product_names
 from service.routers.convert import job_public
 
 ERRORS = {401: {"model": ErrorResponse}, 404: {"model": ErrorResponse}, 422: {"model": ErrorResponse}}
@@ -77,13 +77,14 @@ def list_jobs(store: StoreDep, owner: OwnerDep, data: DataDep,
               limit: Annotated[int, Query(ge=1, le=1000)] = 100,
               offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0) -> JobsPublic:
     rows, count = store.list_jobs(owner, session, None if status is None else status.value, limit, offset)
-    return JobsPublic(data=[job_public(r, live_product_names(data, r)) for r in rows], count=count)
+    return JobsPublic(data=[job_public(r, live_product_names(data, r), engine_compiling(data, r)) for r in rows],
+                      count=count)
 
 
 @router.get("/{job_id}", response_model=JobPublic)
 def get_job(job: JobRow, data: DataDep) -> JobPublic:
     """Status, progress (0..1, scans done/total), ETA, the error reason, and the products available."""
-    return job_public(job, live_product_names(data, job))
+    return job_public(job, live_product_names(data, job), engine_compiling(data, job))
 
 
 @router.delete("/{job_id}", response_model=JobPublic, status_code=202, responses={409: {"model": ErrorResponse}})
@@ -95,4 +96,4 @@ def cancel_job(job: JobRow, store: StoreDep, runner: RunnerDep, data: DataDep) -
     store.request_cancel(job["id"])
     runner.cancel(job["id"])
     row = store.get_job(job["id"])
-    return job_public(row, live_product_names(data, row))
+    return job_public(row, live_product_names(data, row), engine_compiling(data, row))

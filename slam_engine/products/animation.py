@@ -1,11 +1,18 @@
-"""``animation.gif``: the map being built, one frame per snapshot (taken every N scans by the engine)
-plus the final map, all on one canvas covering every snapshot, with the trajectory so far in red."""
+"""``animation.gif``: the map being built, one frame per snapshot (taken every N processed scans by
+the engine) plus the final map, all on one canvas covering every snapshot, with the trajectory so
+far in red.
+
+The run keeps its snapshots small (:meth:`~slam_engine.result.MapSnapshot.reduced`: maps pooled to
+at most 800 cells a side, what a frame shows anyway), so frames are drawn from small maps; frames
+are palette images with a fixed palette, so the GIF encoder has no colours to quantize.
+"""
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
 
+import numpy as np
 from PIL import Image, ImageDraw
 
 from slam_engine.products.files import atomic_path
@@ -15,36 +22,57 @@ from slam_engine.result import MapSnapshot, OccupancyGrid, Trajectory
 FRAME_DURATION_MS = 120
 LAST_FRAME_DURATION_MS = 2000
 MAX_SIDE_PX = 800
+ANIMATION_FRAMES = 40  # frames aimed at when a run sets no snapshot interval (`lidarmap run`, bench)
+
+
+def snapshot_interval(scans: int) -> int:
+    """``snapshot_every_scans`` that gives about :data:`ANIMATION_FRAMES` frames for a log of ``scans``."""
+    return max(1, scans // ANIMATION_FRAMES)
+
+
+# Frames are palette images: indices 0..254 are greys from black to white, 255 the trajectory red.
+# A fixed palette spares the GIF encoder quantizing every RGB frame.
+_TRAJECTORY_INDEX = 255
+_PALETTE = [round(i * 255 / 254) for i in range(255) for _ in range(3)] + list(TRAJECTORY_RGB)
+_GRAY_TO_INDEX = np.rint(np.arange(256) * 254 / 255).astype(np.uint8)
 
 
 def animation_frames(snapshots: list[MapSnapshot], final_grid: OccupancyGrid, final_trajectory: Trajectory,
                      max_side_px: int = MAX_SIDE_PX) -> list[Image.Image]:
-    """RGB frames: each snapshot, then the final map; canvases share the extent and scale
-    (the final grid's resolution, shrunk by an integer factor so the longer side <= ``max_side_px``)."""
-    states = [(s.grid, s.trajectory) for s in snapshots] + [(final_grid, final_trajectory)]
+    """Palette frames: each snapshot, then the final map; canvases share the extent and scale
+    (the final grid's resolution times the smallest whole factor that brings the longer side to
+    <= ``max_side_px``)."""
+    grids = [s.grid for s in snapshots] + [final_grid]
     res = final_grid.resolution_m
-    left = min(g.origin_x_m for g, _ in states)
-    bottom = min(g.origin_y_m for g, _ in states)
-    right = max(g.origin_x_m + g.shape[1] * g.resolution_m for g, _ in states)
-    top = max(g.origin_y_m + g.shape[0] * g.resolution_m for g, _ in states)
-    width, height = max(1, round((right - left) / res)), max(1, round((top - bottom) / res))
-    shrink = max(1, math.ceil(max(width, height) / max_side_px))
+    left = min(g.origin_x_m for g in grids)
+    bottom = min(g.origin_y_m for g in grids)
+    right = max(g.origin_x_m + g.shape[1] * g.resolution_m for g in grids)
+    top = max(g.origin_y_m + g.shape[0] * g.resolution_m for g in grids)
+    shrink = max(1, math.ceil(max((right - left) / res, (top - bottom) / res) / max_side_px - 1e-9))
+    pixel_m = res * shrink
+    width, height = max(1, round((right - left) / pixel_m)), max(1, round((top - bottom) / pixel_m))
+    final = MapSnapshot(scan_index=-1, t_s=0.0, grid=final_grid, trajectory=final_trajectory)
     frames = []
-    for grid, trajectory in states:
-        canvas = Image.new("RGB", (width, height), (UNKNOWN_GRAY,) * 3)
-        image = occupancy_image(grid).convert("RGB")
-        if grid.resolution_m != res:
-            scale = grid.resolution_m / res
+    for snapshot in [*snapshots, final]:
+        grid = snapshot.grid.pooled(max(1, math.floor(pixel_m / snapshot.grid.resolution_m + 1e-9)))
+        image = occupancy_image(grid)
+        scale = grid.resolution_m / pixel_m
+        if abs(scale - 1.0) > 1e-9:
             image = image.resize((max(1, round(image.width * scale)), max(1, round(image.height * scale))),
                                  Image.Resampling.NEAREST)
-        top_of_grid = grid.origin_y_m + grid.shape[0] * grid.resolution_m
-        canvas.paste(image, (round((grid.origin_x_m - left) / res), round((top - top_of_grid) / res)))
+        canvas = np.full((height, width), _GRAY_TO_INDEX[UNKNOWN_GRAY], np.uint8)
+        col0 = round((grid.origin_x_m - left) / pixel_m)
+        row0 = round((top - (grid.origin_y_m + grid.shape[0] * grid.resolution_m)) / pixel_m)
+        pixels = _GRAY_TO_INDEX[np.asarray(image)]
+        rows, cols = min(pixels.shape[0], height - row0), min(pixels.shape[1], width - col0)
+        canvas[row0:row0 + rows, col0:col0 + cols] = pixels[:rows, :cols]
+        frame = Image.fromarray(canvas)
+        frame.putpalette(_PALETTE)
+        trajectory = snapshot.trajectory
         if len(trajectory) > 1:
-            points = [((x - left) / res, (top - y) / res) for x, y in trajectory.poses[:, :2]]
-            ImageDraw.Draw(canvas).line(points, fill=TRAJECTORY_RGB, width=max(1, shrink))
-        if shrink > 1:
-            canvas = canvas.reduce(shrink)
-        frames.append(canvas)
+            points = [((x - left) / pixel_m, (top - y) / pixel_m) for x, y in trajectory.poses[:, :2]]
+            ImageDraw.Draw(frame).line(points, fill=_TRAJECTORY_INDEX, width=1)
+        frames.append(frame)
     return frames
 
 

@@ -19,11 +19,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from PIL import Image
+
 from slam_engine.products.animation import write_animation_gif
 from slam_engine.products.files import atomic_path
 from slam_engine.products.georeference import GeoOrigin, Georeference
 from slam_engine.products.geotiff import write_occupancy_geotiff, write_texture_geotiff
-from slam_engine.products.rendering import occupancy_image, occupancy_with_trajectories, texture_image
+from slam_engine.products.rendering import (
+    PNG_COMPRESS_LEVEL,
+    occupancy_rasters,
+    occupancy_with_trajectories,
+    texture_image,
+)
 from slam_engine.products.ros_map import write_ros_map
 from slam_engine.products.run_report import build_run_report, to_jsonable, write_run_json
 from slam_engine.products.trajectory_files import write_trajectory_json, write_trajectory_tum
@@ -80,7 +87,7 @@ def write_products(result: SlamResult, out_dir: str | Path, geo: GeoOrigin | Non
 
     def save_image(image, name: str, format: str) -> None:
         with atomic_path(out / name) as tmp:
-            image.save(tmp, format=format)
+            image.save(tmp, format=format, compress_level=PNG_COMPRESS_LEVEL)
         written[name] = out / name
 
     written["trajectory.json"] = write_trajectory_json(result.trajectory, out / "trajectory.json",
@@ -88,11 +95,12 @@ def write_products(result: SlamResult, out_dir: str | Path, geo: GeoOrigin | Non
     written["trajectory.tum"] = write_trajectory_tum(result.trajectory, out / "trajectory.tum")
     written["dead_reckoning.json"] = write_trajectory_json(result.dead_reckoning, out / "dead_reckoning.json",
                                                            frame=MAP_FRAME, config=config)
-    save_image(occupancy_image(result.grid), "occupancy.png", "PNG")
-    save_image(occupancy_with_trajectories(result.grid, result.trajectory, result.dead_reckoning),
+    rasters = occupancy_rasters(result.grid)  # rendered once for the PNGs, the GeoTIFF and the ROS map
+    save_image(Image.fromarray(rasters.gray), "occupancy.png", "PNG")
+    save_image(occupancy_with_trajectories(result.grid, result.trajectory, result.dead_reckoning, rasters.gray),
                "occupancy_trajectory.png", "PNG")
-    written["occupancy.tif"] = write_occupancy_geotiff(result.grid, out / "occupancy.tif", georef)
-    pgm, yaml_path = write_ros_map(result.grid, out, "map")
+    written["occupancy.tif"] = write_occupancy_geotiff(result.grid, out / "occupancy.tif", georef, rasters=rasters)
+    pgm, yaml_path = write_ros_map(result.grid, out, "map", rasters=rasters)
     written[pgm.name], written[yaml_path.name] = pgm, yaml_path
     if result.texture is not None:
         save_image(texture_image(result.texture), "texture.png", "PNG")

@@ -20,16 +20,25 @@ from PIL import Image
 
 from slam_engine.errors import ConfigError
 from slam_engine.products.files import atomic_path, write_text_atomic
-from slam_engine.products.rendering import FREE_THRESHOLD, OCCUPIED_THRESHOLD, occupancy_north_up
+from slam_engine.products.rendering import (
+    FREE_THRESHOLD,
+    OCCUPIED_THRESHOLD,
+    OccupancyRasters,
+    occupancy_north_up,
+)
 from slam_engine.result import OccupancyGrid
 
 ROS_MODES = ("trinary", "scale")
 _OCCUPIED, _FREE, _UNKNOWN = 0, 254, 205
 
 
-def ros_map_image(grid: OccupancyGrid, mode: str = "trinary") -> Image.Image:
-    """The map_server image of the grid ("L" for trinary, "LA" for scale), north up."""
-    probability, known = occupancy_north_up(grid)
+def ros_map_image(grid: OccupancyGrid, mode: str = "trinary", rasters: OccupancyRasters | None = None) -> Image.Image:
+    """The map_server image of the grid ("L" for trinary, "LA" for scale), north up. ``rasters``:
+    the grid's rasters when already made (trinary mode uses them)."""
+    if mode == "trinary" and rasters is not None:
+        probability, known = rasters.probability, rasters.probability >= 0.0
+    else:
+        probability, known = occupancy_north_up(grid)
     if mode == "trinary":
         gray = np.full(probability.shape, _UNKNOWN, dtype=np.uint8)
         gray[known & (probability > OCCUPIED_THRESHOLD)] = _OCCUPIED
@@ -43,11 +52,11 @@ def ros_map_image(grid: OccupancyGrid, mode: str = "trinary") -> Image.Image:
 
 
 def write_ros_map(grid: OccupancyGrid, out_dir: str | Path, name: str = "map",
-                  mode: str = "trinary") -> tuple[Path, Path]:
+                  mode: str = "trinary", rasters: OccupancyRasters | None = None) -> tuple[Path, Path]:
     """Write ``NAME.pgm`` (trinary) or ``NAME.png`` (scale) and ``NAME.yaml`` into ``out_dir``;
     returns (image path, yaml path)."""
     out_dir = Path(out_dir)
-    image = ros_map_image(grid, mode)
+    image = ros_map_image(grid, mode, rasters)
     image_path = out_dir / f"{name}.{'pgm' if mode == 'trinary' else 'png'}"
     with atomic_path(image_path) as tmp:
         image.save(tmp, format="PPM" if mode == "trinary" else "PNG")

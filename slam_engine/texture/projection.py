@@ -8,7 +8,6 @@ metres above the vehicle frame's origin plane.
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 
 from slam_engine.poses import interpolate
 from slam_engine.result import Trajectory
@@ -28,6 +27,8 @@ def transform_points(points: np.ndarray, T_to_from: np.ndarray) -> np.ndarray:
     """(N, 3) points [m] mapped by a 4x4 transform, as one Open3D point-cloud operation."""
     if len(points) == 0:
         return np.empty((0, 3))
+    import open3d as o3d  # imported when used: ~85 MB that a run without cameras never needs
+
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
     cloud.transform(np.asarray(T_to_from, dtype=np.float64))
     return np.asarray(cloud.points)
@@ -47,6 +48,8 @@ def estimate_ground_z(points_vehicle: np.ndarray, max_tilt_rad: float = 0.25, di
     points = points[np.isfinite(points).all(axis=1)]
     if len(points) < 100:
         return None
+    import open3d as o3d
+
     o3d.utility.random.seed(seed)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     if len(points) > 200_000:

@@ -32,3 +32,21 @@ def bad_log(ctx) -> None:
 
 def buggy(ctx) -> None:
     raise ZeroDivisionError("division by zero")
+
+
+def compiling(ctx) -> None:
+    """Reports a numba compilation (the engine's event, as a real compile sends it) until the test
+    writes ``release`` into the data folder (at most 30 s), then counts like :func:`counting`."""
+    from numba.core import event
+
+    from service.mapping_job import compiling_status
+
+    release = ctx.data.root / "release"
+    with compiling_status(ctx):
+        ctx.progress(1, 10, force=True)  # as the first scan of a real run, before a kernel compiles
+        event.start_event("numba:compile", data={})
+        deadline = time.monotonic() + 30.0
+        while not release.exists() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        event.end_event("numba:compile", data={})
+        counting(ctx)

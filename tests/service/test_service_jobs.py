@@ -190,3 +190,16 @@ def test_web_mercator_tiles_of_a_georeferenced_session(tmp_path) -> None:
         plain = client.get(f"/v1/jobs/{jobs[1]['id']}/tiles/occupancy/{z}/{x}/{y}.png",
                            params={"scheme": "webmercator"})
         assert "geo origin" in assert_error(plain, 422)["message"]
+
+
+def test_status_says_compiling_instead_of_an_eta_while_the_engine_compiles(tmp_path) -> None:
+    with service_client(tmp_path, job_function=f"{FUNCS}:compiling") as client:
+        sid = streaming_session(client)
+        job = start(client, sid, steps=5, step_ms=1)
+        compiling = wait_for(client, job["id"], {"running"}, condition=lambda j: j["compiling"])
+        assert compiling["eta_s"] is None and compiling["scans_done"] == 1  # 1 of 10 scans: no ETA from that
+        listed = client.get("/v1/jobs", params={"session": sid}).json()["data"]
+        assert [j["compiling"] for j in listed] == [True]
+        (tmp_path / "release").touch()
+        done = wait_for(client, job["id"])
+        assert done["status"] == "succeeded" and done["compiling"] is False

@@ -18,6 +18,7 @@ export function formatScans(job) {
 }
 
 export function formatEta(job) {
+  if (job.status === "running" && job.compiling) return "compiling the engine (first run)";
   return job.status === "running" && job.eta_s !== null ? `ETA ${formatDuration(job.eta_s)}` : "";
 }
 

@@ -1,0 +1,47 @@
+"""A job's memory estimate, from its configuration and log, before it runs."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from slam_engine.config import SlamConfig
+from slam_engine.memory_estimate import BASE_BYTES, estimate_job_memory_bytes, map_extent_m
+from slam_engine.simulation import simulate
+
+REPO = Path(__file__).resolve().parent.parent
+
+# Maps a short simulated drive and writes every product, in a fresh process; prints the estimate
+# and the process's peak resident memory.
+MEASURE = """
+import json, resource, sys, tempfile
+from slam_engine.config import SlamConfig
+from slam_engine.memory_estimate import estimate_job_memory_bytes
+from slam_engine.pipeline import run_slam
+from slam_engine.products import write_products
+from slam_engine.simulation import simulate
+log = simulate("office", seed=1, rig="robot", max_duration_s=20.0).log
+config = SlamConfig(particles=10, snapshot_every_scans=10)
+estimate = estimate_job_memory_bytes(config, log)
+write_products(run_slam(log, config), tempfile.mkdtemp())
+print(json.dumps({"estimate": estimate, "peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
+"""
+
+
+def test_estimate_grows_with_particles_and_finer_cells() -> None:
+    log = simulate("office", seed=0, rig="robot", max_duration_s=10.0).log
+    base = estimate_job_memory_bytes(SlamConfig(), log)
+    assert base > BASE_BYTES
+    assert estimate_job_memory_bytes(SlamConfig(particles=300), log) > base
+    assert estimate_job_memory_bytes(SlamConfig(grid={"resolution_m": 0.025}), log) > 2 * (base - BASE_BYTES)
+    width, height = map_extent_m(log, SlamConfig())
+    assert 5.0 < width < 200.0 and 5.0 < height < 200.0
+
+
+def test_estimate_covers_the_measured_peak_of_a_run() -> None:
+    done = subprocess.run([sys.executable, "-c", MEASURE], cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    figures = json.loads(done.stdout.strip().splitlines()[-1])
+    assert figures["peak"] <= figures["estimate"] <= 3 * figures["peak"], figures
