@@ -117,13 +117,13 @@ class LoopClosingConfig(_Section):
     overlap_m: float = Field(3.0, ge=0.0, le=100.0, description="A submap is in reach when one of its key frames "
                              "lies within the search window plus this distance [m].")
     base_window_m: float = Field(0.5, gt=0.0, le=50.0, description="Search half width right after a closure [m].")
-    window_per_m: float = Field(0.05, ge=0.0, le=1.0, description="Growth of the search half width per metre "
+    window_per_m: float = Field(0.08, ge=0.0, le=1.0, description="Growth of the search half width per metre "
                                 "travelled since the last closure [m/m].")
-    max_window_m: float = Field(8.0, gt=0.0, le=100.0, description="Largest search half width [m].")
+    max_window_m: float = Field(10.0, gt=0.0, le=100.0, description="Largest search half width [m].")
     base_window_rad: float = Field(0.1, gt=0.0, le=3.2, description="Heading search half width right after a "
                                    "closure [rad].")
-    window_rad_per_m: float = Field(0.005, ge=0.0, le=1.0, description="Its growth per metre travelled [rad/m].")
-    max_window_rad: float = Field(0.5, gt=0.0, le=3.2, description="Largest heading search half width [rad].")
+    window_rad_per_m: float = Field(0.01, ge=0.0, le=1.0, description="Its growth per metre travelled [rad/m].")
+    max_window_rad: float = Field(0.6, gt=0.0, le=3.2, description="Largest heading search half width [rad].")
     match_range_m: float = Field(20.0, gt=0.5, le=200.0, description="End points farther than this from the "
                                  "LiDAR are not used for loop closing [m].")
     max_points: int = Field(250, ge=10, le=100000, description="A key frame matches with at most this many points.")

@@ -50,12 +50,17 @@ class MatchGrid:
     origin_m: np.ndarray
     resolution_m: float
     pyramid: np.ndarray
+    bounds_m: np.ndarray | None = None  # [x_min, y_min, x_max, y_max] of what the map holds [m]
 
     @classmethod
     def from_values(cls, values: np.ndarray, origin_m: np.ndarray, resolution_m: float, n_levels: int = 7
                     ) -> MatchGrid:
-        values = np.ascontiguousarray(values, np.uint8)
-        return cls(values, np.asarray(origin_m, np.float64), float(resolution_m), max_pyramid(values, n_levels))
+        # pad the low sides by the largest block: a block that starts left of (or below) the map and
+        # reaches into it then has its true maximum (the bound must never be too low)
+        pad = 1 << (n_levels - 1)
+        values = np.ascontiguousarray(np.pad(np.asarray(values, np.uint8), ((pad, 0), (pad, 0))))
+        origin = np.asarray(origin_m, np.float64) - pad * float(resolution_m)
+        return cls(values, origin, float(resolution_m), max_pyramid(values, n_levels))
 
     @property
     def n_levels(self) -> int:

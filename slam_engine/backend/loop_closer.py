@@ -26,11 +26,14 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from slam_engine.backend.correlative import refine_pose, search
+from slam_engine.backend.correlative import MatchGrid, refine_pose, search
 from slam_engine.backend.pose_graph import PoseGraph
 from slam_engine.backend.submaps import SubmapGrids, split_into_submaps
 from slam_engine.config import LoopClosingConfig
 from slam_engine.poses import compose, relative, wrap_angle
+
+# a key frame needs this many end points over a submap to be matched against it
+MIN_OVERLAP_POINTS = 30
 
 
 @dataclass(frozen=True)
@@ -188,12 +191,15 @@ class LoopCloser:
             if grid is None:
                 continue
             initial = relative(est[s.anchor], est[k])
-            match = search(grid, self.points_v[k], initial, window_m, window_rad, c.min_score,
+            points = self._overlapping(grid, self.points_v[k], initial)
+            if len(points) < MIN_OVERLAP_POINTS:
+                continue
+            match = search(grid, points, initial, window_m, window_rad, c.min_score,
                            ambiguity_m=c.ambiguity_m, ambiguity_rad=c.ambiguity_rad,
                            runner_up_share=c.runner_up_ratio)
             if match is None:
                 continue
-            pose = refine_pose(grid, self.points_v[k], match.pose)
+            pose = refine_pose(grid, points, match.pose)
             delta = relative(initial, pose)
             shift = np.abs(match.pose - initial)
             reason = "accepted"
@@ -212,6 +218,19 @@ class LoopCloser:
         if best is None:
             return None
         return best[1], best[2], best[3], best[4]
+
+    @staticmethod
+    def _overlapping(grid: MatchGrid, points_v: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """The points that land within the submap's bounds at ``pose``: points beyond them can only
+        score where the scan is shifted onto the submap, which favours shifts that overlap more
+        (a corridor seen half by the submap would match one door too far)."""
+        if grid.bounds_m is None:
+            return points_v
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        x = pose[0] + c * points_v[:, 0] - s * points_v[:, 1]
+        y = pose[1] + s * points_v[:, 0] + c * points_v[:, 1]
+        b = grid.bounds_m
+        return points_v[(x >= b[0]) & (x <= b[2]) & (y >= b[1]) & (y <= b[3])]
 
     def _agrees(self, first: tuple, second: tuple, est: np.ndarray) -> bool:
         """Whether two closures ``(node, anchor, T_anchor_from_node, ...)`` imply the same correction:

@@ -67,25 +67,35 @@ def submap_points(submap: Submap, poses: np.ndarray, points_v: list[np.ndarray])
 
 def match_grid_from_points(points_m: np.ndarray, resolution_m: float, margin_m: float, n_levels: int = 7
                            ) -> MatchGrid:
-    """A blurred hit grid of ``points_m`` (N, 2) [m] with ``margin_m`` of empty border."""
+    """A blurred hit grid of ``points_m`` (N, 2) [m] with ``margin_m`` of empty border. Each point
+    marks the four cells around it with its bilinear weights (the largest weight a cell gets is kept),
+    so a wall between two cell centres stays there when the grid is interpolated."""
     lo = points_m.min(axis=0) - margin_m
     hi = points_m.max(axis=0) + margin_m
-    shape = (int(np.ceil((hi[1] - lo[1]) / resolution_m)) + 1, int(np.ceil((hi[0] - lo[0]) / resolution_m)) + 1)
-    ix = np.floor((points_m[:, 0] - lo[0]) / resolution_m).astype(np.int64)
-    iy = np.floor((points_m[:, 1] - lo[1]) / resolution_m).astype(np.int64)
-    hit = np.zeros(shape, bool)
-    hit[iy, ix] = True
-    values = np.zeros(shape, np.float32)
+    shape = (int(np.ceil((hi[1] - lo[1]) / resolution_m)) + 2, int(np.ceil((hi[0] - lo[0]) / resolution_m)) + 2)
+    u = (points_m[:, 0] - lo[0]) / resolution_m - 0.5
+    v = (points_m[:, 1] - lo[1]) / resolution_m - 0.5
+    i0 = np.floor(u).astype(np.int64)
+    j0 = np.floor(v).astype(np.int64)
+    fu, fv = u - i0, v - j0
+    hit = np.zeros(shape, np.float32)
+    for di, dj, weight in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv),
+                           (1, 1, fu * fv)):
+        np.maximum.at(hit, (j0 + dj, i0 + di), weight.astype(np.float32))
+    hit = np.minimum(1.0, 2.0 * hit)  # a point between cells still marks both fully
+    values = hit.copy()
     h, w = shape
     for dy in range(-2, 3):
         for dx in range(-2, 3):
             weight = _BLUR.get(dx * dx + dy * dy)
-            if weight is None:
+            if weight is None or (dx == 0 and dy == 0):
                 continue
             src = hit[max(0, -dy): h - max(0, dy), max(0, -dx): w - max(0, dx)]
             dst = values[max(0, dy): h - max(0, -dy), max(0, dx): w - max(0, -dx)]
             np.maximum(dst, weight * src, out=dst)
-    return MatchGrid.from_values(np.round(values * 255).astype(np.uint8), lo, resolution_m, n_levels)
+    grid = MatchGrid.from_values(np.round(values * 255).astype(np.uint8), lo, resolution_m, n_levels)
+    grid.bounds_m = np.concatenate([points_m.min(axis=0), points_m.max(axis=0)])
+    return grid
 
 
 class SubmapGrids:
