@@ -4,7 +4,8 @@ Walks the key frames in time order, as a live system would. Each key frame's pos
 from the last optimised one by the front end's relative motion. Every ``search_every_m`` of travel
 the key frame looks for loops: submaps finished at least ``min_loop_travel_m`` of travel ago whose
 key frames come within reach of its predicted pose. The reach, in metres and radians, grows with
-the travel since the last accepted closure (drift accumulates; a closure resets it) and is bounded.
+the travel that separates the two in the graph so far (drift accumulates along the drive; an
+accepted closure is a short cut) and is bounded.
 Each candidate is verified by a global correlative match of the scan against the submap over that
 window (:mod:`slam_engine.backend.correlative`); it is accepted only when
 
@@ -25,6 +26,8 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
 
 from slam_engine.backend.correlative import MatchGrid, refine_pose, search
 from slam_engine.backend.pose_graph import PoseGraph
@@ -32,6 +35,8 @@ from slam_engine.backend.submaps import SubmapGrids, split_into_submaps
 from slam_engine.config import LoopClosingConfig
 from slam_engine.poses import compose, relative, wrap_angle
 
+# how much drift an accepted closure leaves between the key frames it joins, in metres of travel
+CLOSURE_TRAVEL_M = 1.0
 # a key frame needs this many end points over a submap to be matched against it
 MIN_OVERLAP_POINTS = 30
 
@@ -107,6 +112,8 @@ class LoopCloser:
             self.submap_of[s.first: s.last + 1] = s.index
         self.grids = SubmapGrids(self.submaps, self.path, in_reach, resolution_m, margin_m=1.0)
         self.graph = PoseGraph(self.path, cauchy_scale=c.cauchy_scale)
+        self._closure_links: list[tuple[int, int]] = []
+        self._links_matrix: tuple[int, csr_matrix] | None = None
         for k in range(1, len(self.path)):
             motion = relative(self.path[k - 1], self.path[k])
             self.graph.add_edge(k - 1, k, motion, self._motion_sigmas(motion))
@@ -125,7 +132,6 @@ class LoopCloser:
         closures: list[Closure] = []
         optimizations = 0
         last_search_m = -np.inf
-        last_closure_m = 0.0
         # (node, anchor, T_anchor_from_node, record index) of a closure awaiting an agreeing second one
         pending: tuple[int, int, np.ndarray, int] | None = None
         for k in range(1, n):
@@ -133,8 +139,7 @@ class LoopCloser:
             if self.travel_m[k] - last_search_m < c.search_every_m or not len(self.points_v[k]):
                 continue
             last_search_m = self.travel_m[k]
-            drift_travel = self.travel_m[k] - last_closure_m
-            found = self._search_node(k, est, drift_travel, closures)
+            found = self._search_node(k, est, self._uncertain_travel(k), closures)
             if found is None:
                 continue
             anchor, T_anchor_from_node, window_m, record = found
@@ -149,15 +154,16 @@ class LoopCloser:
                 closures[pending[3]] = replace(closures[pending[3]], accepted=True, reason="accepted (confirmed)")
             pending = None
             self._add_closure(k, anchor, T_anchor_from_node)
-            last_closure_m = self.travel_m[k]
             target = compose(est[anchor], T_anchor_from_node)
             if (np.hypot(*(target[:2] - est[k, :2])) > c.reoptimize_m
                     or abs(wrap_angle(target[2] - est[k, 2])) > c.reoptimize_rad):
-                est[: k + 1] = self.graph.optimize(est, nodes=k + 1)
+                est[: k + 1] = self.graph.optimize(est, nodes=k + 1, robust=False)
                 optimizations += 1
         if any(cl.accepted for cl in closures):
-            est = self.graph.optimize(est)
-            optimizations += 1
+            # least squares first (every verified closure pulls), then the robust losses from there:
+            # a closure that disagrees with the rest is then an outlier and lets go
+            est = self.graph.optimize(self.graph.optimize(est, robust=False))
+            optimizations += 2
         return LoopClosingResult(poses=est, closures=closures, optimizations=optimizations, submaps=len(self.submaps))
 
     def _candidates(self, k: int, est: np.ndarray, window_m: float) -> list[int]:
@@ -174,14 +180,31 @@ class LoopCloser:
         out.sort()
         return [index for _, index in out[: c.candidates_per_search]]
 
-    def _search_node(self, k: int, est: np.ndarray, drift_travel_m: float, closures: list[Closure]
+    def _uncertain_travel(self, k: int) -> np.ndarray:
+        """(K,) how much drive separates key frame k from every other in the graph so far [m]: the
+        shortest path over front-end motions (their travel) and accepted closures (each worth
+        ``CLOSURE_TRAVEL_M``). Drift, and so the search window, grows with it."""
+        if self._links_matrix is None or self._links_matrix[0] != len(self._closure_links):
+            n = len(self.path)
+            step = np.maximum(np.diff(self.travel_m), 1e-3)
+            rows = [np.arange(n - 1)] + [np.array([i for i, _ in self._closure_links], np.int64)]
+            cols = [np.arange(1, n)] + [np.array([j for _, j in self._closure_links], np.int64)]
+            weights = [step, np.full(len(self._closure_links), CLOSURE_TRAVEL_M)]
+            matrix = csr_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+            self._links_matrix = (len(self._closure_links), matrix)
+        c = self.config
+        limit = (c.max_window_m - c.base_window_m) / max(c.window_per_m, 1e-9)
+        return dijkstra(self._links_matrix[1], directed=False, indices=k, limit=limit)
+
+    def _search_node(self, k: int, est: np.ndarray, travel_to: np.ndarray, closures: list[Closure]
                      ) -> tuple[int, np.ndarray, float, int] | None:
-        """Match key frame k against its candidate submaps; the best verified one, or None."""
+        """Match key frame k against its candidate submaps (``travel_to``: :meth:`_uncertain_travel`);
+        the best verified one, or None."""
         c = self.config
         best: tuple[float, int, np.ndarray, float, int] | None = None
         for s_index in self._candidates(k, est, c.max_window_m):
             s = self.submaps[s_index]
-            travel = min(drift_travel_m, self.travel_m[k] - self.travel_m[s.last])
+            travel = float(np.min(travel_to[s.first: s.last + 1]))
             window_m = min(c.base_window_m + c.window_per_m * travel, c.max_window_m)
             window_rad = min(c.base_window_rad + c.window_rad_per_m * travel, c.max_window_rad)
             nodes = est[s.first: s.last + 1, :2]
@@ -248,6 +271,7 @@ class LoopCloser:
 
     def _add_closure(self, node: int, anchor: int, T_anchor_from_node: np.ndarray) -> None:
         c = self.config
+        self._closure_links.append((anchor, node))
         self.graph.add_edge(anchor, node, T_anchor_from_node,
                             np.array([c.closure_sd_m, c.closure_sd_m, c.closure_sd_rad]), robust=True)
 

@@ -17,13 +17,19 @@ from slam_engine.poses import relative
 
 @dataclass(frozen=True)
 class Edge:
-    """``T_i_from_j`` measured with standard deviations ``sigmas`` (3,); ``robust``: Cauchy loss."""
+    """``T_i_from_j`` measured with standard deviations ``sigmas`` (3,); ``loss``: "cauchy" (robust,
+    scale in standard deviations ``loss_scale``) or "" (least squares)."""
 
     i: int
     j: int
     T_i_from_j: np.ndarray
     sigmas: np.ndarray
-    robust: bool
+    loss: str = ""
+    loss_scale: float = 1.0
+
+    @property
+    def robust(self) -> bool:
+        return self.loss == "cauchy"
 
 
 class PoseGraph:
@@ -35,13 +41,15 @@ class PoseGraph:
         self.edges: list[Edge] = []
 
     def add_edge(self, i: int, j: int, T_i_from_j: np.ndarray, sigmas: np.ndarray, robust: bool = False) -> None:
+        """An edge; ``robust``: under the Cauchy loss (scale ``cauchy_scale`` standard deviations)."""
         self.edges.append(Edge(int(i), int(j), np.asarray(T_i_from_j, np.float64), np.asarray(sigmas, np.float64),
-                               bool(robust)))
+                               "cauchy" if robust else "", self.cauchy_scale if robust else 1.0))
 
     def optimize(self, estimate: np.ndarray | None = None, nodes: int | None = None,
-                 max_iterations: int = 100) -> np.ndarray:
+                 max_iterations: int = 100, robust: bool = True) -> np.ndarray:
         """Optimised poses of nodes ``0..nodes-1`` (default all; edges reaching beyond are left out),
-        starting from ``estimate`` (default the initial guess)."""
+        starting from ``estimate`` (default the initial guess); ``robust`` False treats every edge by
+        least squares (a verified closure far from the guess then pulls instead of being ignored)."""
         start = self.initial if estimate is None else np.asarray(estimate, np.float64)
         n = len(start) if nodes is None else int(nodes)
         graph = gtsam.NonlinearFactorGraph()
@@ -54,9 +62,8 @@ class PoseGraph:
             if e.i >= n or e.j >= n:
                 continue
             noise = gtsam.noiseModel.Diagonal.Sigmas(e.sigmas)
-            if e.robust:
-                noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.cauchy_scale),
-                                                       noise)
+            if robust and e.robust:
+                noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(e.loss_scale), noise)
             graph.add(gtsam.BetweenFactorPose2(e.i, e.j, gtsam.Pose2(*e.T_i_from_j), noise))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
