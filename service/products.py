@@ -16,10 +16,11 @@ from service.storage import DataDir
 from slam_engine.products.files import atomic_path
 from slam_engine.result import OccupancyGrid, TextureMap
 
-MEDIA_TYPES = {
+MEDIA_TYPES = {  # every file product a job can list; each is served at GET /v1/jobs/{id}/{name}
     "trajectory.json": "application/json", "trajectory.tum": "text/plain",
     "dead_reckoning.json": "application/json", "dead_reckoning.tum": "text/plain",
-    "occupancy.png": "image/png", "occupancy.tif": "image/tiff", "map.yaml": "application/yaml",
+    "occupancy.png": "image/png", "occupancy_trajectory.png": "image/png", "occupancy.tif": "image/tiff",
+    "map.yaml": "application/yaml",
     "map.pgm": "image/x-portable-graymap", "texture.png": "image/png", "texture.tif": "image/tiff",
     "animation.gif": "image/gif", "run.json": "application/json",
 }

@@ -7,7 +7,8 @@ import typer
 from service.cli import bench_cmd, evaluate_cmd, formats_cmd, run_cmd, serve, worker_cmd
 
 app = typer.Typer(name="lidarmap", help="Maps from drive logs with particle-filter SLAM.",
-                  no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False)
+                  no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False,
+                  rich_markup_mode=None)
 
 
 @app.callback()

@@ -7,7 +7,7 @@ from enum import StrEnum
 from functools import partial
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Path, Query
+from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import FileResponse, Response
 from starlette.concurrency import run_in_threadpool
 
@@ -88,23 +88,38 @@ def dead_reckoning(job: JobRow, data: DataDep, fmt: TrajectoryFormatQuery = Traj
 
 
 def _file_route(name: str, summary: str) -> None:
+    """GET and HEAD /v1/jobs/{id}/{name}: the product file under the name the job lists."""
     media = MEDIA_TYPES[name]
 
     def route(job: JobRow, data: DataDep) -> FileResponse:
         return _file(data, job, name)
 
     route.__doc__ = summary
-    router.add_api_route(f"/{name}", route, methods=["GET"], response_class=FileResponse, name=name,
-                         summary=summary, responses={200: {"content": {media: {}}}})
+    for method in ("GET", "HEAD"):  # HEAD: the same headers (size, type), no body
+        router.add_api_route(f"/{name}", route, methods=[method], response_class=FileResponse,
+                             name=name if method == "GET" else f"{name} (head)", summary=summary,
+                             responses={200: {"content": {media: {}}}})
 
 
-_file_route("occupancy.png", "Occupancy grid as PNG (north up). While the job runs: the map so far.")
-_file_route("occupancy.tif", "Occupancy probability as a georeferenced GeoTIFF.")
-_file_route("map.yaml", "ROS map_server metadata (with map.pgm).")
-_file_route("map.pgm", "ROS map_server image.")
-_file_route("texture.png", "Ground texture map as PNG (when the log has a camera).")
-_file_route("texture.tif", "Ground texture map as GeoTIFF.")
-_file_route("animation.gif", "The map growing over the run.")
+PRODUCT_SUMMARIES = {
+    "occupancy.png": "Occupancy grid as PNG (north up). While the job runs: the map so far.",
+    "occupancy_trajectory.png": "Occupancy grid with the SLAM trajectory, dead reckoning and start drawn on it.",
+    "occupancy.tif": "Occupancy probability as a georeferenced GeoTIFF.",
+    "map.yaml": "ROS map_server metadata (with map.pgm).",
+    "map.pgm": "ROS map_server image.",
+    "texture.png": "Ground texture map as PNG (when the log has a camera).",
+    "texture.tif": "Ground texture map as GeoTIFF.",
+    "animation.gif": "The map growing over the run.",
+    "trajectory.json": "The SLAM trajectory as the lidarmap JSON file (poses t, x, y, theta in s, m, rad). "
+                       "While the job runs: the trajectory so far.",
+    "trajectory.tum": "The SLAM trajectory in TUM format (t x y z qx qy qz qw).",
+    "dead_reckoning.json": "Odometry alone, as the lidarmap JSON file.",
+    "dead_reckoning.tum": "Odometry alone, in TUM format.",
+    "run.json": "The run record file: configuration, timings, scan statistics, input summary, accuracy.",
+}
+assert set(PRODUCT_SUMMARIES) == set(MEDIA_TYPES), "every product the worker lists has a route"
+for _name, _summary in PRODUCT_SUMMARIES.items():
+    _file_route(_name, _summary)
 
 
 @router.get("/run", response_model=dict[str, Any])
@@ -115,7 +130,9 @@ def run_record(job: JobRow, data: DataDep) -> dict[str, Any]:
 
 @router.get("/tiles/{layer}/{z}/{x}/{y}.png", response_class=Response,
             responses={200: {"content": {"image/png": {}}}, 422: {"model": ErrorResponse}})
-async def tile(job: JobRow, data: DataDep, store: StoreDep, layer: TileLayer,
+@router.head("/tiles/{layer}/{z}/{x}/{y}.png", response_class=Response, name="tile (head)",
+             responses={200: {"content": {"image/png": {}}}, 422: {"model": ErrorResponse}})
+async def tile(request: Request, job: JobRow, data: DataDep, store: StoreDep, layer: TileLayer,
                z: Annotated[int, Path(ge=0, le=MAX_TILE_ZOOM)], x: Annotated[int, Path(ge=0, le=MAX_TILE_INDEX)],
                y: Annotated[int, Path(ge=0, le=MAX_TILE_INDEX)],
                scheme: Annotated[TileScheme, Query(description="simple (metric) or webmercator (XYZ, needs "
@@ -132,5 +149,7 @@ async def tile(job: JobRow, data: DataDep, store: StoreDep, layer: TileLayer,
     georef = _georeference(store, job) if scheme is TileScheme.WEBMERCATOR else None
     png = await run_in_threadpool(partial(render_tile, source, z, x, y, layer.value, scheme=scheme.value,
                                           georef=georef, map_version=(version, scheme.value)))
-    headers = {"Cache-Control": "no-store"} if job["status"] == "running" else None
-    return Response(png, media_type="image/png", headers=headers)
+    headers = {"Cache-Control": "no-store"} if job["status"] == "running" else {}
+    if request.method == "HEAD":  # the GET's headers, no body
+        return Response(media_type="image/png", headers={**headers, "Content-Length": str(len(png))})
+    return Response(png, media_type="image/png", headers=headers or None)
