@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from service.cli import bench_cmd, config_cmd, evaluate_cmd, formats_cmd, run_cmd, serve, worker_cmd
+from service.cli import bench_cmd, config_cmd, evaluate_cmd, formats_cmd, run_cmd, serve, submit_cmd, worker_cmd
 
 app = typer.Typer(name="lidarmap", help="Maps from drive logs with particle-filter SLAM.",
                   no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False,
@@ -39,6 +39,7 @@ def _root(
 
 serve.register(app)
 run_cmd.register(app)
+submit_cmd.register(app)
 evaluate_cmd.register(app)
 config_cmd.register(app)
 formats_cmd.register(app)
