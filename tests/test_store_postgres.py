@@ -447,6 +447,33 @@ def test_database_urls_and_passwords_never_shown(postgres, tmp_path) -> None:
     assert postgres.password not in info.value.message and down.ping() is False
 
 
+def test_postgres_store_borrows_pooled_connections(postgres, tmp_path) -> None:
+    """Transactions reuse a few pooled connections (not one connection each); a pickled store (as
+    sent to a worker process) carries no pool and opens its own; close() ends the connections."""
+    import pickle
+    from concurrent.futures import ThreadPoolExecutor
+
+    from service.store import POSTGRES_POOL_MAX_CONNECTIONS
+
+    store = open_store(postgres.new_database(), tmp_path / "unused.sqlite3")
+    store.initialise()
+    session = store.create_session("alice", "pooled", None, None, None)
+    with ThreadPoolExecutor(max_workers=8) as threads:
+        found = list(threads.map(lambda _: store.get_session(session["id"], "alice"), range(200)))
+    assert all(row["name"] == "pooled" for row in found)
+    stats = store.backend._pool.get_stats()
+    assert stats["requests_num"] >= 202
+    assert 1 <= stats["connections_num"] <= POSTGRES_POOL_MAX_CONNECTIONS  # connections opened, ever
+
+    copy = pickle.loads(pickle.dumps(store))
+    assert copy.backend._pool is None and copy.get_session(session["id"], "alice")["name"] == "pooled"
+    assert copy.backend._pool is not store.backend._pool
+    store.close()
+    copy.close()
+    assert store.backend._pool is None and store.ping() is True  # a closed store opens a new pool on use
+    store.close()
+
+
 def test_the_service_on_postgres_maps_an_upload(postgres, tmp_path, caplog) -> None:
     """API + a local worker process on PostgreSQL: a simulated office drive mapped end to end."""
     import psycopg
