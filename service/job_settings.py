@@ -69,7 +69,7 @@ def engine_config(job_config: dict[str, Any]) -> SlamConfig:
     if "slam" in job_config:
         return validate_config(job_config["slam"], "job settings")
     legacy = {name: job_config[name] for name in SHORTCUTS if job_config.get(name) is not None}
-    settings = {}
+    settings: dict[str, Any] = {}
     for name, value in legacy.items():
         settings = merge_settings(settings, _nested(SHORTCUTS[name], value))
     return validate_config(settings, "job settings")

@@ -49,6 +49,7 @@ def geo_origin(lat: float | None, lon: float | None, heading: float | None):
     if not all(given):
         raise ConfigError("--lat, --lon and --heading go together: give all three (heading in degrees "
                           "clockwise from north) or none")
+    assert lat is not None and lon is not None and heading is not None
     return GeoOrigin(latitude_deg=lat, longitude_deg=lon, heading_deg=heading)
 
 

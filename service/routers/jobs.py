@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Query
 
@@ -14,7 +14,8 @@ from service.job_settings import JobSettings, resolve, stored_config
 from service.products import live_product_names
 from service.routers.convert import job_public
 
-ERRORS = {401: {"model": ErrorResponse}, 404: {"model": ErrorResponse}, 422: {"model": ErrorResponse}}
+ERRORS: dict[int | str, dict[str, Any]] = {401: {"model": ErrorResponse}, 404: {"model": ErrorResponse},
+                                           422: {"model": ErrorResponse}}
 
 session_jobs = APIRouter(prefix="/v1/sessions/{session_id}/jobs", tags=["jobs"], responses=ERRORS)
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=ERRORS)
@@ -59,6 +60,7 @@ def _create_live_job(config: dict, session: dict, store: StoreDep, runner: Runne
                        {"session_id": session["id"]})
     row, active = store.create_live_job(session["id"], session["owner"], config)
     if row is None:
+        assert active is not None  # no new row: because of this active live job
         raise Conflict(f"the session already has a live job ({active['id']}, {active['status']}): one live job per "
                        "session; cancel it or finish the stream first", {"job_id": active["id"]})
     runner.submit(row["id"])
@@ -91,9 +93,9 @@ def get_job(job: JobRow, data: DataDep) -> JobPublic:
 def cancel_job(job: JobRow, store: StoreDep, runner: RunnerDep, data: DataDep) -> JobPublic:
     """Cancel: a queued job at once, a running one within about a second (its worker checks the
     flag at every progress report; one that does not stop is terminated after a grace period)."""
-    if job["status"] not in ("queued", "running"):
+    if job["status"] not in (JobStatus.QUEUED, JobStatus.RUNNING):
         raise Conflict(f"job already {job['status']}", {"status": job["status"]})
     store.request_cancel(job["id"])
     runner.cancel(job["id"])
-    row = store.get_job(job["id"])
+    row = store.get_job(job["id"]) or job  # (deleted meanwhile: the job as it was)
     return job_public(row, live_product_names(data, row))

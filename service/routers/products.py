@@ -7,11 +7,13 @@ from enum import StrEnum
 from functools import partial
 from typing import Annotated, Any
 
+import numpy as np
 from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import FileResponse, Response
 from starlette.concurrency import run_in_threadpool
 
 from api_schemas.errors import ErrorResponse
+from api_schemas.jobs import JobStatus
 from api_schemas.products import Pose, TrajectoryPublic
 from service.deps import DataDep, JobRow, StoreDep
 from service.errors import InvalidInput
@@ -51,12 +53,12 @@ def _georeference(store: Any, job: dict[str, Any]) -> Any:
                            "(lat_deg, lon_deg, heading_deg)", {"scheme": "webmercator"})
     geo = session["geo"]
     origin = GeoOrigin(latitude_deg=geo["lat_deg"], longitude_deg=geo["lon_deg"], heading_deg=geo["heading_deg"])
-    return Georeference.utm(origin, start_pose=[0.0, 0.0, 0.0])  # the map frame starts at the first pose
+    return Georeference.utm(origin, start_pose=np.zeros(3))  # the map frame starts at the first pose
 
 
 def _file(data: DataDep, job: dict[str, Any], name: str) -> FileResponse:
     path = product_path(data, job, name)
-    headers = {"Cache-Control": "no-store"} if job["status"] == "running" else None
+    headers = {"Cache-Control": "no-store"} if job["status"] == JobStatus.RUNNING else None
     return FileResponse(path, media_type=MEDIA_TYPES[name], headers=headers)
 
 
@@ -72,7 +74,8 @@ def _trajectory(data: DataDep, job: dict[str, Any], stem: str, kind: str, fmt: T
 
 
 TrajectoryFormatQuery = Annotated[TrajectoryFormat, Query(alias="format", description="json or tum (text)")]
-TEXT = {200: {"content": {"text/plain": {}}, "description": "JSON, or TUM text with ?format=tum."}}
+TEXT: dict[int | str, dict[str, Any]] = {200: {"content": {"text/plain": {}},
+                                               "description": "JSON, or TUM text with ?format=tum."}}
 
 
 @router.get("/trajectory", response_model=TrajectoryPublic, responses=TEXT)
@@ -149,7 +152,7 @@ async def tile(request: Request, job: JobRow, data: DataDep, store: StoreDep, la
     georef = _georeference(store, job) if scheme is TileScheme.WEBMERCATOR else None
     png = await run_in_threadpool(partial(render_tile, source, z, x, y, layer.value, scheme=scheme.value,
                                           georef=georef, map_version=(version, scheme.value)))
-    headers = {"Cache-Control": "no-store"} if job["status"] == "running" else {}
+    headers = {"Cache-Control": "no-store"} if job["status"] == JobStatus.RUNNING else {}
     if request.method == "HEAD":  # the GET's headers, no body
         return Response(media_type="image/png", headers={**headers, "Content-Length": str(len(png))})
     return Response(png, media_type="image/png", headers=headers or None)
