@@ -20,6 +20,7 @@ import subprocess
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -126,14 +127,15 @@ def postgres():
 
 
 @pytest.fixture(params=["sqlite", "postgres"])
-def store(request, tmp_path) -> JobStore:
-    """An initialised, empty store on each backend."""
+def store(request, tmp_path) -> Iterator[JobStore]:
+    """An initialised, empty store on each backend (its pooled connections closed afterwards)."""
     if request.param == "sqlite":
         store = open_store("", tmp_path / "lidarmap.sqlite3")
     else:
         store = open_store(request.getfixturevalue("postgres").new_database(), tmp_path / "unused.sqlite3")
     store.initialise()
-    return store
+    yield store
+    store.close()
 
 
 class FakeClock:
@@ -445,6 +447,8 @@ def test_database_urls_and_passwords_never_shown(postgres, tmp_path) -> None:
     with pytest.raises(StoreUnavailable, match="is unavailable: connection failed") as info:
         down.get_job("x")
     assert postgres.password not in info.value.message and down.ping() is False
+    wrong.close()
+    down.close()
 
 
 def test_postgres_store_borrows_pooled_connections(postgres, tmp_path) -> None:
@@ -508,6 +512,7 @@ def test_the_service_on_postgres_maps_an_upload(postgres, tmp_path, caplog) -> N
         response = client.get(f"/v1/jobs/{job_id}")
         assert response.status_code == 503 and response.json()["error"]["code"] == "unavailable"
         assert "not-it-42" not in response.text and postgres.password not in response.text
+        client.app.state.store.close()
 
     # the worker process wrote PostgreSQL, not a SQLite file in the data folder
     assert not (data_dir / "lidarmap.sqlite3").exists()

@@ -38,6 +38,7 @@ def register(app: typer.Typer) -> None:
 
         from api_schemas.jobs import JobCreate, JobPublic, JobStatus
         from service.client import ApiError, LidarmapClient
+        from service.job_settings import JobSettings, resolve
 
         def fail(message: str, code: int = BAD_INPUT_EXIT_CODE) -> typer.Exit:
             typer.echo(f"error: {' '.join(message.split())}", err=True)
@@ -50,10 +51,13 @@ def register(app: typer.Typer) -> None:
         if not log.exists():
             raise fail(f"{log}: no such file or folder")
         given = {"particles": particles, "seed": seed, "resolution_m": resolution}
-        try:  # settings out of their bounds fail here, before anything is uploaded
+        try:  # settings out of the engine's bounds fail here, before anything is uploaded
             settings = JobCreate(**{k: v for k, v in given.items() if v is not None})
+            resolve(JobSettings.model_validate(settings.model_dump(exclude_unset=True)))
         except ValidationError as error:
             raise fail(one_line(error)) from None
+        except ConfigError as error:
+            raise fail(str(error)) from None
         try:
             with LidarmapClient(server, api_key=api_key) as api:
                 session = api.create_session(log.name[:200] or "log")

@@ -127,7 +127,7 @@ def test_submit_maps_a_log_on_the_service_and_downloads_every_product(room_servi
     bad = runner.invoke(app, ["submit", str(small_log), "--server", room_service, "--out", str(tmp_path / "o2"),
                               "--particles", "0"])
     assert bad.exit_code == 2 and bad.stderr.strip().splitlines() == [
-        "error: particles: Input should be greater than or equal to 1"]
+        "error: job settings: bad config: particles: Input should be greater than or equal to 1"]
     assert not (tmp_path / "o2").exists()
     unreachable = runner.invoke(app, ["submit", str(small_log), "--server", f"http://127.0.0.1:{free_port()}",
                                       "--out", str(tmp_path / "o3")])
