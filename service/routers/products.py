@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import functools
 import json
+from collections.abc import Callable
 from enum import StrEnum
 from functools import partial
 from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Path, Query, Request
-from fastapi.responses import FileResponse, Response
+from fastapi.encoders import jsonable_encoder
+from fastapi.responses import FileResponse, JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
 from api_schemas.errors import ErrorResponse
@@ -78,6 +81,20 @@ TEXT: dict[int | str, dict[str, Any]] = {200: {"content": {"text/plain": {}},
                                                "description": "JSON, or TUM text with ?format=tum."}}
 
 
+def _head_of(endpoint: Callable[..., Any]) -> Callable[..., Response]:
+    """The HEAD twin of a JSON (or file) GET endpoint: the same status and headers, no body."""
+
+    @functools.wraps(endpoint)
+    def head(*args: Any, **kwargs: Any) -> Response:
+        answer = endpoint(*args, **kwargs)
+        if isinstance(answer, FileResponse):
+            return answer  # sends its headers only for a HEAD request
+        body = JSONResponse(jsonable_encoder(answer)).body
+        return Response(media_type="application/json", headers={"Content-Length": str(len(body))})
+
+    return head
+
+
 @router.get("/trajectory", response_model=TrajectoryPublic, responses=TEXT)
 def trajectory(job: JobRow, data: DataDep, fmt: TrajectoryFormatQuery = TrajectoryFormat.JSON):
     """The SLAM trajectory: JSON poses, or TUM (``t x y z qx qy qz qw``) with ?format=tum."""
@@ -88,6 +105,10 @@ def trajectory(job: JobRow, data: DataDep, fmt: TrajectoryFormatQuery = Trajecto
 def dead_reckoning(job: JobRow, data: DataDep, fmt: TrajectoryFormatQuery = TrajectoryFormat.JSON):
     """Odometry alone, for comparison."""
     return _trajectory(data, job, "dead_reckoning", "dead_reckoning", fmt)
+
+
+router.head("/trajectory", name="trajectory (head)", responses=TEXT)(_head_of(trajectory))
+router.head("/dead-reckoning", name="dead_reckoning (head)", responses=TEXT)(_head_of(dead_reckoning))
 
 
 def _file_route(name: str, summary: str) -> None:
@@ -129,6 +150,9 @@ for _name, _summary in PRODUCT_SUMMARIES.items():
 def run_record(job: JobRow, data: DataDep) -> dict[str, Any]:
     """The run record: configuration used, timings, scan statistics, input summary."""
     return json.loads(product_path(data, job, "run.json").read_text())
+
+
+router.head("/run", name="run_record (head)")(_head_of(run_record))
 
 
 @router.get("/tiles/{layer}/{z}/{x}/{y}.png", response_class=Response,

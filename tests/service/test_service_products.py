@@ -43,6 +43,12 @@ def test_every_listed_product_downloads_under_its_name(tmp_path) -> None:
         assert len(poses) == len(api) == 4
         assert [p["x"] for p in poses] == [p["x_m"] for p in api]
 
+        for path in ("run", "trajectory", "dead-reckoning", "trajectory?format=tum"):  # HEAD on the older routes
+            got, head = client.get(f"/v1/jobs/{job['id']}/{path}"), client.head(f"/v1/jobs/{job['id']}/{path}")
+            assert got.status_code == head.status_code == 200 and head.content == b"", path
+            assert head.headers["content-length"] == str(len(got.content)), path
+            assert head.headers["content-type"] == got.headers["content-type"], path
+
         tile = client.get(f"/v1/jobs/{job['id']}/tiles/occupancy/0/0/0.png")
         head = client.head(f"/v1/jobs/{job['id']}/tiles/occupancy/0/0/0.png")
         assert tile.status_code == head.status_code == 200 and head.content == b""
