@@ -23,21 +23,32 @@ class JobSource(StrEnum):
 
 
 class JobCreate(BaseModel):
-    """Run parameters; every one bounded so a run's cost is finite."""
+    """A job: what to map, and the engine settings (a SlamConfig: ``lidarmap config`` lists every one with
+    its default, units and bounds). The service validates the settings with the engine's own bounds
+    (422 naming the setting), so every run's cost is finite."""
 
     model_config = ConfigDict(extra="forbid")
 
     source: JobSource | None = Field(None, description="Default: 'log' if the session has an upload, "
                                      "else 'stream'.")
     log_id: str | None = Field(None, max_length=64, description="Which upload (default: the newest).")
-    particles: int = Field(30, ge=1, le=1000)
-    seed: int = Field(0, ge=0, le=2**32 - 1)
-    resolution_m: float = Field(0.05, ge=0.01, le=1.0, description="Grid cell size [m].")
-    max_range_m: float = Field(30.0, gt=0.1, le=200.0, description="Beams are used up to this range [m].")
-    linear_update_m: float = Field(0.2, ge=0.0, le=10.0, description="Process a scan after this much travel [m].")
-    angular_update_rad: float = Field(0.1, ge=0.0, le=3.2, description="... or this much rotation [rad].")
-    snapshot_every_scans: int = Field(50, ge=0, le=100_000, description="Live map preview and animation "
-                                      "frame every n processed scans (0 = none).")
+    slam: dict[str, Any] = Field(default_factory=dict, description="Engine settings, nested by section as "
+                                 "SlamConfig has them, any subset, e.g. {\"grid\": {\"no_return_clear_m\": 4.0}, "
+                                 "\"matcher\": {\"search_xy_m\": 0.5}}; the rest keep their defaults.")
+    # Shortcuts for the settings most runs change; each overrides its slam.* counterpart.
+    particles: int | None = Field(None, description="= slam.particles (default 30).")
+    seed: int | None = Field(None, description="= slam.seed (default 0).")
+    resolution_m: float | None = Field(None, description="= slam.grid.resolution_m: grid cell size [m] "
+                                       "(default 0.05).")
+    max_range_m: float | None = Field(None, description="= slam.grid.max_range_m: beams are used up to this "
+                                      "range [m] (default 30).")
+    linear_update_m: float | None = Field(None, description="= slam.scheduling.linear_update_m: process a "
+                                          "scan after this much travel [m] (default 0.2).")
+    angular_update_rad: float | None = Field(None, description="= slam.scheduling.angular_update_rad: ... or "
+                                             "this much rotation [rad] (default 0.1).")
+    snapshot_every_scans: int | None = Field(None, description="= slam.snapshot_every_scans: live map preview "
+                                             "and animation frame every n processed scans (0 = none; default "
+                                             "for a job 50).")
     live: bool = Field(False, description="Follow the session's stream: map chunks in seq order as they "
                        "arrive (a gap waits for its chunk) until the stream is finished "
                        "(POST /v1/sessions/{id}/chunks/finish) or idle for idle_timeout_s. One live job per "
@@ -71,7 +82,8 @@ class JobPublic(BaseModel):
                             "install whose kernel cache is not warm, about 30 s): no scans are mapped meanwhile.")
     error: str | None = Field(description="Why the job failed or was cancelled.")
     cancel_requested: bool
-    config: dict[str, Any] = Field(description="The parameters the job was created with.")
+    config: dict[str, Any] = Field(description="The job's settings: 'slam' is the whole engine configuration "
+                                   "it runs with (a SlamConfig); the shortcut fields repeat its values.")
     input: dict[str, Any] | None = Field(description="What the job mapped (log summary; chunks used).")
     products: list[str] = Field(description="Product names available now, e.g. 'occupancy.png'.")
     created_at: datetime

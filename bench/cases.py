@@ -9,7 +9,8 @@ from pathlib import Path
 
 from slam_engine.evaluation import files_beside_log
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
+REPO_ROOT = Path(__file__).resolve().parent.parent  # a source checkout, or site-packages when installed
+SOURCE_CHECKOUT = (REPO_ROOT / "pyproject.toml").exists()
 
 # Logs without ground truth whose maps a person should look at (paths inside the datasets folder).
 MAP_ONLY_LOGS = ("breezyslam/exp2.dat", "malaga/*.clf")
@@ -36,9 +37,12 @@ class BenchCase:
 
 
 def datasets_root() -> Path:
-    """The shared datasets folder: ``LIDARMAP_DATASETS`` or ``../shared/datasets`` beside the checkout."""
+    """The shared datasets folder: ``LIDARMAP_DATASETS``, or ``../shared/datasets`` beside the checkout
+    (beside the working folder in an installed copy)."""
     override = os.environ.get("LIDARMAP_DATASETS")
-    return Path(override) if override else REPO_ROOT.parent / "shared" / "datasets"
+    if override:
+        return Path(override)
+    return (REPO_ROOT.parent if SOURCE_CHECKOUT else Path.cwd().parent) / "shared" / "datasets"
 
 
 def _stem(path: Path) -> str:

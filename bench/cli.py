@@ -63,13 +63,14 @@ def accuracy(
 ) -> None:
     """Accuracy and speed of SLAM on the benchmark logs (relation errors, ATE, time, memory) over
     several seeds, plus maps of logs without ground truth. Writes JSON and map PNGs."""
-    import yaml
     from rich.console import Console
 
     from bench.cases import cases_for_path, datasets_root, default_cases
     from bench.harness import BenchOptions, run_benchmark
     from bench.report import fmt, print_report
     from bench.worker import resolve
+    from slam_engine.config import read_settings
+    from slam_engine.errors import ConfigError
 
     seed_list = parse_seeds(seeds)[:1] if quick else parse_seeds(seeds)
     cases = default_cases(map_only=not quick) if datasets else []
@@ -80,7 +81,10 @@ def accuracy(
         raise typer.BadParameter(str(exc)) from None
     if not cases:
         raise typer.BadParameter(f"nothing to run: no logs under {datasets_root()} and none given")
-    overrides = yaml.safe_load(config.read_text()) if config is not None else {}
+    try:
+        overrides = read_settings(config) if config is not None else {}
+    except ConfigError as error:
+        raise typer.BadParameter(str(error)) from None
     console = Console()
     if not console.is_terminal:  # files and pipes get the whole table, not an 80-column squeeze
         console = Console(width=200)

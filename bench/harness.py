@@ -19,10 +19,11 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bench.cases import REPO_ROOT, BenchCase
+from bench.cases import REPO_ROOT, SOURCE_CHECKOUT, BenchCase
 from bench.worker import DEFAULT_LOADER, DEFAULT_RUNNER, finite_or_none
 
-RESULTS_ROOT = REPO_ROOT / "bench" / "results"
+# bench/results in a source checkout; ./bench-results from an installed copy (never into site-packages)
+RESULTS_ROOT = REPO_ROOT / "bench" / "results" if SOURCE_CHECKOUT else Path("bench-results").resolve()
 
 # (summary name, path into a run record, worse when higher?)
 SLAM_METRICS: tuple[tuple[str, tuple[str, ...], bool], ...] = (

@@ -54,6 +54,7 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
         finally:
             runner.shutdown()
             app.state.inspector.shutdown()
+            store.close()
 
     app = FastAPI(title="lidarmap", version=__version__, lifespan=lifespan,
                   description="Occupancy grid, texture map and trajectory from drive logs, by "

@@ -90,7 +90,7 @@ def error_response(status_code: int, code: str, message: str, detail: Any = None
 def engine_error_to_service(exc: SlamEngineError) -> ServiceError:
     """The HTTP meaning of an engine error."""
     if isinstance(exc, TileOutOfRangeError):
-        err = NotFound(str(exc))
+        err: ServiceError = NotFound(str(exc))
         err.code = "tile_out_of_range"
         return err
     if isinstance(exc, UnknownFormatError):

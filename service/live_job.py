@@ -108,6 +108,7 @@ class LiveRun:
         if source == "encoders" and odometry.gyro is None:
             OdometryIntegrator(self.vehicle, source, use_gyro=False)  # ConfigError: no track width for the heading
         integrator = OdometryIntegrator(self.vehicle, source, use_gyro=True)
+        assert self.lidar is not None  # run_live_job refuses a calibration without 'lidar'
         return SlamFilter(self.lidar, integrator, self.config, np.random.default_rng(self.config.seed))
 
     def latest_snapshot(self) -> MapSnapshot | None:

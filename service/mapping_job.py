@@ -18,29 +18,21 @@ from typing import Any
 import numpy as np
 
 from service.chunks import read_chunk_messages, stream_state
+from service.job_settings import engine_config
 from service.products import COMPILING_FILE, GRID_FILE, TEXTURE_FILE, save_grid, save_texture
 from service.storage import write_atomic
 from service.stream_log import drive_log_from_messages
 from service.worker import JobContext
 from slam_engine.config import SlamConfig
 from slam_engine.drive_log import DriveLog
-from slam_engine.errors import ConfigError, LogFormatError
+from slam_engine.errors import LogFormatError
 from slam_engine.products import write_trajectory_json
 from slam_engine.products.rendering import occupancy_image, png_bytes
 
 
 def slam_config(job_config: dict[str, Any]) -> SlamConfig:
-    """The engine configuration for a job's parameters (already bounded by JobCreate)."""
-    try:
-        return SlamConfig(
-            particles=job_config["particles"], seed=job_config["seed"],
-            snapshot_every_scans=job_config["snapshot_every_scans"],
-            grid={"resolution_m": job_config["resolution_m"], "max_range_m": job_config["max_range_m"]},
-            scheduling={"linear_update_m": job_config["linear_update_m"],
-                        "angular_update_rad": job_config["angular_update_rad"]},
-        )
-    except ValueError as exc:
-        raise ConfigError(str(exc)) from None
+    """The engine configuration a stored job runs with (:mod:`service.job_settings`)."""
+    return engine_config(job_config)
 
 
 def load_input(ctx: JobContext) -> tuple[DriveLog, dict[str, Any]]:

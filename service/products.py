@@ -11,15 +11,17 @@ from typing import Any
 
 import numpy as np
 
+from api_schemas.jobs import JobStatus
 from service.errors import NotFound, NotReady
 from service.storage import DataDir
 from slam_engine.products.files import atomic_path
 from slam_engine.result import OccupancyGrid, TextureMap
 
-MEDIA_TYPES = {
+MEDIA_TYPES = {  # every file product a job can list; each is served at GET /v1/jobs/{id}/{name}
     "trajectory.json": "application/json", "trajectory.tum": "text/plain",
     "dead_reckoning.json": "application/json", "dead_reckoning.tum": "text/plain",
-    "occupancy.png": "image/png", "occupancy.tif": "image/tiff", "map.yaml": "application/yaml",
+    "occupancy.png": "image/png", "occupancy_trajectory.png": "image/png", "occupancy.tif": "image/tiff",
+    "map.yaml": "application/yaml",
     "map.pgm": "image/x-portable-graymap", "texture.png": "image/png", "texture.tif": "image/tiff",
     "animation.gif": "image/gif", "run.json": "application/json",
 }
@@ -38,7 +40,7 @@ def engine_compiling(data: DataDir, job: dict[str, Any]) -> bool:
 
 def live_product_names(data: DataDir, job: dict[str, Any]) -> list[str]:
     """Products a running job can already show."""
-    if job["status"] != "running":
+    if job["status"] != JobStatus.RUNNING:
         return []
     live = data.live_dir(job["id"])
     names = []
@@ -54,15 +56,15 @@ def live_product_names(data: DataDir, job: dict[str, Any]) -> list[str]:
 def product_path(data: DataDir, job: dict[str, Any], name: str) -> Path:
     """The file of product ``name``: final when the job succeeded, the live snapshot while it runs."""
     stored = job["products"].get(name)
-    if stored is not None and job["status"] == "succeeded":
+    if stored is not None and job["status"] == JobStatus.SUCCEEDED:
         path = data.resolve(str(Path("jobs") / job["id"] / stored))
         if path.exists():
             return path
-    if job["status"] == "running" and name in LIVE_FILES:
+    if job["status"] == JobStatus.RUNNING and name in LIVE_FILES:
         path = data.live_dir(job["id"]) / LIVE_FILES[name]
         if path.exists():
             return path
-    if job["status"] == "succeeded":
+    if job["status"] == JobStatus.SUCCEEDED:
         raise NotFound(f"this job has no {name!r} product (e.g. no camera for a texture)",
                        {"product": name, "available": sorted(job["products"])})
     raise NotReady(f"{name!r} is not available while the job is {job['status']}",
@@ -123,12 +125,12 @@ def tile_source(data: DataDir, job: dict[str, Any], layer: str) -> tuple[Occupan
     """The grid (or texture) that tiles of ``layer`` are cut from, and a version key for the tile cache
     (changes whenever the file does)."""
     job_dir = data.job_dir(job["id"])
-    if job["status"] == "succeeded":
+    if job["status"] == JobStatus.SUCCEEDED:
         path = job_dir / (GRID_FILE if layer == "occupancy" else TEXTURE_FILE)
         if not path.exists():
             raise NotFound(f"this job has no {layer} layer", {"layer": layer})
         return _cache.get(path, _load_grid if layer == "occupancy" else _load_texture), _version(path)
-    if job["status"] == "running" and layer == "occupancy":
+    if job["status"] == JobStatus.RUNNING and layer == "occupancy":
         path = data.live_dir(job["id"]) / GRID_FILE
         if path.exists():
             return _cache.get(path, _load_grid), _version(path)

@@ -2,10 +2,12 @@
 file in WAL mode) or PostgreSQL (``LIDARMAP_DATABASE_URL=postgresql://...``, for several hosts).
 
 Both backends run the same SQL through one :class:`JobStore`; a backend only opens a transaction
-on a fresh connection and says its placeholder style (queries are written with ``?``). The API
-process and every worker process open the store; each operation is one transaction on its own
-short-lived connection, so no connection crosses a thread or a process. Times are Unix seconds
-(float, stored as DOUBLE PRECISION).
+on a connection and says its placeholder style (queries are written with ``?``). The API
+process and every worker process open the store; each operation is one transaction. SQLite opens a
+short-lived connection per transaction; PostgreSQL borrows one from a per-process connection pool
+(psycopg_pool, created on first use in each process, never pickled), so no connection crosses a
+process and each is used by one thread at a time. Times are Unix seconds (float, stored as DOUBLE
+PRECISION).
 
 Atomicity: SQLite's ``BEGIN IMMEDIATE`` runs transactions one after another. PostgreSQL runs them
 concurrently (READ COMMITTED), so every check-then-write is one conditional statement (the
@@ -19,8 +21,10 @@ transactions run one after another on both backends.
 from __future__ import annotations
 
 import json
+import os
 import re
 import sqlite3
+import threading
 import time
 import uuid
 import zlib
@@ -36,6 +40,8 @@ from service.errors import Unavailable
 ACTIVE_STATUSES = ("queued", "running")
 TERMINAL_STATUSES = ("succeeded", "failed", "cancelled")
 POSTGRES_CONNECT_TIMEOUT_S = 10
+POSTGRES_POOL_MAX_CONNECTIONS = 10  # per process: the API's request threads share them, a worker uses one
+POSTGRES_QUICK_BORROW_S = 1.0  # a pooled connection not lent within this long: check the server directly
 
 # Portable DDL: SQLite gives DOUBLE PRECISION and BIGINT columns REAL (8-byte float) and INTEGER
 # (8-byte) affinity; PostgreSQL's REAL would be a 4-byte float (timestamps off by minutes).
@@ -147,9 +153,41 @@ class PostgresBackend:
 
     def __init__(self, url: str):
         self.url = url
+        self._pool: Any = None
+        self._pool_pid: int | None = None
+        self._pool_lock = threading.Lock()
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {"url": self.url}  # a worker process builds its own pool
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__init__(state["url"])  # type: ignore[misc]
 
     def __repr__(self) -> str:
         return f"PostgresBackend({safe_url(self.url)!r})"
+
+    def _connections(self) -> Any:
+        """This process's connection pool (a forked child makes a new one; the parent's sockets are not its)."""
+        with self._pool_lock:
+            if self._pool is None or self._pool_pid != os.getpid():
+                from psycopg.rows import dict_row
+                from psycopg_pool import ConnectionPool
+
+                self._pool = ConnectionPool(
+                    self.url, min_size=1, max_size=POSTGRES_POOL_MAX_CONNECTIONS, open=False,
+                    timeout=POSTGRES_CONNECT_TIMEOUT_S, name="lidarmap", check=ConnectionPool.check_connection,
+                    kwargs={"row_factory": dict_row, "connect_timeout": POSTGRES_CONNECT_TIMEOUT_S,
+                            "application_name": "lidarmap"})
+                self._pool.open(wait=False)
+                self._pool_pid = os.getpid()
+            return self._pool
+
+    def close(self) -> None:
+        """Close this process's pool (its connections); the next transaction opens a new one."""
+        with self._pool_lock:
+            if self._pool is not None and self._pool_pid == os.getpid():
+                self._pool.close()
+            self._pool, self._pool_pid = None, None
 
     @property
     def errors(self) -> tuple[type[Exception], ...]:
@@ -158,18 +196,37 @@ class PostgresBackend:
     @contextmanager
     def transaction(self) -> Iterator[Any]:
         psycopg = _psycopg()
-        from psycopg.rows import dict_row
+        from psycopg_pool import PoolTimeout
 
+        pool = self._connections()
         try:
-            conn = psycopg.connect(self.url, row_factory=dict_row, connect_timeout=POSTGRES_CONNECT_TIMEOUT_S,
-                                   application_name="lidarmap")
-        except psycopg.Error as exc:
-            raise self._unavailable(exc) from None
+            conn = pool.getconn(timeout=POSTGRES_QUICK_BORROW_S)
+        except PoolTimeout:
+            conn = self._borrow_after_a_check(pool)
         try:
-            with conn:  # commits when the block succeeds, rolls back when it raises; then closes
+            with conn:  # commits when the block succeeds, rolls back when it raises (a pooled one stays open)
                 yield conn
         except psycopg.OperationalError as exc:  # the server went away mid-transaction
             raise self._unavailable(exc) from None
+        finally:
+            pool.putconn(conn)  # checked before it is lent again: one the server dropped is replaced
+
+    def _borrow_after_a_check(self, pool: Any) -> Any:
+        """No pooled connection at once: when a direct connection fails too (server down, wrong
+        password) say why at once; otherwise every connection is busy, so wait longer for one."""
+        psycopg = _psycopg()
+        from psycopg_pool import PoolTimeout
+
+        try:
+            psycopg.connect(self.url, connect_timeout=POSTGRES_CONNECT_TIMEOUT_S).close()
+        except psycopg.Error as exc:
+            raise self._unavailable(exc) from None
+        try:
+            return pool.getconn(timeout=POSTGRES_CONNECT_TIMEOUT_S)
+        except PoolTimeout:
+            raise self._unavailable(RuntimeError(
+                f"all {POSTGRES_POOL_MAX_CONNECTIONS} pooled connections stayed busy for "
+                f"{POSTGRES_CONNECT_TIMEOUT_S} s")) from None
 
     def create_schema(self) -> None:
         with self.transaction() as conn:
@@ -221,6 +278,11 @@ class JobStore:
 
     def __repr__(self) -> str:
         return f"JobStore({self.backend!r})"
+
+    def close(self) -> None:
+        """Close pooled connections (PostgreSQL); SQLite holds none between transactions."""
+        if isinstance(self.backend, PostgresBackend):
+            self.backend.close()
 
     @contextmanager
     def _tx(self) -> Iterator[_Transaction]:

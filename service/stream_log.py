@@ -109,7 +109,7 @@ def check_message(m: dict[str, Any], lidar: LidarModel | None, location: str) ->
 def in_log_order(messages: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Time-ordered messages in the order DriveLog.messages() would give them (equal stamps:
     encoders, gyro, odometry, then scans; otherwise as sent)."""
-    return sorted(messages, key=lambda m: (m["t_s"], MESSAGE_ORDER.get(m.get("type"), len(MESSAGE_ORDER))))
+    return sorted(messages, key=lambda m: (m["t_s"], MESSAGE_ORDER.get(str(m.get("type")), len(MESSAGE_ORDER))))
 
 
 def engine_message(m: dict[str, Any], lidar: LidarModel | None, location: str) -> Message:

@@ -90,7 +90,10 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
     job = store.get_job(job_id)
     if job is None:
         return "skipped"
-    guard = MemoryGuard(memory_limit_mb, on_exceeded=lambda reason: store.finish(job_id, "failed", reason))
+    def fail_for_memory(reason: str) -> None:
+        store.finish(job_id, "failed", reason)
+
+    guard = MemoryGuard(memory_limit_mb, on_exceeded=fail_for_memory)
     ctx = JobContext(job_id=job_id, job=job, store=store, data=data, memory=guard)
     try:
         with guard:

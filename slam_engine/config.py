@@ -1,11 +1,20 @@
 """SLAM configuration: one nested pydantic model, documented defaults and units, saved with every
-result. Bounds on every field keep a run's cost finite."""
+result. Bounds on every field keep a run's cost finite.
+
+Loading lives here too, for every caller (CLI, service, benchmark): :func:`load_config` reads a YAML or
+JSON file and merges overrides section by section, :func:`validate_config` turns a mapping into a
+``SlamConfig`` with one readable error, :func:`defaults_yaml` prints the documented defaults."""
 
 from __future__ import annotations
 
-from typing import Literal
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from slam_engine.errors import ConfigError
 
 
 class _Section(BaseModel):
@@ -229,3 +238,77 @@ class SlamConfig(_Section):
     texture: TextureConfig = TextureConfig()
     snapshot_every_scans: int = Field(0, ge=0, le=100000, description="Keep a map snapshot every n "
                                       "processed scans (0 = none); used for animations.")
+
+
+def merge_settings(base: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``overrides`` laid over it; nested sections (dicts) merge key by key."""
+    merged = dict(base)
+    for key, value in overrides.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
+            merged[key] = merge_settings(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def validate_config(settings: Mapping[str, Any], where: str = "config") -> SlamConfig:
+    """A SlamConfig from nested settings; raises ConfigError listing every bad field
+    (``where: bad config: grid.resolution_m: Input should be ...``)."""
+    try:
+        return SlamConfig.model_validate(dict(settings))
+    except ValidationError as error:
+        details = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in error.errors())
+        raise ConfigError(f"{where}: bad config: {details}") from None
+
+
+def read_settings(path: str | Path) -> dict[str, Any]:
+    """The settings mapping in a YAML or JSON file (empty file: no settings); ConfigError naming the
+    file and line when it is not YAML/JSON or not a mapping."""
+    import yaml
+
+    try:
+        loaded = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f", line {mark.line + 1}" if mark is not None else ""
+        problem = getattr(error, "problem", None) or str(error)
+        raise ConfigError(f"{path}{where}: not valid YAML or JSON: {problem}") from None
+    if loaded is None:
+        return {}
+    if not isinstance(loaded, dict):
+        raise ConfigError(f"{path}: a config file holds a mapping of settings, not {type(loaded).__name__}")
+    return loaded
+
+
+def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> SlamConfig:
+    """SlamConfig from a YAML/JSON file (or the defaults), with ``overrides`` merged over it
+    (``{"grid": {"resolution_m": 0.1}}`` changes that one setting); validated."""
+    settings = read_settings(path) if path is not None else {}
+    settings = merge_settings(settings, overrides or {})
+    return validate_config(settings, str(path) if path is not None else "settings")
+
+
+def defaults_yaml() -> str:
+    """The default configuration as YAML, every setting with its description, bounds and units as a
+    comment (what ``lidarmap config`` prints; a valid config file as it stands)."""
+    lines = ["# lidarmap SlamConfig: the defaults. Copy, edit, and pass with --config (YAML or JSON)."]
+    _describe(SlamConfig, SlamConfig(), lines, indent="")
+    return "\n".join(lines) + "\n"
+
+
+def _describe(model: type[BaseModel], value: BaseModel, lines: list[str], indent: str) -> None:
+    for name, info in model.model_fields.items():
+        current = getattr(value, name)
+        if isinstance(current, BaseModel):
+            doc = (type(current).__doc__ or "").split("\n\n")[0]
+            lines.append("")
+            lines.append(f"{indent}{name}:  # {' '.join(doc.split())}")
+            _describe(type(current), current, lines, indent + "  ")
+            continue
+        bounds = [f"{op} {getattr(m, attr)}" for m in info.metadata
+                  for attr, op in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<"), ("multiple_of", "x"))
+                  if getattr(m, attr, None) is not None]
+        note = " ".join((info.description or "").split())
+        if bounds:
+            note += f" ({', '.join(bounds)})"
+        lines.append(f"{indent}{name}: {json.dumps(current)}  # {note}")

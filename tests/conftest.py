@@ -3,15 +3,16 @@
 Datasets are found as the benchmark finds them (``bench.cases.datasets_root``): ``LIDARMAP_DATASETS``
 or ``../shared/datasets`` beside the checkout.
 When missing, tests that need them skip with the reason; with ``CI=true`` they fail instead, so CI
-never silently skips the real-data tests.
+never silently skips the real-data tests. Every other skip for a missing capability (a tmpfs mount,
+a second numba thread) goes through ``ci_skips.skip_or_fail_on_ci`` too.
 """
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
+from ci_skips import skip_or_fail_on_ci
 
 from bench.cases import datasets_root
 
@@ -20,11 +21,8 @@ def require_dataset(relative: str) -> Path:
     """Path of ``relative`` inside the datasets folder, or skip (fail on CI) when it is missing."""
     path = datasets_root() / relative
     if not path.exists():
-        reason = (f"dataset {relative!r} not found under {datasets_root()} "
-                  "(set LIDARMAP_DATASETS to the shared datasets folder)")
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(reason)
-        pytest.skip(reason)
+        skip_or_fail_on_ci(f"dataset {relative!r} not found under {datasets_root()} "
+                           "(set LIDARMAP_DATASETS to the shared datasets folder)")
     return path
 
 

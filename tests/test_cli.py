@@ -164,7 +164,6 @@ def test_run_wires_log_config_progress_relations_and_products(tmp_path: Path, da
 
 @pytest.mark.slow
 def test_run_on_intel_writes_every_product(tmp_path: Path, dataset) -> None:
-    pytest.importorskip("slam_engine.pipeline", reason="the engine (slam_engine.pipeline) is not merged yet")
     out = tmp_path / "intel"
     result = invoke("run", dataset(INTEL), "--out", out, "--particles", "5", "--seed", "1", "--resolution", "0.1")
     assert result.exit_code == 0, result.output

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 import pytest
+from ci_skips import skip_or_fail_on_ci
 from log_helpers import first_scans
 
 from slam_engine.config import SlamConfig
@@ -19,8 +20,9 @@ from slam_engine.raycast import insert_scan
 N_SCANS = 150
 
 
-@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs at least 2 numba threads")
 def test_threads_give_bit_identical_trajectory_and_map(dataset, monkeypatch) -> None:
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        skip_or_fail_on_ci("needs at least 2 numba threads (NUMBA_NUM_THREADS=2 gives them on one core)")
     log = first_scans(load_log(dataset("benchmark/intel.clf")), N_SCANS)
     results = {}
     for threads in ("1", "2"):

@@ -20,6 +20,7 @@ import subprocess
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -126,14 +127,15 @@ def postgres():
 
 
 @pytest.fixture(params=["sqlite", "postgres"])
-def store(request, tmp_path) -> JobStore:
-    """An initialised, empty store on each backend."""
+def store(request, tmp_path) -> Iterator[JobStore]:
+    """An initialised, empty store on each backend (its pooled connections closed afterwards)."""
     if request.param == "sqlite":
         store = open_store("", tmp_path / "lidarmap.sqlite3")
     else:
         store = open_store(request.getfixturevalue("postgres").new_database(), tmp_path / "unused.sqlite3")
     store.initialise()
-    return store
+    yield store
+    store.close()
 
 
 class FakeClock:
@@ -445,6 +447,35 @@ def test_database_urls_and_passwords_never_shown(postgres, tmp_path) -> None:
     with pytest.raises(StoreUnavailable, match="is unavailable: connection failed") as info:
         down.get_job("x")
     assert postgres.password not in info.value.message and down.ping() is False
+    wrong.close()
+    down.close()
+
+
+def test_postgres_store_borrows_pooled_connections(postgres, tmp_path) -> None:
+    """Transactions reuse a few pooled connections (not one connection each); a pickled store (as
+    sent to a worker process) carries no pool and opens its own; close() ends the connections."""
+    import pickle
+    from concurrent.futures import ThreadPoolExecutor
+
+    from service.store import POSTGRES_POOL_MAX_CONNECTIONS
+
+    store = open_store(postgres.new_database(), tmp_path / "unused.sqlite3")
+    store.initialise()
+    session = store.create_session("alice", "pooled", None, None, None)
+    with ThreadPoolExecutor(max_workers=8) as threads:
+        found = list(threads.map(lambda _: store.get_session(session["id"], "alice"), range(200)))
+    assert all(row["name"] == "pooled" for row in found)
+    stats = store.backend._pool.get_stats()
+    assert stats["requests_num"] >= 202
+    assert 1 <= stats["connections_num"] <= POSTGRES_POOL_MAX_CONNECTIONS  # connections opened, ever
+
+    copy = pickle.loads(pickle.dumps(store))
+    assert copy.backend._pool is None and copy.get_session(session["id"], "alice")["name"] == "pooled"
+    assert copy.backend._pool is not store.backend._pool
+    store.close()
+    copy.close()
+    assert store.backend._pool is None and store.ping() is True  # a closed store opens a new pool on use
+    store.close()
 
 
 def test_the_service_on_postgres_maps_an_upload(postgres, tmp_path, caplog) -> None:
@@ -481,6 +512,7 @@ def test_the_service_on_postgres_maps_an_upload(postgres, tmp_path, caplog) -> N
         response = client.get(f"/v1/jobs/{job_id}")
         assert response.status_code == 503 and response.json()["error"]["code"] == "unavailable"
         assert "not-it-42" not in response.text and postgres.password not in response.text
+        client.app.state.store.close()
 
     # the worker process wrote PostgreSQL, not a SQLite file in the data folder
     assert not (data_dir / "lidarmap.sqlite3").exists()

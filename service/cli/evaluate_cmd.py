@@ -49,7 +49,7 @@ def register(app: typer.Typer) -> None:
                 raise ConfigError("nothing to compare with: give --relations and/or --ground-truth")
             estimate = read_any_trajectory(trajectory)
             truth = None if ground_truth is None else read_any_trajectory(ground_truth)
-            figures = accuracy_figures(estimate, relations, truth)
+            figures = accuracy_figures(estimate, relations, truth) or {}  # None only with nothing to compare
             if figures.get("ate_error"):
                 raise ConfigError(f"{trajectory} vs {ground_truth}: {figures['ate_error']}")
         if as_json:

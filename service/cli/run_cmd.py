@@ -10,45 +10,35 @@ simulator's floor (``accuracy.texture``).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import typer
 
 from service.cli.errors import bad_input_exits
+from slam_engine.config import SlamConfig
+from slam_engine.config import load_config as load_slam_config
 from slam_engine.errors import ConfigError
 
 SNAPSHOT_FRAMES = 40  # = slam_engine.products.animation.ANIMATION_FRAMES (for the help text; not imported here)
 
 
 def load_config(path: Path | None, particles: int | None = None, seed: int | None = None,
-                resolution_m: float | None = None, snapshot_every: int | None = None):
+                resolution_m: float | None = None, snapshot_every: int | None = None) -> SlamConfig:
     """SlamConfig from a YAML/JSON file (or defaults), then the command-line overrides; validated."""
-    import yaml
-    from pydantic import ValidationError
+    overrides: dict[str, Any] = {"particles": particles, "seed": seed, "snapshot_every_scans": snapshot_every,
+                                 "grid": {"resolution_m": resolution_m}}
+    overrides["grid"] = {k: v for k, v in overrides["grid"].items() if v is not None}
+    overrides = {k: v for k, v in overrides.items() if v is not None and v != {}}
+    return load_slam_config(path, overrides)
 
-    from slam_engine.config import SlamConfig
 
-    data: dict = {}
-    if path is not None:
-        try:
-            loaded = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-        except yaml.YAMLError as error:
-            mark = getattr(error, "problem_mark", None)
-            where = f", line {mark.line + 1}" if mark is not None else ""
-            problem = getattr(error, "problem", None) or str(error)
-            raise ConfigError(f"{path}{where}: not valid YAML or JSON: {problem}") from None
-        if loaded is not None and not isinstance(loaded, dict):
-            raise ConfigError(f"{path}: a config file holds a mapping of settings, not {type(loaded).__name__}")
-        data = loaded or {}
-    overrides = {"particles": particles, "seed": seed, "snapshot_every_scans": snapshot_every}
-    data.update({k: v for k, v in overrides.items() if v is not None})
-    if resolution_m is not None:
-        data["grid"] = {**(data.get("grid") or {}), "resolution_m": resolution_m}
-    try:
-        return SlamConfig.model_validate(data)
-    except ValidationError as error:
-        where = f"{path}" if path is not None else "command line"
-        details = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in error.errors())
-        raise ConfigError(f"{where}: bad config: {details}") from None
+def prepare_out_dir(out: Path, force: bool) -> None:
+    """Refuse an existing, non-empty output folder unless ``force`` (then its product files are replaced)."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: --out is a file, not a folder")
+    if out.exists() and any(out.iterdir()) and not force:
+        raise ConfigError(f"{out}: output folder exists and is not empty (--force writes into it, replacing "
+                          "the products it holds)")
 
 
 def geo_origin(lat: float | None, lon: float | None, heading: float | None):
@@ -61,6 +51,7 @@ def geo_origin(lat: float | None, lon: float | None, heading: float | None):
     if not all(given):
         raise ConfigError("--lat, --lon and --heading go together: give all three (heading in degrees "
                           "clockwise from north) or none")
+    assert lat is not None and lon is not None and heading is not None
     return GeoOrigin(latitude_deg=lat, longitude_deg=lon, heading_deg=heading)
 
 
@@ -150,13 +141,14 @@ def _fmt(value: float | None, spec: str) -> str:
 def register(app: typer.Typer) -> None:
     @app.command()
     def run(
-        log: Path = typer.Argument(..., help="Drive log: a file or a folder (see lidarmap formats)."),
+        log: Path = typer.Argument(..., metavar="LOG", help="Drive log: a file or a folder (see lidarmap formats)."),
         out: Path = typer.Option(..., "--out", "-o", help="Folder for the products (created)."),
         format: str = typer.Option("auto", "--format", "-f", help="Log format, or auto to detect it."),
         particles: int | None = typer.Option(None, help="Number of particles (overrides the config)."),
         seed: int | None = typer.Option(None, help="Random seed (overrides the config)."),
         resolution: float | None = typer.Option(None, help="Grid cell size [m] (overrides the config)."),
-        config: Path | None = typer.Option(None, "--config", "-c", help="SlamConfig as YAML or JSON."),
+        config_file: Path | None = typer.Option(None, "--config", "-c", help="SlamConfig as YAML or JSON "
+                                                "(lidarmap config prints the defaults)."),
         relations: Path | None = typer.Option(None, help="Relations file for accuracy figures "
                                               "(default: NAME.relations beside the log)."),
         ground_truth: Path | None = typer.Option(None, "--ground-truth", help="Ground truth 't x y theta' "
@@ -166,6 +158,7 @@ def register(app: typer.Typer) -> None:
         heading: float | None = typer.Option(None, help="Start heading [deg clockwise from north]."),
         snapshot_every: int | None = typer.Option(None, help="Animation frame every N processed scans "
                                                   f"(default: about {SNAPSHOT_FRAMES} frames; 0 = none)."),
+        force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty --out folder."),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Show tracebacks."),
     ) -> None:
         """Build the map of a drive log and write every product (PNG, GeoTIFF, ROS map, trajectories,
@@ -177,7 +170,8 @@ def register(app: typer.Typer) -> None:
 
         with bad_input_exits(verbose):
             geo = geo_origin(lat, lon, heading)
-            slam_config = load_config(config, particles, seed, resolution, snapshot_every)
+            prepare_out_dir(out, force)
+            slam_config = load_config(config_file, particles, seed, resolution, snapshot_every)
             relations_beside, truth_beside = evaluation.files_beside_log(log)
             relations = relations or relations_beside
             ground_truth = ground_truth or truth_beside

@@ -6,7 +6,7 @@ import time
 from datetime import UTC, datetime
 from typing import Any
 
-from api_schemas.jobs import JobPublic
+from api_schemas.jobs import JobPublic, JobStatus
 from api_schemas.logs import LogPublic
 from api_schemas.sessions import SessionPublic
 
@@ -29,7 +29,7 @@ def log_public(row: dict[str, Any]) -> LogPublic:
 
 def eta_s(row: dict[str, Any], now: float | None = None) -> float | None:
     """Seconds left, extrapolating the run's rate so far; None when unknown."""
-    if row["status"] != "running" or not row["started_at"] or not row["scans_total"] or row["scans_done"] <= 0:
+    if row["status"] != JobStatus.RUNNING or not row["started_at"] or not row["scans_total"] or row["scans_done"] <= 0:
         return None
     elapsed = (now or time.time()) - row["started_at"]
     return max(0.0, elapsed * (row["scans_total"] - row["scans_done"]) / row["scans_done"])
@@ -38,7 +38,7 @@ def eta_s(row: dict[str, Any], now: float | None = None) -> float | None:
 def job_public(row: dict[str, Any], live_products: list[str] | None = None, compiling: bool = False) -> JobPublic:
     """The public view of a job row; ``compiling``: its engine is compiling (no ETA meanwhile)."""
     products = sorted(set(row["products"]) | set(live_products or []))
-    following = bool(row["config"].get("live")) and row["status"] != "succeeded"  # total unknown
+    following = bool(row["config"].get("live")) and row["status"] != JobStatus.SUCCEEDED  # total unknown
     return JobPublic(id=row["id"], session_id=row["session_id"], source=row["source"], log_id=row["log_id"],
                      status=row["status"], progress=None if following else row["progress"],
                      scans_done=row["scans_done"],

@@ -2,31 +2,34 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Query
 
 from api_schemas.errors import ErrorResponse
-from api_schemas.jobs import JobCreate, JobPublic, JobSource, JobsPublic, JobStatus
+from api_schemas.jobs import JobPublic, JobSource, JobsPublic, JobStatus
 from service.deps import MAX_OFFSET, DataDep, JobRow, OwnerDep, RunnerDep, SessionRow, StoreDep
 from service.errors import Conflict, NotFound
+from service.job_settings import JobSettings, resolve, stored_config
 from service.products import engine_compiling, live_product_names
 from service.routers.convert import job_public
 
-ERRORS = {401: {"model": ErrorResponse}, 404: {"model": ErrorResponse}, 422: {"model": ErrorResponse}}
+ERRORS: dict[int | str, dict[str, Any]] = {401: {"model": ErrorResponse}, 404: {"model": ErrorResponse},
+                                           422: {"model": ErrorResponse}}
 
 session_jobs = APIRouter(prefix="/v1/sessions/{session_id}/jobs", tags=["jobs"], responses=ERRORS)
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=ERRORS)
 
 
 @session_jobs.post("", response_model=JobPublic, status_code=202, responses={409: {"model": ErrorResponse}})
-def create_job(body: JobCreate, session: SessionRow, store: StoreDep, runner: RunnerDep) -> JobPublic:
+def create_job(body: JobSettings, session: SessionRow, store: StoreDep, runner: RunnerDep) -> JobPublic:
     """Queue a mapping run over the session's newest (or the given) upload, or over its streamed
     chunks 0..k as they stand when the job starts. With ``live: true`` the job follows the stream
     instead, mapping chunks as they arrive until the stream is finished or idle (one live job per
     session; the session may have no chunks yet). Poll GET /v1/jobs/{id}."""
+    config = stored_config(body, resolve(body))  # the engine's bounds: 422 naming the setting
     if body.live:
-        return _create_live_job(body, session, store, runner)
+        return _create_live_job(config, session, store, runner)
     source = body.source or (JobSource.LOG if session["logs"] else JobSource.STREAM)
     log_id = None
     if source is JobSource.LOG:
@@ -45,19 +48,19 @@ def create_job(body: JobCreate, session: SessionRow, store: StoreDep, runner: Ru
             raise Conflict("the session has no streamed chunks: POST some to /v1/sessions/{id}/chunks first "
                            "(or start a live job, which waits for them)", {"session_id": session["id"]})
         _check_stream_calibration(session)
-    config = body.model_dump(exclude={"source", "log_id"})
     row = store.create_job(session["id"], session["owner"], source.value, log_id, config)
     runner.submit(row["id"])
     return job_public(row)
 
 
-def _create_live_job(body: JobCreate, session: dict, store: StoreDep, runner: RunnerDep) -> JobPublic:
+def _create_live_job(config: dict, session: dict, store: StoreDep, runner: RunnerDep) -> JobPublic:
     _check_stream_calibration(session)
     if session["calibration"].get("lidar") is None:
         raise Conflict("a live job maps LiDAR scans as they arrive: the session's calibration needs 'lidar'",
                        {"session_id": session["id"]})
-    row, active = store.create_live_job(session["id"], session["owner"], body.model_dump(exclude={"source", "log_id"}))
+    row, active = store.create_live_job(session["id"], session["owner"], config)
     if row is None:
+        assert active is not None  # no new row: because of this active live job
         raise Conflict(f"the session already has a live job ({active['id']}, {active['status']}): one live job per "
                        "session; cancel it or finish the stream first", {"job_id": active["id"]})
     runner.submit(row["id"])
@@ -91,9 +94,9 @@ def get_job(job: JobRow, data: DataDep) -> JobPublic:
 def cancel_job(job: JobRow, store: StoreDep, runner: RunnerDep, data: DataDep) -> JobPublic:
     """Cancel: a queued job at once, a running one within about a second (its worker checks the
     flag at every progress report; one that does not stop is terminated after a grace period)."""
-    if job["status"] not in ("queued", "running"):
+    if job["status"] not in (JobStatus.QUEUED, JobStatus.RUNNING):
         raise Conflict(f"job already {job['status']}", {"status": job["status"]})
     store.request_cancel(job["id"])
     runner.cancel(job["id"])
-    row = store.get_job(job["id"])
+    row = store.get_job(job["id"]) or job  # (deleted meanwhile: the job as it was)
     return job_public(row, live_product_names(data, row), engine_compiling(data, row))

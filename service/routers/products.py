@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
+import functools
 import json
+from collections.abc import Callable
 from enum import StrEnum
 from functools import partial
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Path, Query
-from fastapi.responses import FileResponse, Response
+import numpy as np
+from fastapi import APIRouter, Path, Query, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.responses import FileResponse, JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
 from api_schemas.errors import ErrorResponse
+from api_schemas.jobs import JobStatus
 from api_schemas.products import Pose, TrajectoryPublic
 from service.deps import DataDep, JobRow, StoreDep
 from service.errors import InvalidInput
@@ -51,12 +56,12 @@ def _georeference(store: Any, job: dict[str, Any]) -> Any:
                            "(lat_deg, lon_deg, heading_deg)", {"scheme": "webmercator"})
     geo = session["geo"]
     origin = GeoOrigin(latitude_deg=geo["lat_deg"], longitude_deg=geo["lon_deg"], heading_deg=geo["heading_deg"])
-    return Georeference.utm(origin, start_pose=[0.0, 0.0, 0.0])  # the map frame starts at the first pose
+    return Georeference.utm(origin, start_pose=np.zeros(3))  # the map frame starts at the first pose
 
 
 def _file(data: DataDep, job: dict[str, Any], name: str) -> FileResponse:
     path = product_path(data, job, name)
-    headers = {"Cache-Control": "no-store"} if job["status"] == "running" else None
+    headers = {"Cache-Control": "no-store"} if job["status"] == JobStatus.RUNNING else None
     return FileResponse(path, media_type=MEDIA_TYPES[name], headers=headers)
 
 
@@ -72,7 +77,22 @@ def _trajectory(data: DataDep, job: dict[str, Any], stem: str, kind: str, fmt: T
 
 
 TrajectoryFormatQuery = Annotated[TrajectoryFormat, Query(alias="format", description="json or tum (text)")]
-TEXT = {200: {"content": {"text/plain": {}}, "description": "JSON, or TUM text with ?format=tum."}}
+TEXT: dict[int | str, dict[str, Any]] = {200: {"content": {"text/plain": {}},
+                                               "description": "JSON, or TUM text with ?format=tum."}}
+
+
+def _head_of(endpoint: Callable[..., Any]) -> Callable[..., Response]:
+    """The HEAD twin of a JSON (or file) GET endpoint: the same status and headers, no body."""
+
+    @functools.wraps(endpoint)
+    def head(*args: Any, **kwargs: Any) -> Response:
+        answer = endpoint(*args, **kwargs)
+        if isinstance(answer, FileResponse):
+            return answer  # sends its headers only for a HEAD request
+        body = JSONResponse(jsonable_encoder(answer)).body
+        return Response(media_type="application/json", headers={"Content-Length": str(len(body))})
+
+    return head
 
 
 @router.get("/trajectory", response_model=TrajectoryPublic, responses=TEXT)
@@ -87,24 +107,43 @@ def dead_reckoning(job: JobRow, data: DataDep, fmt: TrajectoryFormatQuery = Traj
     return _trajectory(data, job, "dead_reckoning", "dead_reckoning", fmt)
 
 
+router.head("/trajectory", name="trajectory (head)", responses=TEXT)(_head_of(trajectory))
+router.head("/dead-reckoning", name="dead_reckoning (head)", responses=TEXT)(_head_of(dead_reckoning))
+
+
 def _file_route(name: str, summary: str) -> None:
+    """GET and HEAD /v1/jobs/{id}/{name}: the product file under the name the job lists."""
     media = MEDIA_TYPES[name]
 
     def route(job: JobRow, data: DataDep) -> FileResponse:
         return _file(data, job, name)
 
     route.__doc__ = summary
-    router.add_api_route(f"/{name}", route, methods=["GET"], response_class=FileResponse, name=name,
-                         summary=summary, responses={200: {"content": {media: {}}}})
+    for method in ("GET", "HEAD"):  # HEAD: the same headers (size, type), no body
+        router.add_api_route(f"/{name}", route, methods=[method], response_class=FileResponse,
+                             name=name if method == "GET" else f"{name} (head)", summary=summary,
+                             responses={200: {"content": {media: {}}}})
 
 
-_file_route("occupancy.png", "Occupancy grid as PNG (north up). While the job runs: the map so far.")
-_file_route("occupancy.tif", "Occupancy probability as a georeferenced GeoTIFF.")
-_file_route("map.yaml", "ROS map_server metadata (with map.pgm).")
-_file_route("map.pgm", "ROS map_server image.")
-_file_route("texture.png", "Ground texture map as PNG (when the log has a camera).")
-_file_route("texture.tif", "Ground texture map as GeoTIFF.")
-_file_route("animation.gif", "The map growing over the run.")
+PRODUCT_SUMMARIES = {
+    "occupancy.png": "Occupancy grid as PNG (north up). While the job runs: the map so far.",
+    "occupancy_trajectory.png": "Occupancy grid with the SLAM trajectory, dead reckoning and start drawn on it.",
+    "occupancy.tif": "Occupancy probability as a georeferenced GeoTIFF.",
+    "map.yaml": "ROS map_server metadata (with map.pgm).",
+    "map.pgm": "ROS map_server image.",
+    "texture.png": "Ground texture map as PNG (when the log has a camera).",
+    "texture.tif": "Ground texture map as GeoTIFF.",
+    "animation.gif": "The map growing over the run.",
+    "trajectory.json": "The SLAM trajectory as the lidarmap JSON file (poses t, x, y, theta in s, m, rad). "
+                       "While the job runs: the trajectory so far.",
+    "trajectory.tum": "The SLAM trajectory in TUM format (t x y z qx qy qz qw).",
+    "dead_reckoning.json": "Odometry alone, as the lidarmap JSON file.",
+    "dead_reckoning.tum": "Odometry alone, in TUM format.",
+    "run.json": "The run record file: configuration, timings, scan statistics, input summary, accuracy.",
+}
+assert set(PRODUCT_SUMMARIES) == set(MEDIA_TYPES), "every product the worker lists has a route"
+for _name, _summary in PRODUCT_SUMMARIES.items():
+    _file_route(_name, _summary)
 
 
 @router.get("/run", response_model=dict[str, Any])
@@ -113,9 +152,14 @@ def run_record(job: JobRow, data: DataDep) -> dict[str, Any]:
     return json.loads(product_path(data, job, "run.json").read_text())
 
 
+router.head("/run", name="run_record (head)")(_head_of(run_record))
+
+
 @router.get("/tiles/{layer}/{z}/{x}/{y}.png", response_class=Response,
             responses={200: {"content": {"image/png": {}}}, 422: {"model": ErrorResponse}})
-async def tile(job: JobRow, data: DataDep, store: StoreDep, layer: TileLayer,
+@router.head("/tiles/{layer}/{z}/{x}/{y}.png", response_class=Response, name="tile (head)",
+             responses={200: {"content": {"image/png": {}}}, 422: {"model": ErrorResponse}})
+async def tile(request: Request, job: JobRow, data: DataDep, store: StoreDep, layer: TileLayer,
                z: Annotated[int, Path(ge=0, le=MAX_TILE_ZOOM)], x: Annotated[int, Path(ge=0, le=MAX_TILE_INDEX)],
                y: Annotated[int, Path(ge=0, le=MAX_TILE_INDEX)],
                scheme: Annotated[TileScheme, Query(description="simple (metric) or webmercator (XYZ, needs "
@@ -132,5 +176,7 @@ async def tile(job: JobRow, data: DataDep, store: StoreDep, layer: TileLayer,
     georef = _georeference(store, job) if scheme is TileScheme.WEBMERCATOR else None
     png = await run_in_threadpool(partial(render_tile, source, z, x, y, layer.value, scheme=scheme.value,
                                           georef=georef, map_version=(version, scheme.value)))
-    headers = {"Cache-Control": "no-store"} if job["status"] == "running" else None
-    return Response(png, media_type="image/png", headers=headers)
+    headers = {"Cache-Control": "no-store"} if job["status"] == JobStatus.RUNNING else {}
+    if request.method == "HEAD":  # the GET's headers, no body
+        return Response(media_type="image/png", headers={**headers, "Content-Length": str(len(png))})
+    return Response(png, media_type="image/png", headers=headers or None)

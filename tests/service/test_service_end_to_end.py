@@ -5,8 +5,6 @@ product; the live map while running; cancelling a real run; streaming a simulate
 from __future__ import annotations
 
 import io
-import json
-import time
 
 import numpy as np
 import pytest
@@ -49,13 +47,13 @@ def test_upload_map_and_fetch_every_product(tmp_path, dataset) -> None:
         assert 0 < partial["count"] < 910
         assert partial["poses"][0]["x_m"] == pytest.approx(0.0, abs=1e-6)
 
-        # cancelling a real run stops it within about a second
+        # cancelling a real run stops it at its next progress report, not by terminating its worker
         # (past the first hundred scans, so that a cold numba cache has compiled every kernel the run uses)
         wait_for(client, doomed["id"], {"running"}, timeout_s=300, condition=lambda j: j["scans_done"] > 100)
-        t0 = time.monotonic()
         client.delete(f"/v1/jobs/{doomed['id']}")
-        assert wait_for(client, doomed["id"], timeout_s=10)["status"] == "cancelled"
-        assert time.monotonic() - t0 < 2.0
+        stopped = wait_for(client, doomed["id"], timeout_s=60)
+        assert stopped["status"] == "cancelled" and stopped["error"] == "cancelled by request"
+        assert stopped["scans_done"] < 910
 
         done = wait_for(client, job["id"], timeout_s=900)
         assert done["status"] == "succeeded", done
@@ -87,7 +85,8 @@ def test_upload_map_and_fetch_every_product(tmp_path, dataset) -> None:
         assert gif.n_frames > 2
         assert Image.open(io.BytesIO(client.get(f"{base}/tiles/occupancy/0/0/0.png").content)).size == (256, 256)
         run = client.get(f"{base}/run").json()
-        assert json.dumps(run) and run["config"]["particles"] == 10
+        assert run == client.get(f"{base}/run.json").json()
+        assert run["config"]["particles"] == 10 and run["timings"]["scans"] == 910
         assert client.get(f"{base}/texture.png").status_code == 404  # no camera in intel
         assert set(done["products"]) >= {"trajectory.json", "occupancy.png", "occupancy.tif", "map.yaml",
                                          "map.pgm", "animation.gif", "run.json"}

@@ -1,0 +1,18 @@
+"""A real lidarmap service for client tests: ``python live_server.py DATA_DIR PORT [JOB_FUNCTION]``
+serves the app with uvicorn on 127.0.0.1:PORT (JOB_FUNCTION "module:function" replaces the mapping job)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import uvicorn
+
+from service.app import create_app
+from service.settings import Settings
+
+if __name__ == "__main__":
+    data_dir, port = Path(sys.argv[1]), int(sys.argv[2])
+    job_function = sys.argv[3] if len(sys.argv) > 3 else None
+    uvicorn.run(create_app(Settings(data_dir=data_dir, workers=1), job_function=job_function),
+                host="127.0.0.1", port=port, log_level="warning")

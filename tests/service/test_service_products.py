@@ -1,0 +1,79 @@
+"""Every product a job lists downloads under that name (GET /v1/jobs/{id}/{name}), with HEAD
+answering the same headers without a body; the older routes (/run, /trajectory?format=tum) stay."""
+
+from __future__ import annotations
+
+import json
+
+from service_helpers import new_session, service_client, streaming_session, wait_for
+
+from service.products import MEDIA_TYPES
+from service.storage import DataDir
+
+
+def test_every_listed_product_downloads_under_its_name(tmp_path) -> None:
+    with service_client(tmp_path, job_function="viewer_job_functions:synthetic_room") as client:
+        sid = streaming_session(client)
+        job = client.post(f"/v1/sessions/{sid}/jobs", json={"particles": 4, "seed": 1}).json()
+        done = wait_for(client, job["id"])
+        assert done["status"] == "succeeded", done
+        listed = set(done["products"])
+        # what the engine writes, each under its file name (texture: the synthetic room has a floor texture)
+        assert listed == set(MEDIA_TYPES) - {"dead_reckoning.tum", "animation.gif"}, listed  # no snapshots
+        job_dir = DataDir(tmp_path).job_dir(job["id"])
+        for name in sorted(listed):
+            url = f"/v1/jobs/{job['id']}/{name}"
+            got = client.get(url)
+            assert got.status_code == 200, (name, got.text)
+            assert got.headers["content-type"].split(";")[0] == MEDIA_TYPES[name], name
+            assert got.content == (job_dir / name).read_bytes(), name  # the file itself
+            head = client.head(url)
+            assert head.status_code == 200 and head.content == b"", name
+            assert head.headers["content-length"] == str(len(got.content)), name
+            assert head.headers["content-type"] == got.headers["content-type"], name
+
+        # the older routes answer the same content
+        run_file = client.get(f"/v1/jobs/{job['id']}/run.json").json()
+        assert client.get(f"/v1/jobs/{job['id']}/run").json() == run_file
+        assert run_file["config"]["particles"] == 30  # synthetic_room's SlamConfig()
+        assert client.get(f"/v1/jobs/{job['id']}/trajectory", params={"format": "tum"}).content == \
+            client.get(f"/v1/jobs/{job['id']}/trajectory.tum").content
+        poses = json.loads(client.get(f"/v1/jobs/{job['id']}/trajectory.json").content)["poses"]
+        api = client.get(f"/v1/jobs/{job['id']}/trajectory").json()["poses"]
+        assert len(poses) == len(api) == 4
+        assert [p["x"] for p in poses] == [p["x_m"] for p in api]
+
+        for path in ("run", "trajectory", "dead-reckoning", "trajectory?format=tum"):  # HEAD on the older routes
+            got, head = client.get(f"/v1/jobs/{job['id']}/{path}"), client.head(f"/v1/jobs/{job['id']}/{path}")
+            assert got.status_code == head.status_code == 200 and head.content == b"", path
+            assert head.headers["content-length"] == str(len(got.content)), path
+            assert head.headers["content-type"] == got.headers["content-type"], path
+
+        tile = client.get(f"/v1/jobs/{job['id']}/tiles/occupancy/0/0/0.png")
+        head = client.head(f"/v1/jobs/{job['id']}/tiles/occupancy/0/0/0.png")
+        assert tile.status_code == head.status_code == 200 and head.content == b""
+        assert head.headers["content-length"] == str(len(tile.content)) and len(tile.content) > 100
+        scheme = client.get(f"/v1/jobs/{job['id']}/tiles/occupancy")
+        head = client.head(f"/v1/jobs/{job['id']}/tiles/occupancy")
+        assert head.status_code == 200 and head.content == b""
+        assert head.headers["content-length"] == str(len(scheme.content))
+
+
+def test_head_of_a_missing_product_is_the_get_status(tmp_path) -> None:
+    with service_client(tmp_path, job_function="service_job_functions:counting") as client:
+        sid = new_session(client)
+        assert client.head(f"/v1/jobs/{sid}/occupancy.png").status_code == 404  # no such job
+        sid = streaming_session(client)
+        job = client.post(f"/v1/sessions/{sid}/jobs", json={"particles": 2, "seed": 1}).json()
+        assert wait_for(client, job["id"])["status"] == "succeeded"
+        for method in (client.get, client.head):  # the counting job writes run.json only
+            assert method(f"/v1/jobs/{job['id']}/run.json").status_code == 200
+            assert method(f"/v1/jobs/{job['id']}/occupancy_trajectory.png").status_code == 404
+
+
+def test_pose_reads_the_api_and_the_file_naming() -> None:
+    from api_schemas.products import Pose
+
+    api = Pose.model_validate({"t_s": 1.5, "x_m": 2.0, "y_m": -1.0, "theta_rad": 0.25})
+    file = Pose.model_validate({"t": 1.5, "x": 2.0, "y": -1.0, "theta": 0.25})
+    assert api == file and api.model_dump() == {"t_s": 1.5, "x_m": 2.0, "y_m": -1.0, "theta_rad": 0.25}
