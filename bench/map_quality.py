@@ -28,6 +28,8 @@ def scan_endpoints_world(log: DriveLog, trajectory: Trajectory, max_range_m: flo
     """(N_scans, N_beams, 2) map-frame endpoints [m] of every scan placed at the trajectory pose
     nearest in time; NaN for no-return beams and beams beyond ``max_range_m``."""
     lidar, scans = log.lidar, log.scans
+    if lidar is None or scans is None:
+        raise ValueError("the log has no LiDAR scans")
     ranges = np.asarray(scans.ranges_m, dtype=np.float64)
     valid = np.isfinite(ranges) & (ranges >= lidar.range_min_m) & (ranges <= min(lidar.range_max_m, max_range_m))
     ranges = np.where(valid, ranges, 0.0)  # no-return beams become NaN below, without inf * 0 warnings
@@ -104,11 +106,11 @@ def half_agreement(endpoints: np.ndarray, resolution_m: float = AGREEMENT_RESOLU
             continue
         distance = theirs[mine]
         offsets.append(distance[distance <= window_m])
-    offsets = np.concatenate(offsets) if offsets else np.zeros(0)
-    if offsets.size == 0:
+    all_offsets = np.concatenate(offsets) if offsets else np.zeros(0)
+    if all_offsets.size == 0:
         return {"half_agreement": float("nan"), "half_mean_offset_m": float("nan"), "half_overlap_cells": 0}
-    return {"half_agreement": float(np.mean(offsets <= resolution_m * 1.5)),
-            "half_mean_offset_m": float(np.mean(offsets)), "half_overlap_cells": int(offsets.size)}
+    return {"half_agreement": float(np.mean(all_offsets <= resolution_m * 1.5)),
+            "half_mean_offset_m": float(np.mean(all_offsets)), "half_overlap_cells": int(all_offsets.size)}
 
 
 def map_quality(grid: OccupancyGrid, log: DriveLog | None = None, trajectory: Trajectory | None = None,

@@ -5,6 +5,8 @@ The service and the CLI turn these into HTTP 4xx answers and one-line messages (
 
 from __future__ import annotations
 
+import os
+
 
 class SlamEngineError(Exception):
     """Root of every error the engine raises on purpose."""
@@ -17,7 +19,7 @@ class LogFormatError(SlamEngineError):
     ``"Encoders.counts"``), ``message`` what is wrong.
     """
 
-    def __init__(self, message: str, path: str | None = None, location: str | None = None):
+    def __init__(self, message: str, path: str | os.PathLike[str] | None = None, location: str | None = None):
         self.message = message
         self.path = None if path is None else str(path)
         self.location = location

@@ -19,6 +19,7 @@ import importlib
 import sys
 import threading
 from collections.abc import Callable, Iterator
+from typing import Any
 
 KERNEL_MODULES = ("slam_engine.grid", "slam_engine.raycast", "slam_engine.scan_matcher")
 # Kernels a run calls from Python (the others are compiled into these).
@@ -26,11 +27,11 @@ ENTRY_KERNELS = ("grid._privatize", "raycast.collect_touched_tiles", "raycast.in
                  "scan_matcher.match_particles", "scan_matcher.score_particles")
 
 
-def kernels() -> dict[str, object]:
+def kernels() -> dict[str, Any]:
     """Every numba dispatcher defined in the engine's kernel modules, by ``module.function``."""
     from numba.core.registry import CPUDispatcher
 
-    found = {}
+    found: dict[str, Any] = {}
     for module_name in KERNEL_MODULES:
         module = importlib.import_module(module_name)
         for name, obj in vars(module).items():

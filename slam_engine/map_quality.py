@@ -42,7 +42,7 @@ def _outside_along_rows(occupied: np.ndarray) -> np.ndarray:
     """(H, W) bool: cells left of the first or right of the last occupied cell of their row; every
     cell of a row without an occupied cell."""
     h, w = occupied.shape
-    any_row = occupied.any(axis=1)
+    any_row = np.asarray(occupied.any(axis=1))
     first = np.where(any_row, occupied.argmax(axis=1), w)
     last = np.where(any_row, w - 1 - occupied[:, ::-1].argmax(axis=1), -1)
     col = np.arange(w)[None, :]

@@ -156,7 +156,7 @@ class LoopCloser:
             self._add_closure(k, anchor, T_anchor_from_node)
             target = compose(est[anchor], T_anchor_from_node)
             if (np.hypot(*(target[:2] - est[k, :2])) > c.reoptimize_m
-                    or abs(wrap_angle(target[2] - est[k, 2])) > c.reoptimize_rad):
+                    or abs(float(wrap_angle(target[2] - est[k, 2]))) > c.reoptimize_rad):
                 est[: k + 1] = self.graph.optimize(est, nodes=k + 1, robust=False)
                 optimizations += 1
         if any(cl.accepted for cl in closures):
@@ -228,8 +228,8 @@ class LoopCloser:
             reason = "accepted"
             if window_m > c.confirm_window_m and match.score < c.min_score_wide:
                 reason = "low score for a wide window"
-            elif max(shift[0], shift[1]) > c.edge_share * window_m or abs(wrap_angle(shift[2])) > c.edge_share * \
-                    window_rad:
+            elif (max(shift[0], shift[1]) > c.edge_share * window_m
+                  or abs(float(wrap_angle(shift[2]))) > c.edge_share * window_rad):
                 reason = "at the window's edge"
             elif match.runner_up_score >= c.runner_up_ratio * match.score:
                 reason = "ambiguous"
@@ -267,7 +267,7 @@ class LoopCloser:
         via_first = compose(compose(est[a1], T1), relative(self.path[k1], self.path[k2]))
         via_second = compose(est[a2], T2)
         return bool(np.hypot(*(via_first[:2] - via_second[:2])) <= c.confirm_m
-                    and abs(wrap_angle(via_first[2] - via_second[2])) <= c.confirm_rad)
+                    and abs(float(wrap_angle(via_first[2] - via_second[2]))) <= c.confirm_rad)
 
     def _add_closure(self, node: int, anchor: int, T_anchor_from_node: np.ndarray) -> None:
         c = self.config

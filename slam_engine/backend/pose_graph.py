@@ -8,6 +8,7 @@ Nodes are key-frame poses ``[x_m, y_m, theta_rad]`` in the world frame; an edge 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -61,7 +62,7 @@ class PoseGraph:
         for e in self.edges:
             if e.i >= n or e.j >= n:
                 continue
-            noise = gtsam.noiseModel.Diagonal.Sigmas(e.sigmas)
+            noise: Any = gtsam.noiseModel.Diagonal.Sigmas(e.sigmas)
             if robust and e.robust:
                 noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(e.loss_scale), noise)
             graph.add(gtsam.BetweenFactorPose2(e.i, e.j, gtsam.Pose2(*e.T_i_from_j), noise))
