@@ -42,8 +42,9 @@ class GridConfig(_Section):
                                                 "range, and clearing along those beams erases walls.")
     no_return_bounded: bool = Field(True, description="A beam without a return clears only up to the line "
                                     "joining the returns of the nearest returned beams on either side of it "
-                                    "(a window in a wall stops at the wall: no rays around buildings); "
-                                    "False = clear the whole no_return_clear_m.")
+                                    "(a window in a wall stops at the wall: no rays around buildings) in the "
+                                    "product map; False = clear the whole no_return_clear_m. The particles' "
+                                    "own maps, which the scans are matched on, always take every beam.")
     no_return_stop_short_m: float = Field(0.5, ge=0.0, le=10.0, description="Bounded no-return beams stop "
                                           "this far [m] short of the line joining their bracketing returns, so "
                                           "that they do not clear the wall cells they meet at a slant.")

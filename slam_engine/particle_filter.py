@@ -60,6 +60,14 @@ def engine_threads() -> int:
     return min(n, available)
 
 
+def make_projector(lidar: LidarModel, config: SlamConfig, no_return_bounded: bool) -> ScanProjector:
+    """The scan projector of ``config``'s grid and LiDAR filter for ``lidar``."""
+    g = config.grid
+    return ScanProjector(lidar, g.max_range_m, config.lidar_filter.ground_z_m, config.lidar_filter.ceiling_z_m,
+                         g.resolution_m, g.no_return_clear_m, g.no_return_min_sensor_range_m, no_return_bounded,
+                         g.no_return_stop_short_m)
+
+
 @dataclass
 class _ScanRecord:
     """Where a scan's pose comes from: processed step ``step`` composed with ``offset``."""
@@ -81,10 +89,9 @@ class SlamFilter:
         self.integrator = integrator
         n = config.particles
         g = config.grid
-        self.projector = ScanProjector(lidar, g.max_range_m, config.lidar_filter.ground_z_m,
-                                       config.lidar_filter.ceiling_z_m, g.resolution_m,
-                                       g.no_return_clear_m, g.no_return_min_sensor_range_m, g.no_return_bounded,
-                                       g.no_return_stop_short_m)
+        # the particles' maps take every no-return beam's evidence (matching needs it); the product map
+        # may bound it (grid.no_return_bounded): :meth:`product_scans`
+        self.projector = make_projector(lidar, config, no_return_bounded=False)
         self.grids = ParticleGrids(n, g.resolution_m)
         m = config.matcher
         self.matcher = ScanMatcher(m.search_xy_m, m.search_theta_rad, m.min_score, m.beam_skip)
@@ -101,6 +108,7 @@ class SlamFilter:
         self._next_parents = np.arange(n)
         self._records: list[_ScanRecord] = []
         self.key_frame_scans: list[ProjectedScan] = []  # the scan of every processed step (for the back end)
+        self.key_frame_ranges: list[np.ndarray] = []  # its ranges [m]
         self._last_odom: np.ndarray | None = None
         self._last_t_s: float | None = None
         self._pending: ScanMessage | None = None
@@ -155,6 +163,7 @@ class SlamFilter:
         start = time.perf_counter()
         odom = self._odom_at(scan.t_s)
         projected = self.projector.project(scan.ranges_m)
+        self._ranges_m = scan.ranges_m
         if self._last_odom is None:
             self._first_scan(scan, odom, projected)
         elif self._due(scan.t_s, odom):
@@ -186,6 +195,7 @@ class SlamFilter:
     def _record_step(self, t_s: float, odom: np.ndarray, projected: ProjectedScan) -> None:
         self._history.append(self.particles.copy())
         self.key_frame_scans.append(projected)
+        self.key_frame_ranges.append(self._ranges_m)
         self._parents.append(self._next_parents)
         self._next_parents = np.arange(self.config.particles)
         self._records.append(_ScanRecord(t_s, len(self._history) - 1, np.zeros(3)))
@@ -340,6 +350,14 @@ class SlamFilter:
         steps = np.array([r.step for r in self._records])
         offsets = np.array([r.offset for r in self._records])
         return Trajectory(t_s=np.array([r.t_s for r in self._records]), poses=compose(path[steps], offsets))
+
+    def product_scans(self) -> list[ProjectedScan]:
+        """The key frames' scans as the product map takes them: with ``grid.no_return_bounded`` a
+        beam without a return clears only up to its bracketing returns (no halo around buildings)."""
+        if not self.config.grid.no_return_bounded:
+            return self.key_frame_scans
+        bounded = make_projector(self.projector.lidar, self.config, no_return_bounded=True)
+        return [bounded.project(r) for r in self.key_frame_ranges]
 
     def best_grid(self) -> OccupancyGrid:
         return self.grids.occupancy_grid(self.best_particle())

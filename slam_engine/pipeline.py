@@ -118,8 +118,8 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     if len(resampled) > 1 and resampled.mean() > 0.9:
         warnings.append("the particle set was resampled after almost every scan: the map may be unreliable "
                         "(odometry much worse than the motion noise assumes?)")
-    if any(c.accepted for c in backend.closures):
-        grid = render_occupancy(slam.key_frame_scans, backend.poses, slam.projector.origin_v, config.grid)
+    if any(c.accepted for c in backend.closures) or config.grid.no_return_bounded:
+        grid = render_occupancy(slam.product_scans(), backend.poses, slam.projector.origin_v, config.grid)
     else:  # the poses are the best particle's: its own map is the same grid
         grid = slam.best_grid()
     texture, texture_status = _ground_texture(log, trajectory, grid, config, warnings)
