@@ -219,6 +219,7 @@ def test_run_json_has_config_input_timings_and_per_scan_stats(products: dict[str
     assert len(run["scan_stats"]["n_eff"]) == 11 and run["scan_stats"]["resampled"][:4] == [True, False, False, True]
     assert run["map"]["occupied_cells"] == int(np.count_nonzero(make_grid().log_odds > math.log(0.65 / 0.35)))
     assert run["accuracy"] is None
+    assert run["loop_closing"] is None  # a result without a back end's summary
     assert run["georeference"]["epsg"] is None
     assert "run.json" in run["products"] and "occupancy.tif" in run["products"]
 

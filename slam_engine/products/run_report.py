@@ -69,6 +69,8 @@ def build_run_report(result: SlamResult, input_summary: dict | None = None, geor
             "step_time_s": _percentiles(step),
         },
         "memory": {"peak_bytes": int(result.peak_memory_bytes)},
+        # the back end: submaps, closures found, accepted and rejected (with why), each one's correction
+        "loop_closing": result.input_summary.get("loop_closing"),
         "filter": {
             "resample_count": int(np.count_nonzero(stats.resampled)),
             "match_rate": float(np.mean(stats.matched)) if processed else None,
