@@ -154,9 +154,9 @@ class LoopClosingConfig(_Section):
     confirm_rad: float = Field(0.05, gt=0.0, le=3.2, description="... and this heading difference [rad].")
     confirm_travel_m: float = Field(5.0, gt=0.0, le=1000.0, description="The agreeing closure must come within "
                                     "this much travel [m].")
-    reoptimize_m: float = Field(0.05, ge=0.0, le=100.0, description="Optimise the graph at once when a closure "
+    reoptimize_m: float = Field(0.2, ge=0.0, le=100.0, description="Optimise the graph at once when a closure "
                                 "moves its key frame more than this [m] ...")
-    reoptimize_rad: float = Field(0.01, ge=0.0, le=3.2, description="... or turns it more than this [rad].")
+    reoptimize_rad: float = Field(0.03, ge=0.0, le=3.2, description="... or turns it more than this [rad].")
     motion_sd_m: float = Field(0.01, gt=0.0, le=10.0, description="Front-end motion edges: sd [m] ...")
     motion_sd_per_m: float = Field(0.02, ge=0.0, le=10.0, description="... plus this per metre moved [m/m].")
     motion_sd_rad: float = Field(0.003, gt=0.0, le=3.2, description="Heading sd of a motion edge [rad] ...")

@@ -200,7 +200,7 @@ def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, 
     return best_a, best_x, best_y, best_total
 
 
-def angular_step_rad(points_v: np.ndarray, resolution_m: float, reach_cap_m: float = 15.0) -> float:
+def angular_step_rad(points_v: np.ndarray, resolution_m: float, reach_cap_m: float = 10.0) -> float:
     """Heading step that moves the farthest point (capped at ``reach_cap_m``) by about one cell."""
     reach = float(np.max(np.hypot(points_v[:, 0], points_v[:, 1]))) if len(points_v) else 1.0
     reach = min(max(reach, 3.0 * resolution_m), reach_cap_m)

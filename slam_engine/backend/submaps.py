@@ -65,7 +65,7 @@ def submap_points(submap: Submap, poses: np.ndarray, points_v: list[np.ndarray])
     return np.concatenate(parts) if parts else np.zeros((0, 2))
 
 
-def match_grid_from_points(points_m: np.ndarray, resolution_m: float, margin_m: float, n_levels: int = 7
+def match_grid_from_points(points_m: np.ndarray, resolution_m: float, margin_m: float, n_levels: int = 9
                            ) -> MatchGrid:
     """A blurred hit grid of ``points_m`` (N, 2) [m] with ``margin_m`` of empty border. Each point
     marks the four cells around it with its bilinear weights (the largest weight a cell gets is kept),
