@@ -74,10 +74,10 @@ class HeadingCalibrationConfig(_Section):
                               "scan matcher).")
     drift_band_rad_per_m: float = Field(0.01, ge=0.0, le=1.0, description="Dead band of the drift "
                                         "correction [rad/m]: the estimate is used once it is this far from 0.")
-    prior_distance_m2: float = Field(20.0, gt=0.0, le=100000.0, description="Weight of the prior 'distance "
+    prior_distance_m2: float = Field(100.0, gt=0.0, le=100000.0, description="Weight of the prior 'distance "
                                      "scale = 1', in squared metres of travel it is worth (the distance scale "
                                      "is measured where the scan constrains the direction of travel).")
-    distance_band: float = Field(0.01, ge=0.0, le=1.0, description="Dead band of the distance-scale "
+    distance_band: float = Field(0.02, ge=0.0, le=1.0, description="Dead band of the distance-scale "
                                  "correction: used once the estimate is this far from 1.")
 
 

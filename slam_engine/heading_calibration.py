@@ -38,8 +38,8 @@ class HeadingCalibration:
     ``enabled``: False corrects nothing (scale 1, drift 0)."""
 
     def __init__(self, prior_scale_rad2: float, prior_drift_m2: float, scale_band: float = 0.1,
-                 drift_band_rad_per_m: float = 0.01, enabled: bool = True, prior_distance_m2: float = 20.0,
-                 distance_band: float = 0.01):
+                 drift_band_rad_per_m: float = 0.01, enabled: bool = True, prior_distance_m2: float = 100.0,
+                 distance_band: float = 0.02):
         self.enabled = bool(enabled)
         self.scale_band = float(scale_band)
         self.drift_band_rad_per_m = float(drift_band_rad_per_m)
