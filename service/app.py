@@ -9,7 +9,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from service.errors import install_error_handlers
-from service.inspection import LogInspector
+from service.inspection import InspectionLimits, LogInspector
 from service.limits import BodyLimitMiddleware
 from service.openapi_errors import document_errors
 from service.routers import chunks, formats, health, jobs, logs, products, sessions
@@ -48,7 +48,9 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
         for job_id in store.jobs_with_status("queued"):
             runner.submit(job_id)
         app.state.data, app.state.store, app.state.runner = data, store, runner
-        app.state.inspector = LogInspector()
+        app.state.inspector = LogInspector(InspectionLimits(
+            settings.inspection_memory_limit_mb, settings.inspection_timeout_s, settings.max_extracted_bytes,
+            settings.inspection_processes))
         try:
             yield
         finally:

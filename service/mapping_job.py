@@ -52,7 +52,8 @@ def load_input(ctx: JobContext) -> tuple[DriveLog, dict[str, Any]]:
         log_row = store.get_log(job["log_id"], job["session_id"])
         if log_row is None:
             raise LogFormatError("the job's log was deleted")
-        log = load_log(data.resolve(log_row["stored_path"]))
+        # the format the upload was checked as (an explicit ?format= may be one auto-detection misses)
+        log = load_log(data.resolve(log_row["stored_path"]), format=log_row["summary"].get("format", "auto"))
         return log, {"source": "log", "log_id": log_row["id"], "sha256": log_row["sha256"], "summary": log.summary()}
     rows = store.chunk_rows(job["session_id"])
     state = stream_state(rows)

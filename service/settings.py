@@ -32,7 +32,14 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(2 * 1024**3, ge=1024, le=1024**4, description="Largest accepted upload.")
     max_zip_entries: int = Field(100_000, ge=1, le=10_000_000, description="Most files in an uploaded zip.")
     max_extracted_bytes: int = Field(8 * 1024**3, ge=1024, le=4 * 1024**4,
-                                     description="Largest total size of an uploaded zip once extracted.")
+                                     description="Largest total size of an uploaded zip once extracted, "
+                                     "or of a gzipped log once inflated.")
+    inspection_memory_limit_mb: int = Field(1024, ge=128, le=1024**2, description="Memory [MB] one upload's "
+                                            "inspection (loading the log to check it) may use; past it: 422.")
+    inspection_timeout_s: float = Field(120.0, ge=1.0, le=86_400.0, description="Time one upload's "
+                                        "inspection may take; past it the inspecting process is killed: 422.")
+    inspection_processes: int = Field(2, ge=1, le=64, description="Uploads inspected at once (one process "
+                                      "each); more wait their turn.")
     max_chunk_bytes: int = Field(64 * 1024**2, ge=1024, le=1024**3, description="Largest streamed chunk body.")
     cancel_grace_s: float = Field(5.0, ge=0.1, le=600.0, description="A running job that ignores a cancel "
                                   "this long has its worker process terminated.")

@@ -62,7 +62,7 @@ async def upload_log(request: Request, session: SessionRow, store: StoreDep, dat
         else:
             log_path = upload_dir / f"log{safe_suffix(received.filename)}"
             move_into(received.path, log_path)
-        summary = await inspector.summary(log_path, format_name)
+        summary = await inspector.summary(log_path, format_name, hidden_prefix=f"{upload_dir}/")
         row = store.add_log(log_id, session["id"], received.filename, received.size_bytes, received.sha256,
                             archive, summary, data.relative(log_path))
     except BaseException:  # nothing half-stored: no row without its files, no files without a row
