@@ -45,8 +45,11 @@ class Settings(BaseSettings):
                                   "this long has its worker process terminated.")
     min_free_bytes: int = Field(256 * 1024**2, ge=0, le=1024**4, description="Disk space kept free: an "
                                 "upload or chunk that would leave less answers 507 and stores nothing.")
-    job_memory_limit_mb: int = Field(0, ge=0, le=1024**2, description="A job whose worker grows past this "
-                                     "much memory [MB] is stopped with that reason; 0 = no limit.")
+    job_memory_limit_mb: int | None = Field(None, ge=0, le=1024**2, description="A job whose worker grows past "
+                                            "this much memory [MB] is stopped with that reason, and a job whose "
+                                            "parameters clearly need more is refused (422); 0 = no limit. "
+                                            "Default: 80 % of the machine's memory split between the jobs that "
+                                            "run at once ('workers'; a Celery worker: its --concurrency).")
     api_keys: str = Field("", description="Comma-separated API keys; empty = no authentication.")
 
     @model_validator(mode="after")
@@ -55,6 +58,14 @@ class Settings(BaseSettings):
             raise ValueError(f"worker_lost_s ({self.worker_lost_s}) must be at least twice heartbeat_s "
                              f"({self.heartbeat_s}), or live jobs would be failed as lost")
         return self
+
+    def job_memory_limit(self, jobs_at_once: int | None = None) -> int:
+        """The per-job memory limit [MB] (0 = none): the setting, or the machine's share per job."""
+        if self.job_memory_limit_mb is not None:
+            return self.job_memory_limit_mb
+        from service.job_memory import default_limit_mb
+
+        return default_limit_mb(jobs_at_once or self.workers)
 
     def api_key_list(self) -> list[str]:
         """The configured keys (blank entries dropped)."""
