@@ -57,7 +57,8 @@ async def upload_log(request: Request, session: SessionRow, store: StoreDep, dat
         archive = is_zip_upload(received) and not await inspector.is_log_file(received.path, format_name)
         if archive:
             log_path = await run_in_threadpool(extract_zip, received.path, upload_dir / "tree",
-                                               settings.max_zip_entries, settings.max_extracted_bytes)
+                                               settings.max_zip_entries, settings.max_extracted_bytes,
+                                               partial(ensure_free_space, data, settings.min_free_bytes))
             received.path.unlink(missing_ok=True)
         else:
             log_path = upload_dir / f"log{safe_suffix(received.filename)}"

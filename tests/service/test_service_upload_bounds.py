@@ -131,3 +131,54 @@ def test_shorten_tokens_cuts_each_long_word_once() -> None:
     assert short == f"bad token '{'x' * 79} ...(502 characters) at line 3" and shorten_tokens(short) == short
     assert shorten_tokens("fine message") == "fine message"
     assert len(shorten_tokens("word " * 10_000)) < MAX_MESSAGE_CHARS + 50
+
+
+def zip_of(entries: list[tuple[str | zipfile.ZipInfo, bytes]]) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        for name, content in entries:
+            archive.writestr(name, content)
+    return buffer.getvalue()
+
+
+def encrypted_zip() -> bytes:
+    """A zip whose one member carries the 'encrypted' flag (what a password-protected zip looks like)."""
+    raw = bytearray(zip_of([("secret.clf", b"ODOM 1 2 3 0 0 0 1.0 h 1.0\n")]))
+    for signature, flag_at in ((b"PK\x03\x04", 6), (b"PK\x01\x02", 8)):
+        at = raw.find(signature)
+        raw[at + flag_at] |= 0x1
+    return bytes(raw)
+
+
+@pytest.mark.parametrize("case", ["file-then-folder", "file-then-child", "long-name", "long-path", "encrypted"])
+def test_awkward_zips_are_refused_with_422(tmp_path, case) -> None:
+    content = {
+        "file-then-folder": zip_of([("zz", b"x"), ("zz/", b"")]),
+        "file-then-child": zip_of([("zz", b"x"), ("zz/child", b"x")]),
+        "long-name": zip_of([("a" * 300, b"x")]),
+        "long-path": zip_of([("/".join(["d" * 50] * 100) + "/f", b"x")]),
+        "encrypted": encrypted_zip(),
+    }[case]
+    with service_client(tmp_path) as client:
+        sid = new_session(client)
+        err = assert_error(upload(client, sid, "awkward.zip", content), 422)
+        assert len(err["message"]) < 1000
+        assert not any((tmp_path / "uploads").iterdir()) and not any((tmp_path / "tmp").iterdir())
+
+
+def test_zip_extraction_keeps_the_free_space_reserve(tmp_path, monkeypatch) -> None:
+    from service.storage import DataDir
+
+    def free_bytes(self) -> int:  # a 22 MB disk holding what the data folder holds
+        used = sum(p.stat().st_size for p in (tmp_path / "uploads").rglob("*") if p.is_file())
+        return 22 * 1024**2 - used
+
+    with service_client(tmp_path, min_free_bytes=10 * 1024**2) as client:
+        sid = new_session(client)
+        monkeypatch.setattr(DataDir, "free_bytes", free_bytes)
+        declared_too_big = zip_of([("big/zeros.bin", b"\0" * 40 * 1024**2)])
+        err = assert_error(upload(client, sid, "big.zip", declared_too_big), 507, "insufficient_storage")
+        assert err["detail"]["reserve_bytes"] == 10 * 1024**2
+        fills_up_while_written = zip_of([("big/zeros.bin", b"\0" * 12 * 1024**2)])  # fits by its header only
+        assert_error(upload(client, sid, "big.zip", fills_up_while_written), 507, "insufficient_storage")
+        assert not any((tmp_path / "uploads").iterdir())
