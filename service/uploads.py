@@ -244,8 +244,8 @@ def extract_zip(zip_path: Path, dest: Path, max_entries: int, max_total_bytes: i
                             space(CHECK_EVERY_BYTES)
                         out.write(block)
             except (FileExistsError, NotADirectoryError, IsADirectoryError):
-                raise InvalidInput(f"zip member {member.filename!r} clashes with another member of the same "
-                                   "name (twice, or as both a file and a folder)") from None
+                raise InvalidInput(f"zip member {member.filename!r} appears twice (the same name, or as both a "
+                                   "file and a folder)") from None
             except (zipfile.BadZipFile, zipfile.LargeZipFile, NotImplementedError, EOFError, RuntimeError) as exc:
                 raise InvalidInput(f"zip member {member.filename!r} cannot be read: {exc}") from None
             except OSError as exc:
