@@ -40,6 +40,11 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
         data.remove_stale_temp_files()
         store = open_store(settings.database_url, data.database)
         store.initialise()
+        # files nothing refers to (a crash mid-delete); uploads of another API host may be in flight
+        # under uploads/ before their row exists, so those are swept only when this host is the only one
+        orphans = data.remove_orphans(store.stored_ids(), uploads_and_chunks=settings.runner == "local")
+        if orphans:
+            logger.warning("removed %d folder(s) of deleted sessions, logs or jobs", orphans)
         if settings.runner == "local":  # Celery workers outlive the API: their jobs go on (the reaper watches them)
             interrupted = store.fail_interrupted()
             if interrupted:
