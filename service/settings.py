@@ -40,7 +40,8 @@ class Settings(BaseSettings):
                                         "inspection may take; past it the inspecting process is killed: 422.")
     inspection_processes: int = Field(2, ge=1, le=64, description="Uploads inspected at once (one process "
                                       "each); more wait their turn.")
-    max_chunk_bytes: int = Field(64 * 1024**2, ge=1024, le=1024**3, description="Largest streamed chunk body.")
+    max_chunk_bytes: int = Field(16 * 1024**2, ge=1024, le=1024**3, description="Largest streamed chunk body "
+                                 "(and any other JSON body); the API holds about 8 times this while it parses one.")
     cancel_grace_s: float = Field(5.0, ge=0.1, le=600.0, description="A running job that ignores a cancel "
                                   "this long has its worker process terminated.")
     min_free_bytes: int = Field(256 * 1024**2, ge=0, le=1024**4, description="Disk space kept free: an "
