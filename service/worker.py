@@ -92,6 +92,10 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
     if job is None:
         return "skipped"
     guard = MemoryGuard(memory_limit_mb, on_exceeded=lambda reason: store.finish(job_id, "failed", reason))
+
+    def public(reason: str) -> str:  # no server paths, no quoted input of unbounded length
+        return shorten_tokens(reason.replace(f"{data.root}/", ""))
+
     ctx = JobContext(job_id=job_id, job=job, store=store, data=data, memory=guard)
     try:
         with guard:
@@ -104,18 +108,18 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
         store.finish(job_id, "cancelled", "cancelled by request")
         return "cancelled"
     except JobFailed as exc:
-        store.finish(job_id, "failed", shorten_tokens(str(exc)))
+        store.finish(job_id, "failed", public(str(exc)))
         return "failed"
     except LogFormatError as exc:
         where = f" ({exc.location})" if exc.location else ""
-        store.finish(job_id, "failed", shorten_tokens(f"log_format: {exc.message}{where}"))
+        store.finish(job_id, "failed", public(f"log_format: {exc.message}{where}"))
         return "failed"
     except SlamEngineError as exc:
-        store.finish(job_id, "failed", shorten_tokens(f"{type(exc).__name__}: {exc}"))
+        store.finish(job_id, "failed", public(f"{type(exc).__name__}: {exc}"))
         return "failed"
     except Exception as exc:  # the job's bug must not kill the worker
         logger.error("job %s crashed:\n%s", job_id, traceback.format_exc())
-        store.finish(job_id, "failed", shorten_tokens(f"internal error: {type(exc).__name__}: {exc}"))
+        store.finish(job_id, "failed", public(f"internal error: {type(exc).__name__}: {exc}"))
         return "failed"
     store.finish(job_id, "succeeded")
     return "succeeded"

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import gzip
 import io
+import sqlite3
 import threading
 import time
 import zipfile
@@ -86,6 +87,13 @@ def test_error_messages_do_not_echo_a_long_token(tmp_path, sim_log) -> None:
         # warnings name the log, never the server's folders
         warnings = upload(client, sid, "log.clf", sim_log + ODOM_LINE).json()["summary"]["warnings"]
         assert warnings and all(w.startswith("log.clf: ") and str(tmp_path) not in w for w in warnings), warnings
+        # and so do the rosbag reader's errors
+        bag = tmp_path / "x.db3"
+        with sqlite3.connect(bag) as db:
+            db.execute("CREATE TABLE topics (id INTEGER)")
+        db.close()
+        err = assert_error(upload(client, sid, "x.db3", bag.read_bytes(), format="rosbag"), 422, "log_format")
+        assert "cannot read bag" in err["message"] and str(tmp_path) not in str(err)
 
 
 def drivelog_bytes(sim_log: bytes, tmp_path: Path) -> bytes:
