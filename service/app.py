@@ -74,7 +74,7 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
             return settings.max_upload_bytes + MULTIPART_OVERHEAD_BYTES
         return settings.max_chunk_bytes
 
-    app.add_middleware(BodyLimitMiddleware, limit_for=body_limit)
+    app.add_middleware(BodyLimitMiddleware, limit_for=body_limit, stall_timeout_s=settings.body_stall_timeout_s)
     app.include_router(health.router)
     for module in (sessions, logs, chunks, formats, products):
         app.include_router(module.router)

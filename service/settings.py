@@ -42,6 +42,8 @@ class Settings(BaseSettings):
                                       "each); more wait their turn.")
     max_chunk_bytes: int = Field(16 * 1024**2, ge=1024, le=1024**3, description="Largest streamed chunk body "
                                  "(and any other JSON body); the API holds about 8 times this while it parses one.")
+    body_stall_timeout_s: float = Field(60.0, ge=0.5, le=3600.0, description="A request whose body gets no "
+                                        "data for this long [s] is answered 408 and closed.")
     cancel_grace_s: float = Field(5.0, ge=0.1, le=600.0, description="A running job that ignores a cancel "
                                   "this long has its worker process terminated.")
     min_free_bytes: int = Field(256 * 1024**2, ge=0, le=1024**4, description="Disk space kept free: an "

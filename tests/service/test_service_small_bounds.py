@@ -32,3 +32,39 @@ def test_an_over_limit_body_without_a_length_is_413(tmp_path) -> None:
         assert "content-length" not in response.request.headers
         err = assert_error(response, 413, "payload_too_large")
         assert "20000 bytes" in err["message"]
+
+
+def test_a_stalled_body_is_answered_408_and_closed(tmp_path) -> None:
+    import socket
+    import threading
+    import time
+
+    import uvicorn
+
+    from service.app import create_app
+    from service.settings import Settings
+
+    app = create_app(Settings(data_dir=tmp_path, workers=1, body_stall_timeout_s=1.0))
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 30
+        while not server.started and time.monotonic() < deadline:
+            time.sleep(0.05)
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as conn:
+            conn.sendall(b"POST /v1/sessions HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                         b"Content-Length: 100\r\n\r\n{\"name\": ")  # and then nothing
+            started = time.monotonic()
+            answer = b""
+            while chunk := conn.recv(4096):
+                answer += chunk
+            waited = time.monotonic() - started
+        assert answer.startswith(b"HTTP/1.1 408") and b"request_timeout" in answer, answer
+        assert 0.9 < waited < 8  # answered after the 1 s stall, and the connection closed
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10)
