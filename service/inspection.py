@@ -36,7 +36,7 @@ STARTUP_TIMEOUT_S = 120.0  # a fresh inspection process imports every loader (se
 class InspectionLimits:
     """Bounds on one upload's inspection."""
 
-    memory_limit_mb: int = 1024
+    memory_limit_mb: int = 2048
     timeout_s: float = 120.0
     max_decompressed_bytes: int = 8 * 1024**3
     lanes: int = 2

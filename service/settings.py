@@ -34,7 +34,7 @@ class Settings(BaseSettings):
     max_extracted_bytes: int = Field(8 * 1024**3, ge=1024, le=4 * 1024**4,
                                      description="Largest total size of an uploaded zip once extracted, "
                                      "or of a gzipped log once inflated.")
-    inspection_memory_limit_mb: int = Field(1024, ge=128, le=1024**2, description="Memory [MB] one upload's "
+    inspection_memory_limit_mb: int = Field(2048, ge=128, le=1024**2, description="Memory [MB] one upload's "
                                             "inspection (loading the log to check it) may use; past it: 422.")
     inspection_timeout_s: float = Field(120.0, ge=1.0, le=86_400.0, description="Time one upload's "
                                         "inspection may take; past it the inspecting process is killed: 422.")
