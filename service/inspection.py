@@ -121,7 +121,7 @@ def _child_main(conn: Any, memory_limit_mb: int) -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which stops us
-    from service.job_memory import MemoryGuard
+    from service.job_memory import MB, MemoryGuard, resident_bytes
     from slam_engine.formats import _installed_modules
 
     _installed_modules()  # every loader and its libraries mapped before the address-space bound is set
@@ -139,6 +139,8 @@ def _child_main(conn: Any, memory_limit_mb: int) -> None:
             except MemoryError:
                 result = over
         conn.send(result)
+        if resident_bytes() > memory_limit_mb * MB // 2:
+            return  # memory a big log left behind would count against the next one: the lane starts afresh
 
 
 class _Lane:
@@ -164,7 +166,7 @@ class _Lane:
                 self.stop()
                 return {"error": "timeout", "message": "", "location": None}
             result = self._conn.recv()
-        except (EOFError, OSError, BrokenPipeError):
+        except Exception:  # the child died mid-answer (EOF, broken pipe, a garbled message)
             self.stop()
             return {"error": "crashed", "message": "", "location": None}
         if result.get("error") == "memory":
