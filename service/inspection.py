@@ -126,6 +126,7 @@ def _child_main(conn: Any, memory_limit_mb: int) -> None:
 
     _installed_modules()  # every loader and its libraries mapped before the address-space bound is set
     conn.send("ready")
+    retire_above = (resident_bytes() + memory_limit_mb * MB) // 2
 
     over = {"error": "memory", "message": "", "location": None}
     while True:
@@ -138,9 +139,10 @@ def _child_main(conn: Any, memory_limit_mb: int) -> None:
                 result = _CALLS[name](*args)
             except MemoryError:
                 result = over
-        conn.send(result)
-        if resident_bytes() > memory_limit_mb * MB // 2:
-            return  # memory a big log left behind would count against the next one: the lane starts afresh
+        retire = resident_bytes() > retire_above  # memory a big log left behind would count against the next
+        conn.send({**result, "retire": retire})
+        if retire:
+            return
 
 
 class _Lane:
@@ -169,8 +171,8 @@ class _Lane:
         except Exception:  # the child died mid-answer (EOF, broken pipe, a garbled message)
             self.stop()
             return {"error": "crashed", "message": "", "location": None}
-        if result.get("error") == "memory":
-            self.stop()  # it may be killing itself; the next upload gets a fresh process
+        if result.pop("retire", False) or result.get("error") == "memory":
+            self.stop()  # it is ending (or killing itself): the next upload gets a fresh process
         return result
 
     def _start(self) -> bool:
