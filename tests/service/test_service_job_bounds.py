@@ -23,6 +23,7 @@ def test_the_job_memory_limit_is_on_by_default_for_both_runners(tmp_path) -> Non
     share = machine_memory_bytes() * 0.8 / 2 / 1024**2
     assert abs(settings.job_memory_limit() - share) <= 1
     assert Settings(data_dir=tmp_path, job_memory_limit_mb=0).job_memory_limit() == 0  # explicitly off
+    pytest.importorskip("celery", reason="the Celery runner is optional: pip install '.[distributed]'")
     from service.celery_runner import make_celery
 
     conf = make_celery(Settings(data_dir=tmp_path, runner="celery"), concurrency=4).conf
