@@ -9,7 +9,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from service.errors import install_error_handlers
-from service.inspection import LogInspector
+from service.inspection import InspectionLimits, LogInspector
 from service.limits import BodyLimitMiddleware
 from service.openapi_errors import document_errors
 from service.routers import chunks, formats, health, jobs, logs, products, sessions
@@ -40,6 +40,11 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
         data.remove_stale_temp_files()
         store = open_store(settings.database_url, data.database)
         store.initialise()
+        # files nothing refers to (a crash mid-delete); uploads of another API host may be in flight
+        # under uploads/ before their row exists, so those are swept only when this host is the only one
+        orphans = data.remove_orphans(store.stored_ids(), uploads_and_chunks=settings.runner == "local")
+        if orphans:
+            logger.warning("removed %d folder(s) of deleted sessions, logs or jobs", orphans)
         if settings.runner == "local":  # Celery workers outlive the API: their jobs go on (the reaper watches them)
             interrupted = store.fail_interrupted()
             if interrupted:
@@ -48,7 +53,9 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
         for job_id in store.jobs_with_status("queued"):
             runner.submit(job_id)
         app.state.data, app.state.store, app.state.runner = data, store, runner
-        app.state.inspector = LogInspector()
+        app.state.inspector = LogInspector(InspectionLimits(
+            settings.inspection_memory_limit_mb, settings.inspection_timeout_s, settings.max_extracted_bytes,
+            settings.inspection_processes))
         try:
             yield
         finally:
@@ -68,7 +75,7 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
             return settings.max_upload_bytes + MULTIPART_OVERHEAD_BYTES
         return settings.max_chunk_bytes
 
-    app.add_middleware(BodyLimitMiddleware, limit_for=body_limit)
+    app.add_middleware(BodyLimitMiddleware, limit_for=body_limit, stall_timeout_s=settings.body_stall_timeout_s)
     app.include_router(health.router)
     for module in (sessions, logs, chunks, formats, products):
         app.include_router(module.router)

@@ -50,9 +50,10 @@ VISIBILITY_TIMEOUT_S = 3600.0  # Redis: an unacknowledged message is redelivered
 HEALTH_CACHE_S = 2.0
 
 
-def make_celery(settings: Any, job_function: str | None = None) -> Celery:
+def make_celery(settings: Any, job_function: str | None = None, concurrency: int = 1) -> Celery:
     """The Celery app for ``settings`` with the job task registered (the API only sends by name;
-    workers execute). ``job_function`` ("module:function") replaces the mapping job (tests)."""
+    workers execute). ``job_function`` ("module:function") replaces the mapping job (tests);
+    ``concurrency`` (a worker's pool processes) splits the default job memory limit."""
     app = Celery("lidarmap", broker=settings.broker_url, backend=settings.broker_url, set_as_current=False)
     app.conf.update(
         task_acks_late=True,
@@ -70,6 +71,7 @@ def make_celery(settings: Any, job_function: str | None = None) -> Celery:
         lidarmap_job_function=job_function or DEFAULT_JOB_FUNCTION,
         lidarmap_heartbeat_s=settings.heartbeat_s,
         lidarmap_cancel_grace_s=settings.cancel_grace_s,
+        lidarmap_job_memory_limit_mb=settings.job_memory_limit(concurrency),
     )
 
     @app.task(name=TASK_NAME)
@@ -113,7 +115,7 @@ def run_job_in_worker(job_id: str, conf: Any) -> str:
 
             _functions[name] = _broken
     function = _with_heartbeat(_functions[name], conf.lidarmap_heartbeat_s, conf.lidarmap_cancel_grace_s)
-    status = execute_job(job_id, store, data, function)
+    status = execute_job(job_id, store, data, function, conf.lidarmap_job_memory_limit_mb)
     if status == "skipped":
         logger.info("job %s: not queued any more (duplicate delivery, or cancelled): dropped", job_id)
     return status

@@ -32,6 +32,19 @@ def check_time_order(chunk: ChunkCreate) -> None:
         previous = message.t_s
 
 
+def check_calibration(chunk: ChunkCreate, calibration: dict[str, Any] | None) -> None:
+    """Scans must have the beam count of the session's LiDAR (a wrong one would break every later job)."""
+    lidar = (calibration or {}).get("lidar")
+    if not lidar:
+        return
+    beams = lidar["num_beams"]
+    for i, message in enumerate(chunk.messages):
+        if message.type == "scan" and len(message.ranges_m) != beams:
+            raise InvalidInput(f"chunk {chunk.seq}: scan message {i} has {len(message.ranges_m)} ranges; the "
+                               f"session's LiDAR has {beams} beams", {"seq": chunk.seq, "message_index": i,
+                                                                     "num_beams": beams})
+
+
 def check_neighbours(chunk: ChunkCreate, rows: list[dict[str, Any]]) -> None:
     """A chunk must fit in time between its neighbours by seq (if they arrived)."""
     t_first, t_last = chunk.messages[0].t_s, chunk.messages[-1].t_s

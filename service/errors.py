@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import logging
+import re
 import sqlite3
 from typing import Any
 
@@ -21,6 +22,19 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from slam_engine.errors import ConfigError, LogFormatError, SlamEngineError, TileOutOfRangeError, UnknownFormatError
 
 logger = logging.getLogger("lidarmap.service")
+
+MAX_TOKEN_CHARS = 80  # a longer word quoted in a message (a log's line, a file name) is cut to this
+MAX_MESSAGE_CHARS = 2000
+_LONG_TOKEN = re.compile(rf"\S{{{MAX_TOKEN_CHARS + 1},}}")
+
+
+def shorten_tokens(message: str) -> str:
+    """``message`` with every token longer than MAX_TOKEN_CHARS cut to its start and its length, and
+    the whole cut to MAX_MESSAGE_CHARS: error answers never echo a hostile input whole."""
+    short = _LONG_TOKEN.sub(lambda m: f"{m.group()[:MAX_TOKEN_CHARS]} ...({len(m.group())} characters)", message)
+    if len(short) > MAX_MESSAGE_CHARS:
+        short = f"{short[:MAX_MESSAGE_CHARS]} ...({len(short)} characters)"
+    return short
 
 
 class ServiceError(Exception):
@@ -82,8 +96,8 @@ class Unavailable(ServiceError):
 
 def error_response(status_code: int, code: str, message: str, detail: Any = None,
                    headers: dict[str, str] | None = None) -> JSONResponse:
-    """The one error body."""
-    body = {"error": {"code": code, "message": message, "detail": jsonable_encoder(detail)}}
+    """The one error body (long tokens in the message cut, see :func:`shorten_tokens`)."""
+    body = {"error": {"code": code, "message": shorten_tokens(message), "detail": jsonable_encoder(detail)}}
     return JSONResponse(body, status_code=status_code, headers=headers)
 
 
@@ -137,7 +151,7 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:
         codes = {400: "bad_request", 404: "not_found", 405: "method_not_allowed", 401: "unauthorized",
-                 413: "payload_too_large"}
+                 408: "request_timeout", 413: "payload_too_large"}
         return error_response(exc.status_code, codes.get(exc.status_code, "http_error"), str(exc.detail),
                               headers=getattr(exc, "headers", None))
 

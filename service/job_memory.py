@@ -107,3 +107,21 @@ class MemoryGuard:
                     self.on_exceeded(limit_reason(self.limit_mb, resident))
                 finally:
                     os.kill(os.getpid(), signal.SIGKILL)
+
+
+def machine_memory_bytes() -> int:
+    """Memory this process may use on this machine [bytes]: physical memory, or less where a cgroup
+    (a container) limits it."""
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    try:
+        text = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if text.isdigit():
+            total = min(total, int(text))
+    except OSError:
+        pass
+    return total
+
+
+def default_limit_mb(workers: int, share: float = 0.8) -> int:
+    """The default per-job limit [MB]: ``share`` of the machine's memory split between ``workers`` jobs."""
+    return max(256, int(machine_memory_bytes() * share / max(1, workers) / MB))

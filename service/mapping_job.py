@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from service.chunks import read_chunk_messages, stream_state
+from service.job_estimate import check_job_memory
 from service.job_settings import engine_config
 from service.products import COMPILING_FILE, GRID_FILE, TEXTURE_FILE, save_grid, save_texture
 from service.storage import write_atomic
@@ -46,7 +47,8 @@ def load_input(ctx: JobContext) -> tuple[DriveLog, dict[str, Any]]:
         log_row = store.get_log(job["log_id"], job["session_id"])
         if log_row is None:
             raise LogFormatError("the job's log was deleted")
-        log = load_log(data.resolve(log_row["stored_path"]))
+        path = data.resolve(log_row["stored_path"])
+        log = load_log(path, format=stored_log_format(path, log_row["summary"].get("format", "auto")))
         return log, {"source": "log", "log_id": log_row["id"], "sha256": log_row["sha256"], "summary": log.summary()}
     rows = store.chunk_rows(job["session_id"])
     state = stream_state(rows)
@@ -59,6 +61,19 @@ def load_input(ctx: JobContext) -> tuple[DriveLog, dict[str, Any]]:
     log = drive_log_from_messages(session["calibration"], messages)
     return log, {"source": "stream", "chunks_used": state.contiguous_through + 1,
                  "messages": len(messages), "missing_seqs_after": state.missing_seqs, "summary": log.summary()}
+
+
+def stored_log_format(path: Path, checked_as: str) -> str:
+    """The format to load an uploaded log with: the one its upload was checked as (an explicit
+    ``?format=`` may name one that detection misses), or "auto" where detection agrees (detection
+    also finds the log inside a zipped folder)."""
+    from slam_engine.errors import SlamEngineError
+    from slam_engine.formats import detect_format
+
+    try:
+        return "auto" if detect_format(path) == checked_as else checked_as
+    except SlamEngineError:
+        return checked_as
 
 
 def session_row(ctx: JobContext) -> dict[str, Any]:
@@ -125,6 +140,8 @@ def _run_mapping_job(ctx: JobContext) -> None:
 
     log, description = load_input(ctx)
     ctx.store.set_input(ctx.job_id, description)
+    if ctx.memory is not None:  # streamed input: its scan count (and so its frames) is known only now
+        check_job_memory(ctx.job["config"], len(log.scans) if log.scans is not None else 0, ctx.memory.limit_mb)
     config = slam_config(ctx.job["config"])
     live = LiveMap(ctx.data.live_dir(ctx.job_id))
 

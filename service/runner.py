@@ -248,7 +248,7 @@ def create_runner(settings: Any, data: DataDir, store: JobStore, job_function: s
     if settings.runner == "local":
         return LocalProcessRunner(data, store, settings.workers, settings.cancel_grace_s,
                                   job_function or DEFAULT_JOB_FUNCTION,
-                                  memory_limit_mb=getattr(settings, "job_memory_limit_mb", 0))
+                                  memory_limit_mb=settings.job_memory_limit())
     if settings.runner == "celery":
         from service.celery_runner import CeleryRunner  # celery is an optional dependency
 

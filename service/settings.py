@@ -32,14 +32,27 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(2 * 1024**3, ge=1024, le=1024**4, description="Largest accepted upload.")
     max_zip_entries: int = Field(100_000, ge=1, le=10_000_000, description="Most files in an uploaded zip.")
     max_extracted_bytes: int = Field(8 * 1024**3, ge=1024, le=4 * 1024**4,
-                                     description="Largest total size of an uploaded zip once extracted.")
-    max_chunk_bytes: int = Field(64 * 1024**2, ge=1024, le=1024**3, description="Largest streamed chunk body.")
+                                     description="Largest total size of an uploaded zip once extracted, "
+                                     "or of a gzipped log once inflated.")
+    inspection_memory_limit_mb: int = Field(2048, ge=128, le=1024**2, description="Memory [MB] one upload's "
+                                            "inspection (loading the log to check it) may use; past it: 422.")
+    inspection_timeout_s: float = Field(120.0, ge=1.0, le=86_400.0, description="Time one upload's "
+                                        "inspection may take; past it the inspecting process is killed: 422.")
+    inspection_processes: int = Field(2, ge=1, le=64, description="Uploads inspected at once (one process "
+                                      "each); more wait their turn.")
+    max_chunk_bytes: int = Field(16 * 1024**2, ge=1024, le=1024**3, description="Largest streamed chunk body "
+                                 "(and any other JSON body); the API holds about 8 times this while it parses one.")
+    body_stall_timeout_s: float = Field(60.0, ge=0.5, le=3600.0, description="A request whose body gets no "
+                                        "data for this long [s] is answered 408 and closed.")
     cancel_grace_s: float = Field(5.0, ge=0.1, le=600.0, description="A running job that ignores a cancel "
                                   "this long has its worker process terminated.")
     min_free_bytes: int = Field(256 * 1024**2, ge=0, le=1024**4, description="Disk space kept free: an "
                                 "upload or chunk that would leave less answers 507 and stores nothing.")
-    job_memory_limit_mb: int = Field(0, ge=0, le=1024**2, description="A job whose worker grows past this "
-                                     "much memory [MB] is stopped with that reason; 0 = no limit.")
+    job_memory_limit_mb: int | None = Field(None, ge=0, le=1024**2, description="A job whose worker grows past "
+                                            "this much memory [MB] is stopped with that reason, and a job whose "
+                                            "parameters clearly need more is refused (422); 0 = no limit. "
+                                            "Default: 80 % of the machine's memory split between the jobs that "
+                                            "run at once ('workers'; a Celery worker: its --concurrency).")
     api_keys: str = Field("", description="Comma-separated API keys; empty = no authentication.")
 
     @model_validator(mode="after")
@@ -48,6 +61,14 @@ class Settings(BaseSettings):
             raise ValueError(f"worker_lost_s ({self.worker_lost_s}) must be at least twice heartbeat_s "
                              f"({self.heartbeat_s}), or live jobs would be failed as lost")
         return self
+
+    def job_memory_limit(self, jobs_at_once: int | None = None) -> int:
+        """The per-job memory limit [MB] (0 = none): the setting, or the machine's share per job."""
+        if self.job_memory_limit_mb is not None:
+            return self.job_memory_limit_mb
+        from service.job_memory import default_limit_mb
+
+        return default_limit_mb(jobs_at_once or self.workers)
 
     def api_key_list(self) -> list[str]:
         """The configured keys (blank entries dropped)."""

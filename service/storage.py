@@ -77,6 +77,22 @@ class DataDir:
             removed += 1
         return removed
 
+    def remove_orphans(self, stored: dict[str, set[str]], uploads_and_chunks: bool = True) -> int:
+        """Delete job folders (and, when ``uploads_and_chunks``, upload and chunk folders) whose id the
+        store no longer knows: what a crash in the middle of a delete left. Call at start-up only.
+        Returns how many folders were removed."""
+        kinds = [("jobs", stored["jobs"])]
+        if uploads_and_chunks:
+            kinds += [("uploads", stored["logs"]), ("chunks", stored["sessions"])]
+        removed = 0
+        for sub, known in kinds:
+            folder = self.root / sub
+            for entry in folder.iterdir() if folder.is_dir() else []:
+                if entry.name not in known and entry.is_dir() and not entry.is_symlink():
+                    shutil.rmtree(entry, ignore_errors=True)
+                    removed += 1
+        return removed
+
     def writable(self) -> bool:
         try:
             with tempfile.NamedTemporaryFile(dir=self.tmp):

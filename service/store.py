@@ -337,16 +337,26 @@ class JobStore:
     # ---- logs -----------------------------------------------------------------------------------
 
     def add_log(self, log_id: str, session_id: str, filename: str, size_bytes: int, sha256: str,
-                archive: bool, summary: dict, stored_path: str) -> dict[str, Any]:
-        """``stored_path``: where the log lies, relative to the data folder (built from ids only)."""
+                archive: bool, summary: dict, stored_path: str) -> dict[str, Any] | None:
+        """``stored_path``: where the log lies, relative to the data folder (built from ids only).
+        None (nothing stored) when the session no longer exists."""
         row = {"id": log_id, "session_id": session_id, "filename": filename, "size_bytes": size_bytes,
                "sha256": sha256, "archive": int(archive), "format": summary.get("format", "unknown"),
                "summary_json": _dump(summary), "stored_path": stored_path, "created_at": time.time()}
         with self._tx() as tx:
+            _lock_session(tx, session_id)
+            if tx.execute("SELECT 1 AS one FROM sessions WHERE id = ?", (session_id,)).fetchone() is None:
+                return None  # the session was deleted while the log arrived
             tx.execute(f"INSERT INTO logs ({', '.join(row)}, upload_no) VALUES ({', '.join('?' * len(row))}, "
                        "(SELECT coalesce(max(upload_no), 0) + 1 FROM logs WHERE session_id = ?))",
                        (*row.values(), session_id))
         return _log(row)
+
+    def stored_ids(self) -> dict[str, set[str]]:
+        """Every session, log and job id in the store (to find files that nothing refers to)."""
+        with self._tx() as tx:
+            return {table: {r["id"] for r in tx.execute(f"SELECT id FROM {table}").fetchall()}
+                    for table in ("sessions", "logs", "jobs")}
 
     def get_log(self, log_id: str, session_id: str) -> dict[str, Any] | None:
         with self._tx() as tx:

@@ -196,10 +196,18 @@ def is_zip_upload(received: ReceivedFile) -> bool:
     return safe_suffix(received.filename) == ".zip"
 
 
-def extract_zip(zip_path: Path, dest: Path, max_entries: int, max_total_bytes: int) -> Path:
+MAX_NAME_BYTES = 255  # one path component, as most file systems allow
+MAX_PATH_CHARS = 1024
+
+
+def extract_zip(zip_path: Path, dest: Path, max_entries: int, max_total_bytes: int,
+                space: Callable[[int], None] | None = None) -> Path:
     """Extract ``zip_path`` into ``dest`` refusing absolute paths, '..', symlinks and special files,
+    encrypted members, over-long names, members that clash (a file and a folder of one name),
     more than ``max_entries`` members or more than ``max_total_bytes`` (counted as written, so a
-    lying header cannot bomb the disk). Returns the log's root: the single top folder if there is one."""
+    lying header cannot bomb the disk). ``space(n)`` raises (507) when ``n`` more bytes would eat
+    into the disk reserve: called with the declared total, then every few MB as it is written.
+    Returns the log's root: the single top folder if there is one."""
     try:
         archive = zipfile.ZipFile(zip_path)
     except (zipfile.BadZipFile, OSError) as exc:
@@ -213,25 +221,36 @@ def extract_zip(zip_path: Path, dest: Path, max_entries: int, max_total_bytes: i
             raise InvalidInput("the zip archive is empty")
         dest.mkdir(parents=True, exist_ok=True)
         root = dest.resolve()
-        written = 0
+        if space is not None:
+            space(min(sum(m.file_size for m in members), max_total_bytes))
+        written, checked_at = 0, 0
         for member in members:
             target = _member_target(root, member)
-            if member.is_dir():
-                target.mkdir(parents=True, exist_ok=True)
-                continue
-            target.parent.mkdir(parents=True, exist_ok=True)
+            if member.flag_bits & 0x1:
+                raise InvalidInput(f"zip member {member.filename!r} is encrypted; encrypted zips are not accepted")
             try:
+                if member.is_dir():
+                    target.mkdir(parents=True, exist_ok=True)
+                    continue
+                target.parent.mkdir(parents=True, exist_ok=True)
                 with archive.open(member) as src, open(target, "xb") as out:
                     while block := src.read(1 << 20):
                         written += len(block)
                         if written > max_total_bytes:
                             raise PayloadTooLarge(f"zip expands beyond the limit of {max_total_bytes} bytes",
                                                   {"limit_bytes": max_total_bytes})
+                        if space is not None and written - checked_at >= CHECK_EVERY_BYTES:
+                            checked_at = written
+                            space(CHECK_EVERY_BYTES)
                         out.write(block)
-            except FileExistsError:
-                raise InvalidInput(f"zip member {member.filename!r} appears twice") from None
-            except (zipfile.BadZipFile, zipfile.LargeZipFile, NotImplementedError, EOFError) as exc:
+            except (FileExistsError, NotADirectoryError, IsADirectoryError):
+                raise InvalidInput(f"zip member {member.filename!r} appears twice (the same name, or as both a "
+                                   "file and a folder)") from None
+            except (zipfile.BadZipFile, zipfile.LargeZipFile, NotImplementedError, EOFError, RuntimeError) as exc:
                 raise InvalidInput(f"zip member {member.filename!r} cannot be read: {exc}") from None
+            except OSError as exc:
+                raise disk_full_error(exc, "the extracted zip") or InvalidInput(
+                    f"zip member {member.filename!r} cannot be extracted: {exc.strerror}") from None
     entries = [p for p in root.iterdir()]
     return entries[0] if len(entries) == 1 and entries[0].is_dir() else root
 
@@ -243,6 +262,9 @@ def _member_target(root: Path, member: zipfile.ZipInfo) -> Path:
         raise InvalidInput(f"zip member {name!r} is a symbolic link; links are not accepted")
     if stat.S_IFMT(mode) and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
         raise InvalidInput(f"zip member {name!r} is not a regular file or folder")
+    if len(name) > MAX_PATH_CHARS or any(len(p.encode()) > MAX_NAME_BYTES for p in name.split("/")):
+        raise InvalidInput(f"zip member name {name!r} is too long ({len(name)} characters; at most "
+                           f"{MAX_NAME_BYTES} bytes a part and {MAX_PATH_CHARS} characters in all)")
     if "\\" in name or "\x00" in name:
         raise InvalidInput(f"zip member name {name!r} contains a backslash or NUL")
     parts = PurePosixPath(name).parts

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from service.errors import shorten_tokens
 from service.job_memory import MemoryGuard, limit_reason
 from service.storage import DataDir
 from service.store import JobStore
@@ -94,6 +95,10 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
         store.finish(job_id, "failed", reason)
 
     guard = MemoryGuard(memory_limit_mb, on_exceeded=fail_for_memory)
+
+    def public(reason: str) -> str:  # no server paths, no quoted input of unbounded length
+        return shorten_tokens(reason.replace(f"{data.root}/", ""))
+
     ctx = JobContext(job_id=job_id, job=job, store=store, data=data, memory=guard)
     try:
         with guard:
@@ -106,18 +111,18 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
         store.finish(job_id, "cancelled", "cancelled by request")
         return "cancelled"
     except JobFailed as exc:
-        store.finish(job_id, "failed", str(exc))
+        store.finish(job_id, "failed", public(str(exc)))
         return "failed"
     except LogFormatError as exc:
         where = f" ({exc.location})" if exc.location else ""
-        store.finish(job_id, "failed", f"log_format: {exc.message}{where}")
+        store.finish(job_id, "failed", public(f"log_format: {exc.message}{where}"))
         return "failed"
     except SlamEngineError as exc:
-        store.finish(job_id, "failed", f"{type(exc).__name__}: {exc}")
+        store.finish(job_id, "failed", public(f"{type(exc).__name__}: {exc}"))
         return "failed"
     except Exception as exc:  # the job's bug must not kill the worker
         logger.error("job %s crashed:\n%s", job_id, traceback.format_exc())
-        store.finish(job_id, "failed", f"internal error: {type(exc).__name__}: {exc}")
+        store.finish(job_id, "failed", public(f"internal error: {type(exc).__name__}: {exc}"))
         return "failed"
     store.finish(job_id, "succeeded")
     return "succeeded"

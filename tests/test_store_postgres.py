@@ -420,8 +420,13 @@ def test_a_sqlite_file_from_before_upload_numbers_is_upgraded(tmp_path) -> None:
     conn.close()
     store = JobStore(path)
     store.initialise()
-    store.add_log("new", "s", "b.clf", 1, "y", False, {}, "q")  # created_at now < the old row's 2e9
-    assert [log["id"] for log in store.list_logs("s")] == ["new", "old"]
+    sid = store.create_session("owner", "drive", None, None, None)["id"]
+    with sqlite3.connect(path) as conn:
+        conn.execute("UPDATE logs SET session_id = ? WHERE id = 'old'", (sid,))
+    conn.close()
+    store.add_log("new", sid, "b.clf", 1, "y", False, {}, "q")  # created_at now < the old row's 2e9
+    assert [log["id"] for log in store.list_logs(sid)] == ["new", "old"]
+    assert store.add_log("gone", "no-such-session", "c.clf", 1, "z", False, {}, "r") is None
 
 
 # ---- PostgreSQL: URLs, unreachable servers, the whole service -----------------------------------

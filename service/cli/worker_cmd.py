@@ -35,7 +35,7 @@ def register(app: typer.Typer) -> None:
         data = DataDir(settings.data_dir)
         data.create()
         open_store(settings.database_url, data.database).initialise()
-        celery = make_celery(settings, job_function)
+        celery = make_celery(settings, job_function, concurrency)
         argv = ["worker", f"--concurrency={concurrency}", f"--queues={queue or settings.queue}",
                 f"--loglevel={loglevel.upper()}", "--pool=prefork", "--without-gossip", "--without-mingle"]
         if hostname:

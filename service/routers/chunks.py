@@ -7,7 +7,7 @@ from fastapi import APIRouter, Request, Response
 
 from api_schemas.chunks import ChunkCreate, ChunkPublic, StreamFinish, StreamState
 from api_schemas.errors import ErrorResponse
-from service.chunks import finish_stream, store_chunk, stream_state_in_store
+from service.chunks import check_calibration, finish_stream, store_chunk, stream_state_in_store
 from service.deps import DataDep, SessionRow, SettingsDep, StoreDep
 from service.disk_space import ensure_free_space
 from service.routers.convert import utc
@@ -25,10 +25,12 @@ def post_chunk(body: ChunkCreate, session: SessionRow, store: StoreDep, data: Da
                request: Request, response: Response) -> ChunkPublic:
     """Append chunk ``seq``. Resending the same chunk is harmless (200, ``duplicate: true``);
     the same seq with other content is 409, and so is a seq beyond the end of a finished stream.
-    Chunks may arrive out of order: the answer lists the gaps. A job maps the contiguous chunks
+    Chunks may arrive out of order: the answer lists the gaps. A scan whose beam count differs
+    from the session's LiDAR calibration is 422. A job maps the contiguous chunks
     0..k present when it starts; a live job maps them as they arrive, waiting at a gap."""
     declared = request.headers.get("content-length", "")
     ensure_free_space(data, settings.min_free_bytes, int(declared) if declared.isdigit() else 0)
+    check_calibration(body, session["calibration"])
     row, duplicate = store_chunk(store, data, session["id"], body)
     if duplicate:
         response.status_code = 200

@@ -8,11 +8,13 @@ from fastapi import APIRouter, Query
 
 from api_schemas.errors import ErrorResponse
 from api_schemas.jobs import JobPublic, JobSource, JobsPublic, JobStatus
-from service.deps import MAX_OFFSET, DataDep, JobRow, OwnerDep, RunnerDep, SessionRow, StoreDep
-from service.errors import Conflict, NotFound
+from service.deps import MAX_OFFSET, DataDep, JobRow, OwnerDep, RunnerDep, SessionRow, SettingsDep, StoreDep
+from service.errors import Conflict, InvalidInput, NotFound
+from service.job_estimate import check_job_memory, estimate_bytes
 from service.job_settings import JobSettings, resolve, stored_config
 from service.products import engine_compiling, live_product_names
 from service.routers.convert import job_public
+from slam_engine.errors import ConfigError
 
 ERRORS: dict[int | str, dict[str, Any]] = {401: {"model": ErrorResponse}, 404: {"model": ErrorResponse},
                                            422: {"model": ErrorResponse}}
@@ -22,12 +24,19 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=ERRORS)
 
 
 @session_jobs.post("", response_model=JobPublic, status_code=202, responses={409: {"model": ErrorResponse}})
-def create_job(body: JobSettings, session: SessionRow, store: StoreDep, runner: RunnerDep) -> JobPublic:
+def create_job(body: JobSettings, session: SessionRow, store: StoreDep, runner: RunnerDep,
+               settings: SettingsDep) -> JobPublic:
     """Queue a mapping run over the session's newest (or the given) upload, or over its streamed
     chunks 0..k as they stand when the job starts. With ``live: true`` the job follows the stream
     instead, mapping chunks as they arrive until the stream is finished or idle (one live job per
-    session; the session may have no chunks yet). Poll GET /v1/jobs/{id}."""
+    session; the session may have no chunks yet). Poll GET /v1/jobs/{id}. 422 when the parameters
+    clearly need more memory than the job memory limit (the estimate in the detail)."""
     config = stored_config(body, resolve(body))  # the engine's bounds: 422 naming the setting
+    scans = None  # known up front for an upload; a streamed job checks again once its input is read
+    if not body.live and (body.source or (JobSource.LOG if session["logs"] else JobSource.STREAM)) is JobSource.LOG:
+        logs = [store.get_log(body.log_id, session["id"])] if body.log_id else store.list_logs(session["id"])
+        scans = logs[0]["summary"].get("streams", {}).get("scans") if logs and logs[0] else None
+    refuse_costly_job(config, scans, settings.job_memory_limit())
     if body.live:
         return _create_live_job(config, session, store, runner)
     source = body.source or (JobSource.LOG if session["logs"] else JobSource.STREAM)
@@ -51,6 +60,16 @@ def create_job(body: JobSettings, session: SessionRow, store: StoreDep, runner: 
     row = store.create_job(session["id"], session["owner"], source.value, log_id, config)
     runner.submit(row["id"])
     return job_public(row)
+
+
+def refuse_costly_job(config: dict, scans: int | None, limit_mb: int) -> None:
+    """422 with the estimate when ``config`` clearly needs more than ``limit_mb``."""
+    try:
+        check_job_memory(config, scans, limit_mb)
+    except ConfigError as exc:
+        err = InvalidInput(str(exc), {"limit_mb": limit_mb, **estimate_bytes(config, scans)})
+        err.code = "job_too_large"
+        raise err from None
 
 
 def _create_live_job(config: dict, session: dict, store: StoreDep, runner: RunnerDep) -> JobPublic:

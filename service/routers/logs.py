@@ -12,7 +12,7 @@ from api_schemas.errors import ErrorResponse
 from api_schemas.logs import LogPublic, LogsPublic
 from service.deps import DataDep, SessionRow, SettingsDep, StoreDep
 from service.disk_space import ensure_free_space
-from service.errors import InvalidInput
+from service.errors import InvalidInput, NotFound
 from service.inspection import LogInspector
 from service.routers.convert import log_public
 from service.store import new_id
@@ -57,14 +57,18 @@ async def upload_log(request: Request, session: SessionRow, store: StoreDep, dat
         archive = is_zip_upload(received) and not await inspector.is_log_file(received.path, format_name)
         if archive:
             log_path = await run_in_threadpool(extract_zip, received.path, upload_dir / "tree",
-                                               settings.max_zip_entries, settings.max_extracted_bytes)
+                                               settings.max_zip_entries, settings.max_extracted_bytes,
+                                               partial(ensure_free_space, data, settings.min_free_bytes))
             received.path.unlink(missing_ok=True)
         else:
             log_path = upload_dir / f"log{safe_suffix(received.filename)}"
             move_into(received.path, log_path)
-        summary = await inspector.summary(log_path, format_name)
+        summary = await inspector.summary(log_path, format_name, hidden_prefix=f"{upload_dir}/")
         row = store.add_log(log_id, session["id"], received.filename, received.size_bytes, received.sha256,
                             archive, summary, data.relative(log_path))
+        if row is None:
+            raise NotFound("the session was deleted while the log was uploaded; nothing was stored",
+                           {"session_id": session["id"]})
     except BaseException:  # nothing half-stored: no row without its files, no files without a row
         received.path.unlink(missing_ok=True)
         data.remove(upload_dir)

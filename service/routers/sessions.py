@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import time
 from typing import Annotated
 
 from fastapi import APIRouter, Query
 
 from api_schemas.errors import ErrorResponse
 from api_schemas.sessions import SessionCreate, SessionDeleted, SessionPublic, SessionsPublic
-from service.deps import MAX_OFFSET, DataDep, OwnerDep, RunnerDep, SessionRow, StoreDep
+from service.deps import MAX_OFFSET, DataDep, OwnerDep, RunnerDep, SessionRow, SettingsDep, StoreDep
 from service.routers.convert import session_public
+
+STOP_MARGIN_S = 3.0  # after the cancel grace, the runner's time to stop the worker and record it
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
                    responses={401: {"model": ErrorResponse}, 404: {"model": ErrorResponse},
@@ -38,15 +41,19 @@ def get_session(session: SessionRow) -> SessionPublic:
 
 
 @router.delete("/{session_id}", response_model=SessionDeleted)
-def delete_session(session: SessionRow, store: StoreDep, runner: RunnerDep, data: DataDep) -> SessionDeleted:
-    """Cancel the session's active jobs, then delete it with its logs, chunks, jobs and files."""
-    cancelled = 0
+def delete_session(session: SessionRow, store: StoreDep, runner: RunnerDep, data: DataDep,
+                   settings: SettingsDep) -> SessionDeleted:
+    """Cancel the session's active jobs and wait until they stopped (their worker is stopped after the
+    cancel grace period), then delete the session with its logs, chunks, jobs and files."""
+    active = []
     jobs, _ = store.list_jobs(session["owner"], session["id"], None, 1_000_000, 0)
     for job in jobs:
         if job["status"] in ("queued", "running"):
             store.request_cancel(job["id"])
             runner.cancel(job["id"])
-            cancelled += 1
+            active.append(job["id"])
+    wait_until_stopped(store, active, settings.cancel_grace_s + STOP_MARGIN_S)
+    cancelled = len(active)
     logs = store.list_logs(session["id"])
     job_ids = store.delete_session(session["id"])
     for log in logs:
@@ -55,3 +62,13 @@ def delete_session(session: SessionRow, store: StoreDep, runner: RunnerDep, data
         data.remove(data.job_dir(job_id))
     data.remove(data.chunk_dir(session["id"]))
     return SessionDeleted(id=session["id"], jobs_cancelled=cancelled)
+
+
+def wait_until_stopped(store: StoreDep, job_ids: list[str], timeout_s: float) -> None:
+    """Poll until none of ``job_ids`` is queued or running (so none writes files any more), or timeout."""
+    deadline = time.monotonic() + timeout_s
+    while job_ids and time.monotonic() < deadline:
+        rows = [store.get_job(j) for j in job_ids]
+        job_ids = [row["id"] for row in rows if row is not None and row["status"] in ("queued", "running")]
+        if job_ids:
+            time.sleep(0.05)

@@ -187,6 +187,16 @@ def _check_archive(archive: zipfile.ZipFile, path: Path, max_total_bytes: int) -
 
 def _read_column(archive: zipfile.ZipFile, member: str, path: Path) -> np.ndarray:
     try:
+        with archive.open(member) as handle:  # a header declaring more data than the member holds is refused
+            version = np.lib.format.read_magic(handle)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                np.lib.format.read_array_header_2_0
+            shape, _, dtype = read_header(handle)
+            declared = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
+            held = archive.getinfo(member).file_size - handle.tell()
+        if not dtype.hasobject and declared > held:  # (object arrays are refused below: no pickles)
+            raise LogFormatError(f"the .npy header declares {declared} bytes of data, the member holds {held}",
+                                 path=str(path), location=member)
         with archive.open(member) as handle:
             return np.lib.format.read_array(handle, allow_pickle=False)
     except KeyError:

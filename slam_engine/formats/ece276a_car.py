@@ -44,7 +44,7 @@ def sniff(path: Path) -> bool:
         return False
     try:
         with open(encoder, encoding="utf-8", errors="replace") as handle:
-            first = handle.readline().strip().split(",")
+            first = handle.readline(256).strip().split(",")  # bounded: a row is three numbers
     except OSError:
         return False
     return len(first) == 3 and all(re.fullmatch(_NUMBER, tok.strip()) for tok in first)

@@ -50,3 +50,17 @@ def compiling(ctx) -> None:
             time.sleep(0.02)
         event.end_event("numba:compile", data={})
         counting(ctx)
+
+
+def live_writer(ctx) -> None:
+    """Like the mapping job with ``snapshot_every_scans: 1``: a live file after every step of ``seed``
+    ms (``particles`` steps), cancel checked through the throttled progress; ``linear_update_m`` > 0:
+    never checks for a cancel."""
+    config = ctx.job["config"]
+    for i in range(config["particles"]):
+        live = ctx.data.live_dir(ctx.job_id)
+        live.mkdir(parents=True, exist_ok=True)
+        (live / "frame.json").write_text(json.dumps({"step": i}))
+        if not config["linear_update_m"]:
+            ctx.progress(i, config["particles"])
+        time.sleep(config["seed"] / 1000.0)

@@ -1,0 +1,69 @@
+"""Jobs: memory bounded by default and costly parameters refused up front; the upload's format is
+the job's (issue 18, items 3 and 5)."""
+
+from __future__ import annotations
+
+import pytest
+from service_helpers import assert_error, new_session, service_client, wait_for
+
+from service.job_memory import machine_memory_bytes
+from service.settings import Settings
+
+
+@pytest.fixture(scope="module")
+def sim_log(tmp_path_factory) -> bytes:
+    from slam_engine.simulation import simulate, write_simulated
+
+    drive = simulate("office", seed=1, rig="carmen-robot", max_duration_s=8.0)
+    return write_simulated(drive, "carmen", tmp_path_factory.mktemp("sim")).read_bytes()
+
+
+def test_the_job_memory_limit_is_on_by_default_for_both_runners(tmp_path) -> None:
+    settings = Settings(data_dir=tmp_path, workers=2)
+    share = machine_memory_bytes() * 0.8 / 2 / 1024**2
+    assert abs(settings.job_memory_limit() - share) <= 1
+    assert Settings(data_dir=tmp_path, job_memory_limit_mb=0).job_memory_limit() == 0  # explicitly off
+    pytest.importorskip("celery", reason="the Celery runner is optional: pip install '.[distributed]'")
+    from service.celery_runner import make_celery
+
+    conf = make_celery(Settings(data_dir=tmp_path, runner="celery"), concurrency=4).conf
+    assert abs(conf.lidarmap_job_memory_limit_mb - share / 2) <= 1
+    assert make_celery(Settings(data_dir=tmp_path, job_memory_limit_mb=300)).conf.lidarmap_job_memory_limit_mb == 300
+
+
+def test_jobs_that_clearly_need_more_than_the_limit_are_refused(tmp_path, sim_log) -> None:
+    with service_client(tmp_path, job_memory_limit_mb=4000) as client:  # numba's compiler needs room too
+        sid = new_session(client)
+        assert client.post(f"/v1/sessions/{sid}/logs", files={"file": ("log.clf", sim_log)}).status_code == 201
+        # the issue's particle bomb: terabytes of particle maps
+        err = assert_error(client.post(f"/v1/sessions/{sid}/jobs", json={
+            "particles": 1000, "resolution_m": 0.01, "max_range_m": 200}), 422, "job_too_large")
+        assert err["detail"]["particle_maps_bytes"] > 10**12 and err["detail"]["limit_mb"] == 4000
+        assert "4000 MB" in err["message"] and "particles" in err["message"]
+        # a dense frame of a 60 m half disc at 1 cm (226 MB) after each of the log's 40 scans
+        err = assert_error(client.post(f"/v1/sessions/{sid}/jobs", json={
+            "particles": 1, "resolution_m": 0.01, "max_range_m": 60, "snapshot_every_scans": 1,
+            "linear_update_m": 0, "angular_update_rad": 0}), 422, "job_too_large")
+        assert err["detail"]["animation_frames_bytes"] > 8 * 10**9 and "snapshot_every_scans" in err["message"]
+        assert client.get("/v1/jobs", params={"session": sid}).json()["count"] == 0
+        # the same frames every 20 scans fit
+        job = client.post(f"/v1/sessions/{sid}/jobs", json={"particles": 1, "resolution_m": 0.05,
+                                                           "snapshot_every_scans": 20})
+        assert job.status_code == 202, job.text
+        assert wait_for(client, job.json()["id"], timeout_s=120)["status"] == "succeeded"
+
+
+def test_a_log_uploaded_with_an_explicit_format_maps_in_that_format(tmp_path, sim_log) -> None:
+    lines = sim_log.splitlines(keepends=True)
+    params = [line for line in lines if line.startswith(b"PARAM")]
+    padded = b"".join((params * 25)[:25]) + b"".join(
+        line for line in lines if not line.startswith(b"PARAM"))
+    with service_client(tmp_path) as client:
+        sid = new_session(client)
+        upload = client.post(f"/v1/sessions/{sid}/logs", files={"file": ("log.clf", padded)})
+        assert_error(upload, 415)  # 25 PARAM lines first: detection gives up
+        upload = client.post(f"/v1/sessions/{sid}/logs", files={"file": ("log.clf", padded)},
+                             params={"format": "carmen"})
+        assert upload.status_code == 201, upload.text
+        job = client.post(f"/v1/sessions/{sid}/jobs", json={"particles": 5})
+        assert wait_for(client, job.json()["id"], timeout_s=120)["status"] == "succeeded"

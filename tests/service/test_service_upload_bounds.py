@@ -1,0 +1,192 @@
+"""Hostile uploads cost bounded memory and time, answer 4xx with a short message, and hurt no other
+upload (issue 18, items 1 and 2). The bombs are the issue's reproductions scaled down: the bounds
+are lowered through the settings so that each needs only a few MB."""
+
+from __future__ import annotations
+
+import gzip
+import io
+import sqlite3
+import threading
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from service_helpers import assert_error, new_session, service_client
+
+ODOM_LINE = b"ODOM 1.0 2.0 0.5 0 0 0 100.0 h 100.0\n"
+
+
+@pytest.fixture(scope="module")
+def sim_log(tmp_path_factory) -> bytes:
+    """A short simulated CARMEN log (40 scans)."""
+    from slam_engine.simulation import simulate, write_simulated
+
+    drive = simulate("office", seed=1, rig="carmen-robot", max_duration_s=8.0)
+    return write_simulated(drive, "carmen", tmp_path_factory.mktemp("sim")).read_bytes()
+
+
+def head(log: bytes, lines: int = 12) -> bytes:
+    return b"".join(log.splitlines(keepends=True)[:lines])
+
+
+def odom_bomb(log: bytes, inflated_mb: int) -> bytes:
+    """The issue's ``(head -12 log.clf; yes 'ODOM ...' | head -c 1G) | gzip -9``, ``inflated_mb`` long."""
+    return gzip.compress(head(log) + ODOM_LINE * (inflated_mb * 1024**2 // len(ODOM_LINE)), 9)
+
+
+def upload(client, sid: str, name: str, content: bytes, **params):
+    return client.post(f"/v1/sessions/{sid}/logs", files={"file": (name, content)}, params=params)
+
+
+def test_a_memory_bomb_is_stopped_and_a_bystander_upload_succeeds(tmp_path, sim_log) -> None:
+    bomb = odom_bomb(sim_log, 20)  # 60 KB inflating to 20 MB: ~400 MB once parsed, past the 200 MB bound
+    assert len(bomb) < 100_000
+    with service_client(tmp_path, inspection_memory_limit_mb=200, inspection_processes=2) as client:
+        sid = new_session(client)
+        answers: dict[str, object] = {}
+        bomber = threading.Thread(target=lambda: answers.update(bomb=upload(client, sid, "b.clf.gz", bomb)))
+        bomber.start()
+        time.sleep(0.2)
+        bystander = upload(client, sid, "log.clf", sim_log)
+        bomber.join(timeout=60)
+        assert bystander.status_code == 201, bystander.text
+        err = assert_error(answers["bomb"], 422, "inspection_limit")
+        assert "200 MB" in err["message"]
+        # the bomb's process was replaced: the next upload is served as usual
+        again = upload(client, sid, "log.clf", sim_log)
+        assert again.status_code == 201, again.text
+        assert client.get(f"/v1/sessions/{sid}").json()["logs"] == 2
+        assert len(list((tmp_path / "uploads").iterdir())) == 2  # nothing of the bomb stays
+
+
+def test_inspection_time_and_inflated_size_are_bounded(tmp_path, sim_log) -> None:
+    with service_client(tmp_path, inspection_timeout_s=1.0, inspection_processes=1,
+                        max_extracted_bytes=16 * 1024**2) as client:
+        sid = new_session(client)
+        # 1 MB of gzip inflating to 20 MB: refused before it is parsed
+        err = assert_error(upload(client, sid, "b.clf.gz", odom_bomb(sim_log, 20)), 413, "payload_too_large")
+        assert "inflates beyond" in err["message"]
+        # 12 MB of ODOM lines parse for longer than the 1 s bound (about 3 s here): stopped, 422
+        started = time.monotonic()
+        err = assert_error(upload(client, sid, "slow.clf.gz", odom_bomb(sim_log, 12)), 422, "inspection_limit")
+        assert "1 s" in err["message"] and time.monotonic() - started < 10
+        assert upload(client, sid, "log.clf", sim_log).status_code == 201
+
+
+def test_error_messages_do_not_echo_a_long_token(tmp_path, sim_log) -> None:
+    line = b"A" * 2**20  # the issue's 1 GB line of 'A', scaled to 1 MB
+    with service_client(tmp_path) as client:
+        sid = new_session(client)
+        response = upload(client, sid, "t.clf.gz", gzip.compress(head(sim_log) + line + b"\n"))
+        err = assert_error(response, 422, "log_format")
+        assert len(response.content) < 1000 and f"({len(line) + 2} characters)" in err["message"]
+        assert err["detail"]["location"] == "line 13"
+        # warnings name the log, never the server's folders
+        warnings = upload(client, sid, "log.clf", sim_log + ODOM_LINE).json()["summary"]["warnings"]
+        assert warnings and all(w.startswith("log.clf: ") and str(tmp_path) not in w for w in warnings), warnings
+        # and so do the rosbag reader's errors
+        bag = tmp_path / "x.db3"
+        with sqlite3.connect(bag) as db:
+            db.execute("CREATE TABLE topics (id INTEGER)")
+        db.close()
+        err = assert_error(upload(client, sid, "x.db3", bag.read_bytes(), format="rosbag"), 422, "log_format")
+        assert "cannot read bag" in err["message"] and str(tmp_path) not in str(err)
+
+
+def drivelog_bytes(sim_log: bytes, tmp_path: Path) -> bytes:
+    from slam_engine.formats import load_log, write_log
+
+    source = tmp_path / "src.clf"
+    source.write_bytes(sim_log)
+    return write_log(load_log(source), "drivelog", tmp_path / "drivelog").read_bytes()
+
+
+def test_a_npy_header_declaring_gigabytes_is_refused_at_once(tmp_path, sim_log) -> None:
+    original = zipfile.ZipFile(io.BytesIO(drivelog_bytes(sim_log, tmp_path)))
+    member = next(n for n in original.namelist() if n.endswith("ranges_m.npy"))
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f4", "fortran_order": False,
+                                                  "shape": (2**20, 512)})  # 2 GiB declared
+    forged = io.BytesIO()
+    with zipfile.ZipFile(forged, "w", zipfile.ZIP_DEFLATED) as out:
+        for name in original.namelist():
+            out.writestr(name, header.getvalue() + b"\0" * 4096 if name == member else original.read(name))
+    with service_client(tmp_path / "data", inspection_memory_limit_mb=300) as client:
+        sid = new_session(client)
+        err = assert_error(upload(client, sid, "forged.drivelog", forged.getvalue()), 422, "log_format")
+        assert "declares 2147483648 bytes" in err["message"] and err["detail"]["location"] == member
+
+
+def test_a_zipped_single_line_csv_is_sniffed_with_bounded_reads(tmp_path) -> None:
+    archive = io.BytesIO()
+    with zipfile.ZipFile(archive, "w", zipfile.ZIP_DEFLATED) as out:
+        out.writestr("car/sensor_data/encoder.csv", b"1," * (8 * 1024**2))  # one 16 MB line
+    assert len(archive.getvalue()) < 100_000
+    with service_client(tmp_path, inspection_memory_limit_mb=160) as client:
+        sid = new_session(client)
+        err = assert_error(upload(client, sid, "car.zip", archive.getvalue()), 415, "unsupported_format")
+        assert len(err["message"]) < 1000
+
+
+def test_shorten_tokens_cuts_each_long_word_once() -> None:
+    from service.errors import MAX_MESSAGE_CHARS, shorten_tokens
+
+    message = f"bad token '{'x' * 500}' at line 3"
+    short = shorten_tokens(message)
+    assert short == f"bad token '{'x' * 79} ...(502 characters) at line 3" and shorten_tokens(short) == short
+    assert shorten_tokens("fine message") == "fine message"
+    assert len(shorten_tokens("word " * 10_000)) < MAX_MESSAGE_CHARS + 50
+
+
+def zip_of(entries: list[tuple[str | zipfile.ZipInfo, bytes]]) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        for name, content in entries:
+            archive.writestr(name, content)
+    return buffer.getvalue()
+
+
+def encrypted_zip() -> bytes:
+    """A zip whose one member carries the 'encrypted' flag (what a password-protected zip looks like)."""
+    raw = bytearray(zip_of([("secret.clf", b"ODOM 1 2 3 0 0 0 1.0 h 1.0\n")]))
+    for signature, flag_at in ((b"PK\x03\x04", 6), (b"PK\x01\x02", 8)):
+        at = raw.find(signature)
+        raw[at + flag_at] |= 0x1
+    return bytes(raw)
+
+
+@pytest.mark.parametrize("case", ["file-then-folder", "file-then-child", "long-name", "long-path", "encrypted"])
+def test_awkward_zips_are_refused_with_422(tmp_path, case) -> None:
+    content = {
+        "file-then-folder": zip_of([("zz", b"x"), ("zz/", b"")]),
+        "file-then-child": zip_of([("zz", b"x"), ("zz/child", b"x")]),
+        "long-name": zip_of([("a" * 300, b"x")]),
+        "long-path": zip_of([("/".join(["d" * 50] * 100) + "/f", b"x")]),
+        "encrypted": encrypted_zip(),
+    }[case]
+    with service_client(tmp_path) as client:
+        sid = new_session(client)
+        err = assert_error(upload(client, sid, "awkward.zip", content), 422)
+        assert len(err["message"]) < 1000
+        assert not any((tmp_path / "uploads").iterdir()) and not any((tmp_path / "tmp").iterdir())
+
+
+def test_zip_extraction_keeps_the_free_space_reserve(tmp_path, monkeypatch) -> None:
+    from service.storage import DataDir
+
+    def free_bytes(self) -> int:  # a 22 MB disk holding what the data folder holds
+        used = sum(p.stat().st_size for p in (tmp_path / "uploads").rglob("*") if p.is_file())
+        return 22 * 1024**2 - used
+
+    with service_client(tmp_path, min_free_bytes=10 * 1024**2) as client:
+        sid = new_session(client)
+        monkeypatch.setattr(DataDir, "free_bytes", free_bytes)
+        declared_too_big = zip_of([("big/zeros.bin", b"\0" * 40 * 1024**2)])
+        err = assert_error(upload(client, sid, "big.zip", declared_too_big), 507, "insufficient_storage")
+        assert err["detail"]["reserve_bytes"] == 10 * 1024**2
+        fills_up_while_written = zip_of([("big/zeros.bin", b"\0" * 12 * 1024**2)])  # fits by its header only
+        assert_error(upload(client, sid, "big.zip", fills_up_while_written), 507, "insufficient_storage")
+        assert not any((tmp_path / "uploads").iterdir())
