@@ -475,3 +475,21 @@ def test_run_json_accuracy_from_relations_and_ground_truth(tmp_path: Path) -> No
     assert accuracy["relations"]["all"]["trans_mean_m"] == pytest.approx(0.25)
     assert accuracy["relations"]["all"]["rot_mean_deg"] == pytest.approx(0.0)
     assert accuracy["ate_m"] == pytest.approx(0.0, abs=1e-9)  # a pure shift vanishes after alignment
+
+
+def test_animation_places_snapshots_that_reach_past_the_final_map() -> None:
+    """A snapshot larger than the final map (the filter's own frame before loop closing) whose pooled
+    copy pads past the canvas: every frame has the canvas size and the snapshot's wall is where it is."""
+    from slam_engine.products.animation import animation_frames
+
+    final = OccupancyGrid(np.zeros((100, 100), np.float32), 0.05, 0.0, 0.0)
+    big = np.full((301, 299), -2.0, np.float32)  # odd sizes: pooling pads them
+    big[150:155, 100:105] = 4.0  # a wall around x = -5 + 100.5 * 0.05 = 0.03 m, y = -5 + 152 * 0.05 = 2.6 m
+    snapshot = MapSnapshot(scan_index=0, t_s=0.0, grid=OccupancyGrid(big, 0.05, -5.0, -5.0),
+                           trajectory=Trajectory(np.zeros(2), np.zeros((2, 3))))
+    frames = animation_frames([snapshot], final, Trajectory(np.zeros(2), np.zeros((2, 3))), max_side_px=64)
+    assert len(frames) == 2 and frames[0].size == frames[1].size
+    pixel_m = (299 * 0.05) / frames[0].size[0]
+    col = int((0.15 - -5.0) / pixel_m)
+    row = int((-5.0 + 301 * 0.05 - 2.6) / pixel_m)
+    assert np.asarray(frames[0])[row, col] < 60  # dark: the wall

@@ -64,8 +64,12 @@ def animation_frames(snapshots: list[MapSnapshot], final_grid: OccupancyGrid, fi
         col0 = round((grid.origin_x_m - left) / pixel_m)
         row0 = round((top - (grid.origin_y_m + grid.shape[0] * grid.resolution_m)) / pixel_m)
         pixels = _GRAY_TO_INDEX[np.asarray(image)]
-        rows, cols = min(pixels.shape[0], height - row0), min(pixels.shape[1], width - col0)
-        canvas[row0:row0 + rows, col0:col0 + cols] = pixels[:rows, :cols]
+        # pooling pads a grid up to whole blocks, so it may reach past the canvas: paste the overlap
+        r0, c0 = max(row0, 0), max(col0, 0)
+        rows = min(pixels.shape[0] - (r0 - row0), height - r0)
+        cols = min(pixels.shape[1] - (c0 - col0), width - c0)
+        if rows > 0 and cols > 0:
+            canvas[r0:r0 + rows, c0:c0 + cols] = pixels[r0 - row0:r0 - row0 + rows, c0 - col0:c0 - col0 + cols]
         frame = Image.fromarray(canvas)
         frame.putpalette(_PALETTE)
         trajectory = snapshot.trajectory
