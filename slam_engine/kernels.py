@@ -21,10 +21,12 @@ import threading
 from collections.abc import Callable, Iterator
 from typing import Any
 
-KERNEL_MODULES = ("slam_engine.grid", "slam_engine.raycast", "slam_engine.scan_matcher")
+KERNEL_MODULES = ("slam_engine.grid", "slam_engine.raycast", "slam_engine.scan_matcher",
+                  "slam_engine.backend.correlative")
 # Kernels a run calls from Python (the others are compiled into these).
 ENTRY_KERNELS = ("grid._privatize", "raycast.collect_touched_tiles", "raycast.integrate_rays", "raycast.clear_marks",
-                 "scan_matcher.match_particles", "scan_matcher.score_particles")
+                 "scan_matcher.match_particles", "scan_matcher.score_particles", "correlative._rotated_cells",
+                 "correlative.branch_and_bound", "correlative._refine")
 
 
 def kernels() -> dict[str, Any]:
@@ -71,6 +73,15 @@ def warm_up() -> dict[str, list[str]]:
     # scored instead (score_particles)
     ScanMatcher(0.3, 0.2, 1.0).match(ParticleGrids(1, 0.05), np.zeros(1, np.int64), np.zeros((1, 3)),
                                      np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]))
+    # the back end's matcher (a short drive closes no loop): a wall seen twice
+    from slam_engine.backend.correlative import refine_pose, search
+    from slam_engine.backend.submaps import match_grid_from_points
+
+    wall = np.stack([np.linspace(0.0, 4.0, 80), np.full(80, 2.0)], axis=1)
+    match = search(match_grid_from_points(wall, 0.05, 1.0), wall, np.zeros(3), 0.5, 0.1, 0.1, ambiguity_m=0.5,
+                   ambiguity_rad=0.1, runner_up_share=0.9)
+    if match is not None:
+        refine_pose(match_grid_from_points(wall, 0.05, 1.0), wall, match.pose)
     return compile_report()
 
 
