@@ -41,6 +41,8 @@ from slam_engine.scan_matcher import ScanMatcher
 THREADS_ENV = "LIDARMAP_THREADS"
 # added to the motion covariance [m^2, m^2, rad^2]: a vehicle standing still still has a pose to fuse
 MOTION_COV_FLOOR = np.array([1e-6, 1e-6, 1e-7])
+# a correlative search precedes the fit when the window is this many times the smallest one
+PRESEARCH_BEYOND = 1.5
 
 
 def engine_threads() -> int:
@@ -269,13 +271,16 @@ class SlamFilter:
         window_xy, window_theta = self._search_window(motion_cov)
         presearch = None
         info_o = None
-        if window_xy > m.search_xy_m or window_theta > m.search_theta_rad or m.proposal == "fused":
+        # the fit's own basin covers the smallest window and a good deal more: search first only
+        # where the window is well beyond it
+        wide = window_xy > PRESEARCH_BEYOND * m.search_xy_m or window_theta > PRESEARCH_BEYOND * m.search_theta_rad
+        if wide or m.proposal == "fused":
             # motion covariance in the world frame of each particle's start, with a floor (standing still)
             c, s = np.cos(self.particles[:, 2]), np.sin(self.particles[:, 2])
             R = np.zeros((n, 3, 3))
             R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
             info_o = np.linalg.inv(R @ motion_cov @ R.transpose(0, 2, 1) + np.diag(MOTION_COV_FLOOR))
-        if window_xy > m.search_xy_m or window_theta > m.search_theta_rad:
+        if wide:
             mean_info = info_o.mean(axis=0)
             presearch = np.array([window_xy, window_theta, self.likelihood_gain, mean_info[0, 0], mean_info[1, 1],
                                   mean_info[2, 2]])
