@@ -27,6 +27,10 @@ def test_deleting_a_session_stops_its_writing_jobs_first(tmp_path) -> None:
         time.sleep(0.5)  # the jobs wrote a frame every 10 ms: they would have recreated live/ by now
         assert not any((tmp_path / "jobs").iterdir()), list((tmp_path / "jobs").iterdir())
         assert_error(client.get(f"/v1/jobs/{polite}"), 404)
+        # the terminated workers are replaced (after a back-off when they had just started): ready again
+        deadline = time.monotonic() + 30.0
+        while client.get("/readyz").status_code != 200 and time.monotonic() < deadline:
+            time.sleep(0.2)
         assert client.get("/readyz").status_code == 200
 
 
