@@ -26,7 +26,7 @@ from slam_engine.grid import N_LEVELS, POOL_DTYPE, TILE
 # interpreter, imports (~130 MB; GTSAM and scipy.sparse for the back end), numba kernels (~65 MB loaded; more
 # while compiling). A tiny run measured 320-410 MB in a clean process but 770 MB inside the full test session
 # (cause not found): the base covers the larger figure.
-BASE_BYTES = 780 * 1024**2
+BASE_BYTES = 650 * 1024**2
 LOG_LOAD_FACTOR = 3.0  # peak while loading / the log's arrays
 DENSE_BYTES_PER_CELL = 4 + 4 + 12  # final grid float32 + newest snapshot float32 + product rasters
 PRIVATE_TILE_FRACTION = 0.03  # per particle: private tiles beyond the shared map (pool ~1.8x the area at 30)
