@@ -77,7 +77,12 @@ def test_live_job_maps_chunks_as_they_arrive_and_equals_a_regular_job(tmp_path) 
             assert client.post(url, json={"seq": seq, "messages": chunks[seq]}).status_code == 201
         caught_up = scans_done(100)
         assert caught_up["status"] == "running" and caught_up["progress"] is None
+        # the live trajectory file is written after the step that counts the scan: wait for it (bounded)
+        deadline = time.monotonic() + 30.0
         late_trajectory = client.get(f"/v1/jobs/{job['id']}/trajectory").json()
+        while late_trajectory["count"] < 99 and time.monotonic() < deadline:
+            time.sleep(0.1)
+            late_trajectory = client.get(f"/v1/jobs/{job['id']}/trajectory").json()
         assert late_trajectory["count"] >= 99 > early_trajectory["count"]
         late_png = client.get(f"/v1/jobs/{job['id']}/occupancy.png").content
         assert free_pixels(late_png) > free_pixels(early_png) > 0
