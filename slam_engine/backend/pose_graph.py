@@ -13,8 +13,6 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from slam_engine.poses import relative
-
 
 @dataclass(frozen=True)
 class Edge:
@@ -74,7 +72,3 @@ class PoseGraph:
             p = result.atPose2(k)
             out[k] = (p.x(), p.y(), p.theta())
         return out
-
-    def edge_residual(self, edge: Edge, poses: np.ndarray) -> np.ndarray:
-        """``[dx_m, dy_m, dtheta_rad]`` between the edge's measurement and what ``poses`` say."""
-        return relative(np.asarray(edge.T_i_from_j), relative(poses[edge.i], poses[edge.j]))
