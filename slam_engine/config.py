@@ -118,6 +118,9 @@ class LoopClosingConfig(_Section):
     correlative match, and a pose graph with a robust loss (:mod:`slam_engine.backend`)."""
 
     enabled: bool = Field(True, description="Close loops and optimise the trajectory after the filter.")
+    odometry_smoothing: bool = Field(True, description="Where the log's odometry is locally more precise than "
+                                     "the scan matches (measured on the log: front end against odometry over "
+                                     "1-16 key frames), tie consecutive key frames by it in a final smoothing.")
     submap_length_m: float = Field(8.0, gt=0.0, le=1000.0, description="Travel per submap [m].")
     submap_max_nodes: int = Field(80, ge=2, le=100000, description="At most this many key frames per submap.")
     search_every_m: float = Field(0.5, ge=0.0, le=100.0, description="Look for loops every this much travel [m].")

@@ -112,6 +112,7 @@ class SlamFilter:
         self._records: list[_ScanRecord] = []
         self.key_frame_scans: list[ProjectedScan] = []  # the scan of every processed step (for the back end)
         self.key_frame_ranges: list[np.ndarray] = []  # its ranges [m]
+        self.key_frame_odometry: list[np.ndarray] = []  # the odometry pose at it (uncorrected)
         self._last_odom: np.ndarray | None = None
         self._last_t_s: float | None = None
         self._pending: ScanMessage | None = None
@@ -198,6 +199,7 @@ class SlamFilter:
     def _record_step(self, t_s: float, odom: np.ndarray, projected: ProjectedScan) -> None:
         self._history.append(self.particles.copy())
         self.key_frame_scans.append(projected)
+        self.key_frame_odometry.append(np.asarray(odom, np.float64).copy())
         self.key_frame_ranges.append(self._ranges_m)
         self._parents.append(self._next_parents)
         self._next_parents = np.arange(self.config.particles)
@@ -282,9 +284,11 @@ class SlamFilter:
             R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
             info_o = np.linalg.inv(R @ motion_cov @ R.transpose(0, 2, 1) + np.diag(MOTION_COV_FLOOR))
         if wide:
+            # search only the dimensions whose window exceeds the fit's basin
             mean_info = info_o.mean(axis=0)
-            presearch = np.array([window_xy, window_theta, self.likelihood_gain, mean_info[0, 0], mean_info[1, 1],
-                                  mean_info[2, 2]])
+            presearch = np.array([window_xy if window_xy > PRESEARCH_BEYOND * m.search_xy_m else 0.0,
+                                  window_theta if window_theta > PRESEARCH_BEYOND * m.search_theta_rad else 0.0,
+                                  self.likelihood_gain, mean_info[0, 0], mean_info[1, 1], mean_info[2, 2]])
         fit = self.matcher.fit(self.grids, np.arange(n), sampled, hits, window_xy, window_theta, presearch)
         poses = fit.poses.copy()
         if m.proposal == "fused":

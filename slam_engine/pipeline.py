@@ -18,6 +18,7 @@ import numpy as np
 
 from slam_engine.backend.loop_closer import close_loops
 from slam_engine.backend.map_builder import render_occupancy
+from slam_engine.backend.odometry_smoothing import estimate_noise, smooth_with_odometry
 from slam_engine.config import SlamConfig
 from slam_engine.drive_log import DriveLog
 from slam_engine.errors import ConfigError
@@ -111,15 +112,18 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     filter itself, message by message as they arrived. ``started_s`` is the run's
     ``time.perf_counter()`` at its start (for the wall time)."""
     warnings = list(log.warnings)
-    backend = close_loops(slam.key_frame_path(), [scan.hits_v for scan in slam.key_frame_scans], config.loop_closing,
+    front_end_path = slam.key_frame_path()
+    backend = close_loops(front_end_path, [scan.hits_v for scan in slam.key_frame_scans], config.loop_closing,
                           config.grid.resolution_m)
-    trajectory = slam.trajectory(backend.poses)
+    key_frames, smoothing = _keep_odometry_precision(front_end_path, backend.poses, slam.key_frame_odometry,
+                                                     config)
+    trajectory = slam.trajectory(key_frames)
     resampled = slam.scan_stats().resampled
     if len(resampled) > 1 and resampled.mean() > 0.9:
         warnings.append("the particle set was resampled after almost every scan: the map may be unreliable "
                         "(odometry much worse than the motion noise assumes?)")
-    if any(c.accepted for c in backend.closures) or config.grid.no_return_bounded:
-        grid = render_occupancy(slam.product_scans(), backend.poses, slam.projector.origin_v, config.grid)
+    if any(c.accepted for c in backend.closures) or config.grid.no_return_bounded or smoothing.get("applied"):
+        grid = render_occupancy(slam.product_scans(), key_frames, slam.projector.origin_v, config.grid)
     else:  # the poses are the best particle's: its own map is the same grid
         grid = slam.best_grid()
     texture, texture_status = _ground_texture(log, trajectory, grid, config, warnings)
@@ -137,8 +141,24 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
         input_summary={**log.summary(), "grid_memory_bytes": slam.grids.memory_bytes(),
                        "scans_processed": slam.steps_processed, "texture": texture_status,
                        "odometry_calibration": slam.heading_calibration.summary(),
-                       "loop_closing": backend.summary()},
+                       "loop_closing": backend.summary(), "odometry_smoothing": smoothing},
     )
+
+
+def _keep_odometry_precision(front_end_path: np.ndarray, poses: np.ndarray, odometry: list[np.ndarray],
+                             config: SlamConfig) -> tuple[np.ndarray, dict]:
+    """The key-frame poses smoothed with the odometry where the log shows that its odometry is locally
+    more precise than the scan matches (:mod:`slam_engine.backend.odometry_smoothing`), and a
+    summary for run.json."""
+    if not config.loop_closing.odometry_smoothing:
+        return poses, {"applied": False, "reason": "disabled in the configuration"}
+    noise = estimate_noise(front_end_path, np.asarray(odometry))
+    if noise is None:
+        return poses, {"applied": False, "reason": "too few key frames to measure the noise"}
+    if not noise.odometry_helps:
+        return poses, {"applied": False, "reason": "odometry is not more precise than the matches",
+                       **noise.summary()}
+    return smooth_with_odometry(poses, np.asarray(odometry), noise), {"applied": True, **noise.summary()}
 
 
 def _ground_texture(log: DriveLog, trajectory: Trajectory, grid: OccupancyGrid, config: SlamConfig,

@@ -334,7 +334,8 @@ class ScanMatcher:
         """Fit ``points_v`` (B, 2) for each particle index in ``particles`` from ``predicted`` (P, 3),
         accepting moves up to ``window_xy_m`` / ``window_theta_rad`` (default: the matcher's own).
         ``presearch`` = (half width xy [m], half width theta [rad], gain, info_x, info_y, info_theta)
-        turns on a coarse correlative search over that window before the fit (None: off).
+        turns on a coarse correlative search over that window before the fit (None: off; a zero half
+        width leaves that dimension to the fit).
 
         Where a match is not accepted the pose is the prediction and the residual and score are
         those of the prediction."""
