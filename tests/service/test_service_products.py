@@ -7,8 +7,8 @@ import json
 
 from service_helpers import new_session, service_client, streaming_session, wait_for
 
-from service.products import MEDIA_TYPES
-from service.storage import DataDir
+from service.jobs.products import MEDIA_TYPES
+from service.storage.data_dir import DataDir
 
 
 def test_every_listed_product_downloads_under_its_name(tmp_path) -> None:
