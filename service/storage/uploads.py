@@ -13,7 +13,7 @@ import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
@@ -21,6 +21,9 @@ from starlette.requests import ClientDisconnect, Request
 
 from service.errors import BadRequest, InvalidInput, PayloadTooLarge, UnsupportedFormat
 from service.storage.disk_space import CHECK_EVERY_BYTES, disk_full_error
+
+if TYPE_CHECKING:
+    from python_multipart.multipart import MultipartCallbacks
 
 MULTIPART_OVERHEAD_BYTES = 64 * 1024  # headers and boundaries around the file part
 MAX_FIELD_BYTES = 1024
@@ -68,10 +71,10 @@ class _PartCollector:
         self._header_value = b""
         self._headers: dict[bytes, bytes] = {}
         self._name: str | None = None
-        self._is_file = False
+        self._receiving: ReceivedFile | None = None  # the file part now arriving (None: a text field)
         self._field_buf = bytearray()
 
-    def callbacks(self) -> dict[str, Any]:
+    def callbacks(self) -> MultipartCallbacks:
         return {
             "on_part_begin": self._part_begin, "on_header_field": self._header_field_cb,
             "on_header_value": self._header_value_cb, "on_header_end": self._header_end,
@@ -80,7 +83,7 @@ class _PartCollector:
         }
 
     def _part_begin(self) -> None:
-        self._headers, self._name, self._is_file = {}, None, False
+        self._headers, self._name, self._receiving = {}, None, None
         self._field_buf = bytearray()
 
     def _header_field_cb(self, data: bytes, start: int, end: int) -> None:
@@ -102,19 +105,18 @@ class _PartCollector:
                 raise BadRequest("only one file per upload", {"field": FILE_FIELD})
             fd, tmp = tempfile.mkstemp(dir=self.tmp_dir, prefix="upload-")
             self._handle = os.fdopen(fd, "wb")
-            self._is_file = True
-            self.file = ReceivedFile(path=Path(tmp), filename=filename.decode("utf-8", "replace")[:255],
-                                     size_bytes=0, sha256="")
+            self.file = self._receiving = ReceivedFile(path=Path(tmp), size_bytes=0, sha256="",
+                                                       filename=filename.decode("utf-8", "replace")[:255])
 
     def _part_data(self, data: bytes, start: int, end: int) -> None:
-        if self._is_file:
+        if (received := self._receiving) is not None:
             piece = data[start:end]
-            self.file.size_bytes += len(piece)
-            if self.file.size_bytes > self.max_bytes:
+            received.size_bytes += len(piece)
+            if received.size_bytes > self.max_bytes:
                 raise PayloadTooLarge(f"upload larger than the limit of {self.max_bytes} bytes",
                                       {"limit_bytes": self.max_bytes})
-            if self.space is not None and self.file.size_bytes - self._checked_at >= CHECK_EVERY_BYTES:
-                self._checked_at = self.file.size_bytes
+            if self.space is not None and received.size_bytes - self._checked_at >= CHECK_EVERY_BYTES:
+                self._checked_at = received.size_bytes
                 self.space(CHECK_EVERY_BYTES)
             self._hash.update(piece)
             try:
@@ -127,14 +129,14 @@ class _PartCollector:
                 raise BadRequest(f"form field {self._name!r} is longer than {MAX_FIELD_BYTES} bytes")
 
     def _part_end(self) -> None:
-        if self._is_file:
+        if (received := self._receiving) is not None:
             try:
                 self._handle.close()  # flushes the last buffered bytes
             except OSError as exc:
                 self._handle = None
                 raise disk_full_error(exc, "the upload") or exc from None
             self._handle = None
-            self.file.sha256 = self._hash.hexdigest()
+            received.sha256 = self._hash.hexdigest()
         elif self._name:
             self.fields[self._name] = self._field_buf.decode("utf-8", "replace")
 
