@@ -138,7 +138,7 @@ PRODUCT_SUMMARIES = {
     "texture.png": "Ground texture map as PNG (when the log has a camera).",
     "texture.tif": "Ground texture map as GeoTIFF.",
     "animation.gif": "The map growing over the run.",
-    "trajectory.json": "The SLAM trajectory as the lidarmap JSON file (poses t, x, y, theta in s, m, rad). "
+    "trajectory.json": "The SLAM trajectory as the lidarmap JSON file (poses t_s, x_m, y_m, theta_rad, as the API's). "
                        "While the job runs: the trajectory so far.",
     "trajectory.tum": "The SLAM trajectory in TUM format (t x y z qx qy qz qw).",
     "dead_reckoning.json": "Odometry alone, as the lidarmap JSON file.",
