@@ -1,4 +1,4 @@
-"""A job's memory, watched from inside its worker process (Linux ``/proc/self``).
+"""A job's memory (or an upload inspection's), watched from inside its process (Linux ``/proc/self``).
 
 * The peak: the kernel's resident high-water mark (VmHWM) is reset when the job starts, so the
   peak read at its end is this job's, not the largest of every job the worker ever ran.
