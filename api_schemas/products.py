@@ -6,9 +6,10 @@ from pydantic import AliasChoices, BaseModel, Field
 
 
 class Pose(BaseModel):
-    """A planar pose in the map frame. The API names carry units (as every message of the API does);
-    the trajectory files' names (``t, x, y, theta`` with a ``units`` block) are accepted as aliases, so
-    ``Pose.model_validate`` reads the poses of a downloaded ``trajectory.json`` too."""
+    """A planar pose in the map frame. The names carry units (as every message of the API does), and the
+    trajectory files (``trajectory.json``, ``dead_reckoning.json``) use the same names, so
+    ``Pose.model_validate`` reads a downloaded file's poses. The names of files written before that
+    (``t, x, y, theta``, trajectory JSON version 1) are accepted as aliases."""
 
     t_s: float = Field(validation_alias=AliasChoices("t_s", "t"), description="Time [s].")
     x_m: float = Field(validation_alias=AliasChoices("x_m", "x"), description="[m]")

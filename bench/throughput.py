@@ -91,7 +91,7 @@ def measure(n_workers: int, n_jobs: int, log_path: Path, job: dict, folder: Path
     """One round: ``n_workers`` workers, ``n_jobs`` jobs; returns the timings."""
     from fastapi.testclient import TestClient
 
-    from service.app import create_app
+    from service.api.app import create_app
     from service.settings import Settings
 
     folder.mkdir(parents=True)

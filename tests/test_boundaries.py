@@ -50,6 +50,6 @@ def test_checker_sees_a_forbidden_import(tmp_path: Path, monkeypatch: pytest.Mon
     """The scan itself works: a planted forbidden import is reported."""
     pkg = tmp_path / "slam_engine"
     pkg.mkdir()
-    (pkg / "bad.py").write_text("from service.app import create_app\nimport numpy\n")
+    (pkg / "bad.py").write_text("from service.api.app import create_app\nimport numpy\n")
     monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
     assert imported_top_modules("slam_engine") == {"slam_engine/bad.py": {"service", "numpy"}}

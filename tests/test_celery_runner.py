@@ -1,7 +1,7 @@
 """Scale-out with Celery: a real Redis server and two real ``lidarmap worker`` processes behind the
 unchanged HTTP API. Jobs map a simulated office drive and are checked against its ground truth.
 
-Delivery semantics under test (service/celery_runner.py): every job runs at most once (a duplicate
+Delivery semantics under test (service/runners/celery_runner.py): every job runs at most once (a duplicate
 delivery is dropped by the store's claim), a worker lost mid-job fails its job with the reason -
 at once when its pool process dies, after ``worker_lost_s`` without heartbeats when the whole
 worker dies - and no job is ever left 'running'.
@@ -24,10 +24,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from api_schemas.jobs import JobSource, JobStatus
 from bench.throughput import free_port, redis_server
-from service.app import create_app
+from service.api.app import create_app
 from service.settings import Settings
-from service.store import JobStore
+from service.storage.store import JobStore
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 TERMINAL = {"succeeded", "failed", "cancelled"}
@@ -106,7 +107,7 @@ class Cluster:
         raise AssertionError(f"job {job_id} did not reach {statuses} in {timeout_s} s: {job}\n{self.worker_logs()}")
 
     def worker_of(self, job_id: str) -> Worker:
-        pid = self.store.get_job(job_id)["worker_pid"]
+        pid = self.store.get_job(job_id).worker_pid
         return next(w for w in self.workers if w.owns(pid))
 
     def worker_logs(self) -> str:
@@ -171,7 +172,7 @@ def _trajectory(client: TestClient, job_id: str):
 def test_jobs_spread_over_both_workers_map_correctly_and_a_duplicate_delivery_is_dropped(cluster) -> None:
     from celery import Celery
 
-    from service.celery_runner import TASK_NAME
+    from service.runners.celery_runner import TASK_NAME
     from slam_engine.evaluation import absolute_trajectory_error
 
     job_ids = [cluster.post_job(QUICK) for _ in range(3)]
@@ -220,13 +221,13 @@ def test_cancel_a_running_and_a_queued_job(cluster) -> None:
         assert reader.AsyncResult(queued).get(timeout=20) == "skipped"
     finally:
         reader.close()
-    assert cluster.store.get_job(queued)["started_at"] is None
+    assert cluster.store.get_job(queued).started_at is None
 
 
 def test_a_live_job_follows_its_stream_on_a_worker_and_maps_it_like_the_upload(cluster) -> None:
     """The live job runs in a pool process like any job: it maps the chunks as they come (waiting at
     a gap), finishes when the stream does, gives the upload's trajectory, and stops on cancel."""
-    from service.stream_log import calibration_from_log, messages_of_log
+    from service.storage.stream_log import calibration_from_log, messages_of_log
     from slam_engine.formats import load_log
 
     client = cluster.client
@@ -275,7 +276,7 @@ def test_killed_workers_fail_their_jobs_and_the_survivor_goes_on(cluster) -> Non
     w0, w1 = cluster.workers
 
     # w0's pool process is killed (OOM killer, a crash): w0 notices at once and fails the job
-    os.kill(cluster.store.get_job(by_worker["w0"])["worker_pid"], signal.SIGKILL)
+    os.kill(cluster.store.get_job(by_worker["w0"]).worker_pid, signal.SIGKILL)
     # w1 vanishes entirely (kill -9 of the worker and its pool): its heartbeats stop
     t_killed = time.monotonic()
     w1.kill_all()
@@ -292,38 +293,38 @@ def test_killed_workers_fail_their_jobs_and_the_survivor_goes_on(cluster) -> Non
     after = cluster.post_job(QUICK)
     assert cluster.wait(after)["status"] == "succeeded"
     assert cluster.worker_of(after) is w0
-    assert cluster.store.jobs_with_status("queued", "running") == []
+    assert cluster.store.jobs_with_status(JobStatus.QUEUED, JobStatus.RUNNING) == []
 
 
 def test_heartbeat_stops_a_job_that_ignores_its_cancel(tmp_path) -> None:
     """The pool process's heartbeat thread: beats while the job runs; once a cancel has been ignored
     for the grace period it marks the job cancelled and kills its process (here: a stand-in)."""
-    from service.celery_runner import Heartbeat
+    from service.runners.celery_runner import Heartbeat
 
     store = JobStore(tmp_path / "jobs.sqlite3")
     store.initialise()
-    job_id = store.create_job("s", "", "log", None, {})["id"]
+    job_id = store.create_job("s", "", JobSource.LOG, None, {}).id
     assert store.mark_running(job_id, worker_pid=1)
     killed: list[float] = []
     beat = Heartbeat(store, job_id, every_s=0.05, cancel_grace_s=0.3, kill=lambda: killed.append(time.monotonic()))
     beat.start()
     time.sleep(0.3)
-    first_beat = store.get_job(job_id)["heartbeat_at"]
+    first_beat = store.get_job(job_id).heartbeat_at
     time.sleep(0.2)
-    assert store.get_job(job_id)["heartbeat_at"] > first_beat and not killed
+    assert store.get_job(job_id).heartbeat_at > first_beat and not killed
     asked = time.monotonic()
     store.request_cancel(job_id)
     beat.join(timeout=3)
     assert not beat.is_alive() and len(killed) == 1
     assert 0.3 <= killed[0] - asked < 1.0
     job = store.get_job(job_id)
-    assert (job["status"], job["error"]) == ("cancelled", "cancelled by request (worker stopped)")
+    assert (job.status, job.error) == (JobStatus.CANCELLED, "cancelled by request (worker stopped)")
 
 
 def test_reaper_fails_only_silent_running_jobs(tmp_path) -> None:
     store = JobStore(tmp_path / "jobs.sqlite3")
     store.initialise()
-    silent, alive, queued = (store.create_job("s", "", "log", None, {})["id"] for _ in range(3))
+    silent, alive, queued = (store.create_job("s", "", JobSource.LOG, None, {}).id for _ in range(3))
     started = time.monotonic()
     for job_id in (silent, alive):
         assert store.mark_running(job_id, worker_pid=42)
@@ -332,19 +333,19 @@ def test_reaper_fails_only_silent_running_jobs(tmp_path) -> None:
     assert store.fail_lost(silent_s=1.0) == [silent]
     silent_for_s = time.monotonic() - started
     job = store.get_job(silent)
-    assert job["status"] == "failed" and job["cancel_requested"]
-    reported = re.fullmatch(r"worker lost: no heartbeat for (\d+) s \(worker pid 42\).*", job["error"])
-    assert reported is not None, job["error"]
+    assert job.status is JobStatus.FAILED and job.cancel_requested
+    reported = re.fullmatch(r"worker lost: no heartbeat for (\d+) s \(worker pid 42\).*", job.error)
+    assert reported is not None, job.error
     assert 1 <= int(reported.group(1)) <= silent_for_s + 1
-    assert [store.get_job(j)["status"] for j in (alive, queued)] == ["running", "queued"]
+    assert [store.get_job(j).status for j in (alive, queued)] == ["running", "queued"]
     assert store.heartbeat(silent) is True  # a slow-but-alive worker is told to stop
 
 
 def test_unreachable_broker_and_bad_settings_are_clear_errors(tmp_path) -> None:
     from pydantic import ValidationError
 
-    from service.celery_runner import CeleryRunner
-    from service.store import open_store
+    from service.runners.celery_runner import CeleryRunner
+    from service.storage.store import open_store
 
     _require(_importable("celery"), "celery not installed: pip install '.[distributed]'")
     with pytest.raises(RuntimeError, match=r"broker at redis://\*\*\*@127.0.0.1:\d+/0 is unreachable"):

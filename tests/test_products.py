@@ -101,15 +101,31 @@ def test_trajectory_json_round_trip_keeps_poses_frame_units_and_config(tmp_path:
     traj = make_trajectory()
     path = write_trajectory_json(traj, tmp_path / "t.json", frame="map", config={"particles": 7})
     document = json.loads(path.read_text())
-    assert document["units"] == {"t": "s", "x": "m", "y": "m", "theta": "rad"}
-    assert document["frame"] == "map" and document["config"] == {"particles": 7}
-    assert document["poses"][3] == {"t": traj.t_s[3], "x": traj.poses[3, 0], "y": traj.poses[3, 1],
-                                    "theta": traj.poses[3, 2]}
+    assert document["units"] == {"t_s": "s", "x_m": "m", "y_m": "m", "theta_rad": "rad"}
+    assert document["version"] == 2 and document["frame"] == "map" and document["config"] == {"particles": 7}
+    assert document["poses"][3] == {"t_s": traj.t_s[3], "x_m": traj.poses[3, 0], "y_m": traj.poses[3, 1],
+                                    "theta_rad": traj.poses[3, 2]}  # the API's names
     back = read_trajectory(path)
     np.testing.assert_array_equal(back.t_s, traj.t_s)
     np.testing.assert_array_equal(back.poses, traj.poses)
     (tmp_path / "bare.json").write_text(json.dumps(document["poses"]))
     np.testing.assert_array_equal(read_trajectory(tmp_path / "bare.json").poses, traj.poses)
+
+
+def test_trajectory_json_of_version_1_still_loads(tmp_path: Path) -> None:
+    """Files written before version 2 name the pose fields t, x, y, theta: old job folders still load
+    (and a file mixing the two spellings pose by pose, field by field, too)."""
+    traj = make_trajectory()
+    old = [{"t": float(t), "x": float(p[0]), "y": float(p[1]), "theta": float(p[2])}
+           for t, p in zip(traj.t_s, traj.poses, strict=True)]
+    old[1] = {"t_s": old[1]["t"], "x": old[1]["x"], "y_m": old[1]["y"], "theta": old[1]["theta"]}
+    path = tmp_path / "v1.json"
+    path.write_text(json.dumps({"format": "lidarmap-trajectory", "version": 1, "frame": "map",
+                                "units": {"t": "s", "x": "m", "y": "m", "theta": "rad"}, "config": None,
+                                "poses": old}))
+    back = read_trajectory(path)
+    np.testing.assert_array_equal(back.t_s, traj.t_s)
+    np.testing.assert_array_equal(back.poses, traj.poses)
 
 
 def test_tum_file_is_plain_tum_and_reads_back_to_the_same_poses(tmp_path: Path) -> None:
@@ -129,7 +145,8 @@ def test_tum_file_is_plain_tum_and_reads_back_to_the_same_poses(tmp_path: Path) 
 @pytest.mark.parametrize(("content", "fmt", "where", "expected"), [
     ("1 2 3 0 0 0 0 1\n2 2 3 0 0 0 1\n", "auto", "line 2", "TUM"),
     ("# c\n1 2 3 0 0 0 0 1\n2 a 3 0 0 0 0 1\n", "tum", "line 3", "TUM"),
-    ('{"poses": [{"t": 1, "x": 2, "y": 3, "theta": 0}, {"t": 2, "x": 1}]}', "auto", "poses[1]", "JSON"),
+    ('{"poses": [{"t_s": 1, "x_m": 2, "y_m": 3, "theta_rad": 0}, {"t_s": 2, "x_m": 1}]}', "auto", "poses[1]",
+     "t_s"),
     ('{"poses": [1, 2', "json", "line 1", "JSON"),
     ('{"trajectory": []}', "auto", "", "'poses'"),
     ("2 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n", "tum", "pose 1", "backwards"),

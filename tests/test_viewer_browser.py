@@ -34,8 +34,8 @@ import yaml
 from fastapi.testclient import TestClient
 from PIL import Image
 
-from service.app import create_app
-from service.routers.viewer import STATIC_DIR
+from service.api.app import create_app
+from service.api.routers.viewer import STATIC_DIR
 from service.settings import Settings
 from tests.viewer_job_functions import PILLAR_SIZE_M, PILLAR_XY_M, ROOM_X_M, ROOM_Y_M
 

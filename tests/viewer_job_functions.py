@@ -14,7 +14,8 @@ import time
 
 import numpy as np
 
-from service.products import GRID_FILE, TEXTURE_FILE, save_grid, save_texture
+from service.jobs.products import GRID_FILE, TEXTURE_FILE, save_grid, save_texture
+from service.jobs.settings import engine_config
 from slam_engine.config import SlamConfig
 from slam_engine.products import write_products
 from slam_engine.result import OccupancyGrid, ScanStats, SlamResult, TextureMap, Trajectory
@@ -86,12 +87,13 @@ def room_result(resolution_m: float, steps: int) -> SlamResult:
 def synthetic_room(ctx) -> None:
     """``particles`` steps of ``seed`` ms each, a growing live grid (unless ``snapshot_every_scans`` is 0),
     then every product."""
-    steps = max(2, int(ctx.job["config"]["particles"]))
-    step_s = ctx.job["config"]["seed"] / 1000.0
-    resolution_m = float(ctx.job["config"]["resolution_m"])
+    config = engine_config(ctx.job.config)
+    steps = max(2, config.particles)
+    step_s = config.seed / 1000.0
+    resolution_m = config.grid.resolution_m
     live = ctx.data.live_dir(ctx.job_id)
     live.mkdir(parents=True, exist_ok=True)
-    live_map = ctx.job["config"].get("snapshot_every_scans", 1) > 0
+    live_map = config.snapshot_every_scans > 0
     for i in range(1, steps + 1):
         if live_map:
             save_grid(room_grid(resolution_m, i / steps), live / GRID_FILE)

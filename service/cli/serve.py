@@ -14,6 +14,6 @@ def register(app: typer.Typer) -> None:
         """Start the mapping service (embedded defaults: SQLite, local disk, local workers)."""
         import uvicorn
 
-        from service.app import create_app
+        from service.api.app import create_app
 
         uvicorn.run(create_app(), host=host, port=port)

@@ -38,7 +38,7 @@ def register(app: typer.Typer) -> None:
 
         from api_schemas.jobs import JobCreate, JobPublic, JobStatus
         from service.client import ApiError, LidarmapClient
-        from service.job_settings import JobSettings, resolve
+        from service.jobs.settings import JobSettings, resolve
 
         def fail(message: str, code: int = BAD_INPUT_EXIT_CODE) -> typer.Exit:
             typer.echo(f"error: {' '.join(message.split())}", err=True)

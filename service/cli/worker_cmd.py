@@ -22,10 +22,10 @@ def register(app: typer.Typer) -> None:
         job_function: str | None = typer.Option(None, hidden=True, help="Job function module:function (tests)."),
     ) -> None:
         """Run mapping jobs sent by the API through the broker (scale out with more workers)."""
-        from service.celery_runner import make_celery
+        from service.runners.celery_runner import make_celery
         from service.settings import get_settings
-        from service.storage import DataDir
-        from service.store import open_store
+        from service.storage.data_dir import DataDir
+        from service.storage.store import open_store
 
         if loglevel.lower() not in ("debug", "info", "warning", "error"):
             raise typer.BadParameter(f"unknown log level {loglevel!r}", param_hint="--loglevel")

@@ -2,13 +2,15 @@
 
 lidarmap JSON (``trajectory.json``, ``dead_reckoning.json``)::
 
-    {"format": "lidarmap-trajectory", "version": 1,
+    {"format": "lidarmap-trajectory", "version": 2,
      "frame": "map",                      # what the poses are expressed in
-     "units": {"t": "s", "x": "m", "y": "m", "theta": "rad"},
+     "units": {"t_s": "s", "x_m": "m", "y_m": "m", "theta_rad": "rad"},
      "config": {...} | null,              # the SlamConfig used (model_dump), when known
-     "poses": [{"t": 12.5, "x": 0.0, "y": 0.0, "theta": 0.0}, ...]}
+     "poses": [{"t_s": 12.5, "x_m": 0.0, "y_m": 0.0, "theta_rad": 0.0}, ...]}
 
-``read_trajectory`` also accepts a bare JSON list of such pose objects.
+The pose fields are named as the API's poses are (unit-suffixed). ``read_trajectory`` also accepts a
+bare JSON list of such pose objects, and the names of version 1 files (``t, x, y, theta``, written
+before version 2) for each field, so the trajectories of older jobs still load.
 
 TUM (``trajectory.tum``): one line per pose, ``t x y z qx qy qz qw`` (seconds, metres, unit
 quaternion), ``#`` comments allowed; the format evo and the TUM RGB-D tools read. A planar pose
@@ -29,18 +31,22 @@ from slam_engine.products.files import atomic_path, write_text_atomic
 from slam_engine.result import Trajectory
 
 JSON_FORMAT_NAME = "lidarmap-trajectory"
+JSON_VERSION = 2  # version 1 named the pose fields t, x, y, theta
+POSE_FIELDS = ("t_s", "x_m", "y_m", "theta_rad")
+POSE_FIELD_ALIASES = {"t_s": "t", "x_m": "x", "y_m": "y", "theta_rad": "theta"}  # version 1's names
 _JSON_EXPECTED = ("expected lidarmap trajectory JSON: an object with a 'poses' list (or a list) of "
-                  "{\"t\", \"x\", \"y\", \"theta\"} numbers")
+                  "{\"t_s\", \"x_m\", \"y_m\", \"theta_rad\"} numbers (or version 1's \"t\", \"x\", \"y\", "
+                  "\"theta\")")
 _TUM_EXPECTED = "expected TUM trajectory: 8 numbers per line 't x y z qx qy qz qw'"
 
 
 def write_trajectory_json(traj: Trajectory, path: str | Path, frame: str = "map",
                           config: dict | None = None) -> Path:
     """Write ``traj`` as lidarmap JSON (see module docstring); returns the path."""
-    poses = [{"t": float(t), "x": float(p[0]), "y": float(p[1]), "theta": float(p[2])}
+    poses = [{"t_s": float(t), "x_m": float(p[0]), "y_m": float(p[1]), "theta_rad": float(p[2])}
              for t, p in zip(traj.t_s, traj.poses, strict=True)]
-    document = {"format": JSON_FORMAT_NAME, "version": 1, "frame": frame,
-                "units": {"t": "s", "x": "m", "y": "m", "theta": "rad"},
+    document = {"format": JSON_FORMAT_NAME, "version": JSON_VERSION, "frame": frame,
+                "units": {"t_s": "s", "x_m": "m", "y_m": "m", "theta_rad": "rad"},
                 "config": config, "poses": poses}
     return write_text_atomic(path, json.dumps(document, indent=1, allow_nan=False) + "\n")
 
@@ -87,7 +93,7 @@ def _parse_json(text: str, path: Path) -> Trajectory:
     rows = np.empty((len(poses), 4))
     for i, pose in enumerate(poses):
         try:
-            rows[i] = [float(pose[key]) for key in ("t", "x", "y", "theta")]
+            rows[i] = [float(pose[key] if key in pose else pose[POSE_FIELD_ALIASES[key]]) for key in POSE_FIELDS]
         except (KeyError, TypeError, ValueError):
             raise TrajectoryFormatError(f"bad pose {pose!r}; {_JSON_EXPECTED}", path, f"poses[{i}]") from None
         if not np.all(np.isfinite(rows[i])):

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import uvicorn
 
-from service.app import create_app
+from service.api.app import create_app
 from service.settings import Settings
 
 if __name__ == "__main__":

@@ -6,12 +6,14 @@ from __future__ import annotations
 import json
 import time
 
+from service.jobs.settings import engine_config
 from slam_engine.errors import LogFormatError
 
 
 def counting(ctx) -> None:
     """``particles`` steps of ``seed`` ms, reporting progress; writes run.json."""
-    steps, step_s = ctx.job["config"]["particles"], ctx.job["config"]["seed"] / 1000.0
+    config = engine_config(ctx.job.config)
+    steps, step_s = config.particles, config.seed / 1000.0
     for i in range(steps):
         ctx.progress(i, steps)
         time.sleep(step_s)
@@ -39,7 +41,7 @@ def compiling(ctx) -> None:
     writes ``release`` into the data folder (at most 30 s), then counts like :func:`counting`."""
     from numba.core import event
 
-    from service.mapping_job import compiling_status
+    from service.jobs.mapping import compiling_status
 
     release = ctx.data.root / "release"
     with compiling_status(ctx):
@@ -56,11 +58,11 @@ def live_writer(ctx) -> None:
     """Like the mapping job with ``snapshot_every_scans: 1``: a live file after every step of ``seed``
     ms (``particles`` steps), cancel checked through the throttled progress; ``linear_update_m`` > 0:
     never checks for a cancel."""
-    config = ctx.job["config"]
-    for i in range(config["particles"]):
+    config = engine_config(ctx.job.config)
+    for i in range(config.particles):
         live = ctx.data.live_dir(ctx.job_id)
         live.mkdir(parents=True, exist_ok=True)
         (live / "frame.json").write_text(json.dumps({"step": i}))
-        if not config["linear_update_m"]:
-            ctx.progress(i, config["particles"])
-        time.sleep(config["seed"] / 1000.0)
+        if not config.scheduling.linear_update_m:
+            ctx.progress(i, config.particles)
+        time.sleep(config.seed / 1000.0)

@@ -8,7 +8,7 @@ import uuid
 
 from service_helpers import assert_error, new_session, service_client, streaming_session, wait_for
 
-from service.inspection import LogInspector
+from service.storage.inspection import LogInspector
 
 JOBS = "service_job_functions"
 

@@ -12,7 +12,7 @@ import yaml
 from PIL import Image
 from service_helpers import new_session, service_client, wait_for
 
-from service.stream_log import calibration_from_log, messages_of_log
+from service.storage.stream_log import calibration_from_log, messages_of_log
 
 pytestmark = pytest.mark.slow
 

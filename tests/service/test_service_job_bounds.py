@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 from service_helpers import assert_error, new_session, service_client, wait_for
 
-from service.job_memory import machine_memory_bytes
+from service.memory import machine_memory_bytes
 from service.settings import Settings
 
 
@@ -24,7 +24,7 @@ def test_the_job_memory_limit_is_on_by_default_for_both_runners(tmp_path) -> Non
     assert abs(settings.job_memory_limit() - share) <= 1
     assert Settings(data_dir=tmp_path, job_memory_limit_mb=0).job_memory_limit() == 0  # explicitly off
     pytest.importorskip("celery", reason="the Celery runner is optional: pip install '.[distributed]'")
-    from service.celery_runner import make_celery
+    from service.runners.celery_runner import make_celery
 
     conf = make_celery(Settings(data_dir=tmp_path, runner="celery"), concurrency=4).conf
     assert abs(conf.lidarmap_job_memory_limit_mb - share / 2) <= 1

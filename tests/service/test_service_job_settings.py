@@ -5,8 +5,7 @@ from __future__ import annotations
 
 from service_helpers import assert_error, service_client, streaming_session, wait_for
 
-from service.job_settings import JOB_SNAPSHOT_EVERY_SCANS, engine_config
-from service.mapping_job import slam_config
+from service.jobs.settings import JOB_SNAPSHOT_EVERY_SCANS, engine_config
 from slam_engine.config import SlamConfig
 
 
@@ -21,14 +20,14 @@ def test_any_engine_setting_through_the_api_with_the_engines_bounds(tmp_path) ->
         config = created.json()["config"]
         expected = SlamConfig(particles=7, seed=1, snapshot_every_scans=JOB_SNAPSHOT_EVERY_SCANS,
                               grid={"no_return_clear_m": 4.0, "resolution_m": 0.2}, matcher={"search_xy_m": 0.5})
-        assert slam_config(config) == expected  # what the mapping job runs with
+        assert engine_config(config) == expected  # what the mapping job runs with
         assert (config["particles"], config["resolution_m"], config["live"]) == (7, 0.2, False)
         assert wait_for(client, created.json()["id"])["status"] == "succeeded"  # counting: 7 steps of 1 ms
 
         plain = client.post(url, json={}).json()["config"]
-        assert slam_config(plain) == SlamConfig(snapshot_every_scans=JOB_SNAPSHOT_EVERY_SCANS)
+        assert engine_config(plain) == SlamConfig(snapshot_every_scans=JOB_SNAPSHOT_EVERY_SCANS)
         quiet = client.post(url, json={"slam": {"snapshot_every_scans": 0}}).json()["config"]
-        assert slam_config(quiet).snapshot_every_scans == 0
+        assert engine_config(quiet).snapshot_every_scans == 0
 
         too_far = assert_error(client.post(url, json={"slam": {"grid": {"no_return_clear_m": 500}}}), 422)
         assert too_far["message"].startswith("body.slam.grid.no_return_clear_m: Input should be less than or equal "

@@ -9,8 +9,9 @@ import time
 
 from service_helpers import CALIBRATION, assert_error, new_session, service_client, streaming_session, wait_for
 
-from service.storage import DataDir
-from service.store import JobStore
+from api_schemas.jobs import JobSource, JobStatus
+from service.storage.data_dir import DataDir
+from service.storage.store import JobStore
 
 FUNCS = "service_job_functions"
 
@@ -134,20 +135,22 @@ def test_restart_keeps_state_and_fails_interrupted_jobs(tmp_path) -> None:
         wait_for(client, running["id"], {"running"})
     # a clean shutdown fails the running job as interrupted
     store = JobStore(DataDir(data_dir).database)
-    assert store.get_job(running["id"])["error"].startswith("interrupted")
+    interrupted_row = store.get_job(running["id"])
+    assert interrupted_row is not None and interrupted_row.status is JobStatus.FAILED
+    assert interrupted_row.error is not None and interrupted_row.error.startswith("interrupted")
     # simulate a crash: one job left 'running', one 'queued' in the store
-    crashed = store.create_job(sid, "", "stream", None, finished["config"])
-    store.mark_running(crashed["id"], worker_pid=999999)
-    waiting = store.create_job(sid, "", "stream", None, finished["config"])
+    crashed = store.create_job(sid, "", JobSource.STREAM, None, finished["config"])
+    store.mark_running(crashed.id, worker_pid=999999)
+    waiting = store.create_job(sid, "", JobSource.STREAM, None, finished["config"])
 
     with service_client(data_dir, job_function=f"{FUNCS}:counting") as client:
         assert client.get(f"/v1/sessions/{sid}").json()["jobs"] == 4
         old = client.get(f"/v1/jobs/{finished['id']}").json()
         assert old["status"] == "succeeded" and old["products"] == ["run.json"]
         assert client.get(f"/v1/jobs/{finished['id']}/run").json() == {"steps": 3}
-        interrupted = client.get(f"/v1/jobs/{crashed['id']}").json()
+        interrupted = client.get(f"/v1/jobs/{crashed.id}").json()
         assert interrupted["status"] == "failed" and interrupted["error"].startswith("interrupted")
-        assert wait_for(client, waiting["id"])["status"] == "succeeded"  # queued jobs resume
+        assert wait_for(client, waiting.id)["status"] == "succeeded"  # queued jobs resume
 
 
 def test_web_mercator_tiles_of_a_georeferenced_session(tmp_path) -> None:

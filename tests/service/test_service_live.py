@@ -1,4 +1,4 @@
-"""Live jobs: a job that maps a session's stream as its chunks arrive (service/live_job.py).
+"""Live jobs: a job that maps a session's stream as its chunks arrive (service/jobs/live.py).
 
 With the real engine over a simulated drive: the job waits at a gap, its live map and trajectory
 grow as chunks are posted, the stream's end makes it finish, and its products equal those of a
@@ -17,7 +17,7 @@ import numpy as np
 from PIL import Image
 from service_helpers import CALIBRATION, assert_error, new_session, service_client, wait_for
 
-from service.stream_log import calibration_from_log, messages_of_log
+from service.storage.stream_log import calibration_from_log, messages_of_log
 
 PARAMS = {"particles": 5, "seed": 7, "resolution_m": 0.1, "snapshot_every_scans": 10}
 

@@ -7,8 +7,8 @@ import json
 
 from service_helpers import new_session, service_client, streaming_session, wait_for
 
-from service.products import MEDIA_TYPES
-from service.storage import DataDir
+from service.jobs.products import MEDIA_TYPES
+from service.storage.data_dir import DataDir
 
 
 def test_every_listed_product_downloads_under_its_name(tmp_path) -> None:
@@ -41,7 +41,7 @@ def test_every_listed_product_downloads_under_its_name(tmp_path) -> None:
         poses = json.loads(client.get(f"/v1/jobs/{job['id']}/trajectory.json").content)["poses"]
         api = client.get(f"/v1/jobs/{job['id']}/trajectory").json()["poses"]
         assert len(poses) == len(api) == 4
-        assert [p["x"] for p in poses] == [p["x_m"] for p in api]
+        assert poses == api  # one naming of pose fields: the file's are the API's (t_s, x_m, y_m, theta_rad)
 
         for path in ("run", "trajectory", "dead-reckoning", "trajectory?format=tum"):  # HEAD on the older routes
             got, head = client.get(f"/v1/jobs/{job['id']}/{path}"), client.head(f"/v1/jobs/{job['id']}/{path}")
@@ -71,9 +71,9 @@ def test_head_of_a_missing_product_is_the_get_status(tmp_path) -> None:
             assert method(f"/v1/jobs/{job['id']}/occupancy_trajectory.png").status_code == 404
 
 
-def test_pose_reads_the_api_and_the_file_naming() -> None:
+def test_pose_reads_the_api_naming_and_that_of_version_1_files() -> None:
     from api_schemas.products import Pose
 
     api = Pose.model_validate({"t_s": 1.5, "x_m": 2.0, "y_m": -1.0, "theta_rad": 0.25})
-    file = Pose.model_validate({"t": 1.5, "x": 2.0, "y": -1.0, "theta": 0.25})
-    assert api == file and api.model_dump() == {"t_s": 1.5, "x_m": 2.0, "y_m": -1.0, "theta_rad": 0.25}
+    old_file = Pose.model_validate({"t": 1.5, "x": 2.0, "y": -1.0, "theta": 0.25})
+    assert api == old_file and api.model_dump() == {"t_s": 1.5, "x_m": 2.0, "y_m": -1.0, "theta_rad": 0.25}

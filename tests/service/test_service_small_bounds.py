@@ -41,7 +41,7 @@ def test_a_stalled_body_is_answered_408_and_closed(tmp_path) -> None:
 
     import uvicorn
 
-    from service.app import create_app
+    from service.api.app import create_app
     from service.settings import Settings
 
     app = create_app(Settings(data_dir=tmp_path, workers=1, body_stall_timeout_s=1.0))

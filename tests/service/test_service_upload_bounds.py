@@ -175,7 +175,7 @@ def test_awkward_zips_are_refused_with_422(tmp_path, case) -> None:
 
 
 def test_zip_extraction_keeps_the_free_space_reserve(tmp_path, monkeypatch) -> None:
-    from service.storage import DataDir
+    from service.storage.data_dir import DataDir
 
     def free_bytes(self) -> int:  # a 22 MB disk holding what the data folder holds
         used = sum(p.stat().st_size for p in (tmp_path / "uploads").rglob("*") if p.is_file())

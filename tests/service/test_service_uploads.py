@@ -9,7 +9,7 @@ import zipfile
 
 from service_helpers import assert_error, new_session, service_client
 
-from service.uploads import extract_zip
+from service.storage.uploads import extract_zip
 
 
 def upload(client, sid: str, name: str, content: bytes, **params):

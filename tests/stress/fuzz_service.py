@@ -85,9 +85,9 @@ def prepare(data_dir: Path, log_path: Path) -> KnownIds:
     """Sessions, an upload, streamed chunks and one real finished mapping job in ``data_dir``."""
     from schemathesis.python import asgi
 
-    from service.app import create_app
+    from service.api.app import create_app
     from service.settings import Settings
-    from service.stream_log import calibration_from_log, messages_of_log
+    from service.storage.stream_log import calibration_from_log, messages_of_log
     from slam_engine.formats import load_log
 
     app = create_app(Settings(data_dir=data_dir, workers=1))
@@ -155,7 +155,7 @@ def fuzz_service(cases: int, seed: int, data_dir: Path, log_path: Path | None = 
     from schemathesis.generation import GenerationMode
     from schemathesis.python import asgi
 
-    from service.app import create_app
+    from service.api.app import create_app
     from service.settings import Settings
 
     t0 = time.monotonic()

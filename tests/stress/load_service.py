@@ -255,7 +255,7 @@ def stream_log(chunks: int, out_dir: Path) -> Path:
 
 
 async def run_stream(base_url: str, log_path: Path, chunks: int, seed: int = 0) -> StreamReport:
-    from service.stream_log import calibration_from_log, messages_of_log
+    from service.storage.stream_log import calibration_from_log, messages_of_log
     from slam_engine.formats import load_log
 
     report = StreamReport()

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 
-from service.app import create_app
+from service.api.app import create_app
 
 
 def create():

@@ -8,6 +8,8 @@ import time
 
 import numpy as np
 
+from service.jobs.settings import engine_config
+
 
 def instant(ctx) -> None:
     """Finish at once with a run record (the fuzzer creates many jobs: they must cost nothing)."""
@@ -18,7 +20,8 @@ def instant(ctx) -> None:
 
 def sleepy(ctx) -> None:
     """Report progress for ``particles`` x ``seed`` ms, then finish (a job other faults must not disturb)."""
-    steps, step_s = ctx.job["config"]["particles"], ctx.job["config"]["seed"] / 1000.0
+    config = engine_config(ctx.job.config)
+    steps, step_s = config.particles, config.seed / 1000.0
     for i in range(steps):
         ctx.progress(i, steps)
         time.sleep(step_s)
@@ -30,8 +33,9 @@ def sleepy(ctx) -> None:
 def hog(ctx) -> None:
     """Allocate (and touch) ``particles`` x 10 MB, as a runaway job would."""
     blocks = []
-    for i in range(ctx.job["config"]["particles"]):
+    particles = engine_config(ctx.job.config).particles
+    for i in range(particles):
         blocks.append(np.ones(10 * 1024 * 1024 // 8))
-        ctx.progress(i, ctx.job["config"]["particles"])
+        ctx.progress(i, particles)
     (ctx.out_dir / "run.json").write_text(json.dumps({"blocks": len(blocks)}))
     ctx.store.set_products(ctx.job_id, {"run.json": "run.json"})

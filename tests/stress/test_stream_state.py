@@ -9,8 +9,8 @@ from pathlib import Path
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from service.chunks import stream_state, stream_state_in_store
-from service.store import JobStore
+from service.storage.chunks import stream_state, stream_state_in_store
+from service.storage.store import JobStore
 
 
 @settings(max_examples=60, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))

@@ -29,8 +29,9 @@ from service_helpers import (  # noqa: E402
     wait_for,
 )
 
-from service.storage import DataDir  # noqa: E402
-from service.store import JobStore  # noqa: E402
+from api_schemas.jobs import JobSource, JobStatus  # noqa: E402
+from service.storage.data_dir import DataDir  # noqa: E402
+from service.storage.store import JobStore  # noqa: E402
 
 JOBS = "stress_jobs"
 
@@ -78,8 +79,8 @@ def test_restart_mid_job_lists_and_serves_only_whole_artifacts(tmp_path) -> None
 
     # what a crash mid-write leaves: the job still 'running', half-written and temporary files
     store = JobStore(DataDir(data_dir).database)
-    store.mark_running(store.create_job(sid, "", "stream", None, done["config"])["id"], worker_pid=999999)
-    half = store.jobs_with_status("running")[-1]
+    store.mark_running(store.create_job(sid, "", JobSource.STREAM, None, done["config"]).id, worker_pid=999999)
+    half = store.jobs_with_status(JobStatus.RUNNING)[-1]
     job_dir = DataDir(data_dir).job_dir(half)
     (job_dir / "products").mkdir(parents=True)
     (job_dir / "products" / "occupancy.png").write_bytes(b"\x89PNG\r\n\x1a\n half")
@@ -198,12 +199,12 @@ def test_the_free_space_reserve_refuses_uploads_and_chunks(tmp_path, monkeypatch
 
         # the disk fills up between the check and the write of a chunk: no row without its file
         monkeypatch.undo()
-        import service.chunks
+        import service.storage.chunks
 
         def enospc(path, data):
             raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
-        monkeypatch.setattr(service.chunks, "write_atomic", enospc)
+        monkeypatch.setattr(service.storage.chunks, "write_atomic", enospc)
         assert_error(client.post(f"/v1/sessions/{sid}/chunks", json=chunk), 507, "insufficient_storage")
         assert client.get(f"/v1/sessions/{sid}/chunks").json()["received"] == 0
         monkeypatch.undo()

@@ -1,0 +1,186 @@
+"""/v1/jobs/{id}/...: a job's products (maps, trajectories, tiles, animation, run record)."""
+
+from __future__ import annotations
+
+import functools
+import json
+from collections.abc import Callable
+from enum import StrEnum
+from functools import partial
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Path, Query, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.responses import FileResponse, JSONResponse, Response
+from starlette.concurrency import run_in_threadpool
+
+from api_schemas.errors import ErrorResponse
+from api_schemas.jobs import JobStatus
+from api_schemas.products import Pose, TrajectoryPublic
+from service.api.deps import DataDep, JobDep, StoreDep
+from service.errors import InvalidInput
+from service.jobs.products import MEDIA_TYPES, product_path, tile_source
+from service.storage.data_dir import DataDir
+from service.storage.rows import JobRow
+from service.storage.store import JobStore
+
+MAX_TILE_ZOOM = 24
+MAX_TILE_INDEX = 2**MAX_TILE_ZOOM - 1
+
+router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["products"],
+                   responses={401: {"model": ErrorResponse}, 404: {"model": ErrorResponse},
+                              409: {"model": ErrorResponse, "description": "Not available (yet)."}})
+
+
+class TrajectoryFormat(StrEnum):
+    JSON = "json"
+    TUM = "tum"
+
+
+class TileLayer(StrEnum):
+    OCCUPANCY = "occupancy"
+    TEXTURE = "texture"
+
+
+class TileScheme(StrEnum):
+    SIMPLE = "simple"  # metric pyramid for Leaflet L.CRS.Simple
+    WEBMERCATOR = "webmercator"  # standard XYZ tiles (EPSG:3857), for sessions with a geo origin
+
+
+def _georeference(store: JobStore, job: JobRow) -> Any:
+    """The map's placement on Earth from the job's session geo origin (422 when it has none)."""
+    from slam_engine.products import GeoOrigin
+    from slam_engine.products.georeference import Georeference
+
+    session = store.get_session(job.session_id, job.owner)
+    if session is None or session.geo is None:
+        raise InvalidInput("Web Mercator tiles need a georeferenced session: create it with a geo origin "
+                           "(lat_deg, lon_deg, heading_deg)", {"scheme": "webmercator"})
+    geo = session.geo
+    origin = GeoOrigin(latitude_deg=geo["lat_deg"], longitude_deg=geo["lon_deg"], heading_deg=geo["heading_deg"])
+    return Georeference.utm(origin, start_pose=np.zeros(3))  # the map frame starts at the first pose
+
+
+def _file(data: DataDir, job: JobRow, name: str) -> FileResponse:
+    path = product_path(data, job, name)
+    headers = {"Cache-Control": "no-store"} if job.status is JobStatus.RUNNING else None
+    return FileResponse(path, media_type=MEDIA_TYPES[name], headers=headers)
+
+
+def _trajectory(data: DataDir, job: JobRow, stem: str, kind: str,
+                fmt: TrajectoryFormat) -> FileResponse | TrajectoryPublic:
+    from slam_engine.products import read_trajectory
+
+    if fmt is TrajectoryFormat.TUM:
+        return _file(data, job, f"{stem}.tum")
+    traj = read_trajectory(product_path(data, job, f"{stem}.json"))
+    poses = [Pose(t_s=float(t), x_m=float(p[0]), y_m=float(p[1]), theta_rad=float(p[2]))
+             for t, p in zip(traj.t_s, traj.poses, strict=True)]
+    return TrajectoryPublic(job_id=job.id, kind=kind, count=len(poses), poses=poses)
+
+
+TrajectoryFormatQuery = Annotated[TrajectoryFormat, Query(alias="format", description="json or tum (text)")]
+TEXT: dict[int | str, dict[str, Any]] = {200: {"content": {"text/plain": {}},
+                                               "description": "JSON, or TUM text with ?format=tum."}}
+
+
+def _head_of(endpoint: Callable[..., Any]) -> Callable[..., Response]:
+    """The HEAD twin of a JSON (or file) GET endpoint: the same status and headers, no body."""
+
+    @functools.wraps(endpoint)
+    def head(*args: Any, **kwargs: Any) -> Response:
+        answer = endpoint(*args, **kwargs)
+        if isinstance(answer, FileResponse):
+            return answer  # sends its headers only for a HEAD request
+        body = JSONResponse(jsonable_encoder(answer)).body
+        return Response(media_type="application/json", headers={"Content-Length": str(len(body))})
+
+    return head
+
+
+@router.get("/trajectory", response_model=TrajectoryPublic, responses=TEXT)
+def trajectory(job: JobDep, data: DataDep, fmt: TrajectoryFormatQuery = TrajectoryFormat.JSON):
+    """The SLAM trajectory: JSON poses, or TUM (``t x y z qx qy qz qw``) with ?format=tum."""
+    return _trajectory(data, job, "trajectory", "slam", fmt)
+
+
+@router.get("/dead-reckoning", response_model=TrajectoryPublic, responses=TEXT)
+def dead_reckoning(job: JobDep, data: DataDep, fmt: TrajectoryFormatQuery = TrajectoryFormat.JSON):
+    """Odometry alone, for comparison."""
+    return _trajectory(data, job, "dead_reckoning", "dead_reckoning", fmt)
+
+
+router.head("/trajectory", name="trajectory (head)", responses=TEXT)(_head_of(trajectory))
+router.head("/dead-reckoning", name="dead_reckoning (head)", responses=TEXT)(_head_of(dead_reckoning))
+
+
+def _file_route(name: str, summary: str) -> None:
+    """GET and HEAD /v1/jobs/{id}/{name}: the product file under the name the job lists."""
+    media = MEDIA_TYPES[name]
+
+    def route(job: JobDep, data: DataDep) -> FileResponse:
+        return _file(data, job, name)
+
+    route.__doc__ = summary
+    for method in ("GET", "HEAD"):  # HEAD: the same headers (size, type), no body
+        router.add_api_route(f"/{name}", route, methods=[method], response_class=FileResponse,
+                             name=name if method == "GET" else f"{name} (head)", summary=summary,
+                             responses={200: {"content": {media: {}}}})
+
+
+PRODUCT_SUMMARIES = {
+    "occupancy.png": "Occupancy grid as PNG (north up). While the job runs: the map so far.",
+    "occupancy_trajectory.png": "Occupancy grid with the SLAM trajectory, dead reckoning and start drawn on it.",
+    "occupancy.tif": "Occupancy probability as a georeferenced GeoTIFF.",
+    "map.yaml": "ROS map_server metadata (with map.pgm).",
+    "map.pgm": "ROS map_server image.",
+    "texture.png": "Ground texture map as PNG (when the log has a camera).",
+    "texture.tif": "Ground texture map as GeoTIFF.",
+    "animation.gif": "The map growing over the run.",
+    "trajectory.json": "The SLAM trajectory as the lidarmap JSON file (poses t_s, x_m, y_m, theta_rad, as the API's). "
+                       "While the job runs: the trajectory so far.",
+    "trajectory.tum": "The SLAM trajectory in TUM format (t x y z qx qy qz qw).",
+    "dead_reckoning.json": "Odometry alone, as the lidarmap JSON file.",
+    "dead_reckoning.tum": "Odometry alone, in TUM format.",
+    "run.json": "The run record file: configuration, timings, scan statistics, input summary, accuracy.",
+}
+assert set(PRODUCT_SUMMARIES) == set(MEDIA_TYPES), "every product the worker lists has a route"
+for _name, _summary in PRODUCT_SUMMARIES.items():
+    _file_route(_name, _summary)
+
+
+@router.get("/run", response_model=dict[str, Any])
+def run_record(job: JobDep, data: DataDep) -> dict[str, Any]:
+    """The run record: configuration used, timings, scan statistics, input summary."""
+    return json.loads(product_path(data, job, "run.json").read_text())
+
+
+router.head("/run", name="run_record (head)")(_head_of(run_record))
+
+
+@router.get("/tiles/{layer}/{z}/{x}/{y}.png", response_class=Response,
+            responses={200: {"content": {"image/png": {}}}, 422: {"model": ErrorResponse}})
+@router.head("/tiles/{layer}/{z}/{x}/{y}.png", response_class=Response, name="tile (head)",
+             responses={200: {"content": {"image/png": {}}}, 422: {"model": ErrorResponse}})
+async def tile(request: Request, job: JobDep, data: DataDep, store: StoreDep, layer: TileLayer,
+               z: Annotated[int, Path(ge=0, le=MAX_TILE_ZOOM)], x: Annotated[int, Path(ge=0, le=MAX_TILE_INDEX)],
+               y: Annotated[int, Path(ge=0, le=MAX_TILE_INDEX)],
+               scheme: Annotated[TileScheme, Query(description="simple (metric) or webmercator (XYZ, needs "
+                                                               "a session geo origin)")] = TileScheme.SIMPLE,
+               ) -> Response:
+    """A 256x256 PNG tile of the map (z=0: the whole map; x, y in 0..2^z-1; 404 beyond the map's
+    deepest zoom, or outside the map in Web Mercator). While the job runs: tiles of the map so far."""
+    if x >= 2**z or y >= 2**z:
+        raise InvalidInput(f"tile ({x}, {y}) does not exist at zoom {z}: x and y must be below {2**z}",
+                           {"z": z, "x": x, "y": y})
+    from slam_engine.products import render_tile
+
+    source, version = await run_in_threadpool(tile_source, data, job, layer.value)
+    georef = _georeference(store, job) if scheme is TileScheme.WEBMERCATOR else None
+    png = await run_in_threadpool(partial(render_tile, source, z, x, y, layer.value, scheme=scheme.value,
+                                          georef=georef, map_version=(version, scheme.value)))
+    headers = {"Cache-Control": "no-store"} if job.status is JobStatus.RUNNING else {}
+    if request.method == "HEAD":  # the GET's headers, no body
+        return Response(media_type="image/png", headers={**headers, "Content-Length": str(len(png))})
+    return Response(png, media_type="image/png", headers=headers or None)

@@ -1,0 +1,74 @@
+"""/v1/sessions: create, list, read, delete."""
+
+from __future__ import annotations
+
+import time
+from typing import Annotated
+
+from fastapi import APIRouter, Query
+
+from api_schemas.errors import ErrorResponse
+from api_schemas.sessions import SessionCreate, SessionDeleted, SessionPublic, SessionsPublic
+from service.api.convert import session_public
+from service.api.deps import MAX_OFFSET, DataDep, OwnerDep, RunnerDep, SessionDep, SettingsDep, StoreDep
+
+STOP_MARGIN_S = 3.0  # after the cancel grace, the runner's time to stop the worker and record it
+
+router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
+                   responses={401: {"model": ErrorResponse}, 404: {"model": ErrorResponse},
+                              422: {"model": ErrorResponse}})
+
+
+@router.post("", response_model=SessionPublic, status_code=201)
+def create_session(body: SessionCreate, store: StoreDep, owner: OwnerDep) -> SessionPublic:
+    """Start a session; streamed chunks need its calibration (or preset), uploads carry their own."""
+    row = store.create_session(owner, body.name, body.vehicle_preset,
+                               None if body.calibration is None else body.calibration.model_dump(),
+                               None if body.geo is None else body.geo.model_dump())
+    return session_public(row)
+
+
+@router.get("", response_model=SessionsPublic)
+def list_sessions(store: StoreDep, owner: OwnerDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+                  offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0) -> SessionsPublic:
+    rows, count = store.list_sessions(owner, limit, offset)
+    return SessionsPublic(data=[session_public(r) for r in rows], count=count)
+
+
+@router.get("/{session_id}", response_model=SessionPublic)
+def get_session(session: SessionDep) -> SessionPublic:
+    return session_public(session)
+
+
+@router.delete("/{session_id}", response_model=SessionDeleted)
+def delete_session(session: SessionDep, store: StoreDep, runner: RunnerDep, data: DataDep,
+                   settings: SettingsDep) -> SessionDeleted:
+    """Cancel the session's active jobs and wait until they stopped (their worker is stopped after the
+    cancel grace period), then delete the session with its logs, chunks, jobs and files."""
+    active = []
+    jobs, _ = store.list_jobs(session.owner, session.id, None, 1_000_000, 0)
+    for job in jobs:
+        if job.active:
+            store.request_cancel(job.id)
+            runner.cancel(job.id)
+            active.append(job.id)
+    wait_until_stopped(store, active, settings.cancel_grace_s + STOP_MARGIN_S)
+    cancelled = len(active)
+    logs = store.list_logs(session.id)
+    job_ids = store.delete_session(session.id)
+    for log in logs:
+        data.remove(data.upload_dir(log.id))
+    for job_id in job_ids:
+        data.remove(data.job_dir(job_id))
+    data.remove(data.chunk_dir(session.id))
+    return SessionDeleted(id=session.id, jobs_cancelled=cancelled)
+
+
+def wait_until_stopped(store: StoreDep, job_ids: list[str], timeout_s: float) -> None:
+    """Poll until none of ``job_ids`` is queued or running (so none writes files any more), or timeout."""
+    deadline = time.monotonic() + timeout_s
+    while job_ids and time.monotonic() < deadline:
+        rows = [store.get_job(j) for j in job_ids]
+        job_ids = [row.id for row in rows if row is not None and row.active]
+        if job_ids:
+            time.sleep(0.05)

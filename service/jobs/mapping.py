@@ -1,0 +1,124 @@
+"""The mapping job, run in a worker process: load the input, run SLAM with progress, cancel and
+live snapshots, then write the products.
+
+Input: an uploaded log (loaded again with ``load_log``), the session's streamed chunks 0..k that
+are contiguous when the job starts, or - a live job (``"live": true``) - the session's chunks
+followed in seq order as they arrive until the stream is finished or idle
+(:mod:`service.jobs.live`). Every kind writes the same products
+(:func:`service.jobs.outputs.write_job_products`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from api_schemas.jobs import JobSource
+from service.jobs.context import JobContext
+from service.jobs.estimate import check_job_memory
+from service.jobs.live import run_live_job
+from service.jobs.outputs import LiveMap, job_session, write_job_products
+from service.jobs.products import COMPILING_FILE
+from service.jobs.settings import engine_config
+from service.storage.chunks import read_chunk_messages, stream_state
+from service.storage.stream_log import drive_log_from_messages
+from slam_engine.drive_log import DriveLog
+from slam_engine.errors import LogFormatError
+
+
+def load_input(ctx: JobContext) -> tuple[DriveLog, dict[str, Any]]:
+    """The job's DriveLog and a description of what it is (stored with the job)."""
+    job = ctx.job
+    store, data = ctx.store, ctx.data
+    session = job_session(ctx)
+    if job.source is JobSource.LOG:
+        from slam_engine.formats import load_log
+
+        log_row = None if job.log_id is None else store.get_log(job.log_id, job.session_id)
+        if log_row is None:
+            raise LogFormatError("the job's log was deleted")
+        path = data.resolve(log_row.stored_path)
+        log = load_log(path, format=stored_log_format(path, log_row.summary.get("format", "auto")))
+        return log, {"source": "log", "log_id": log_row.id, "sha256": log_row.sha256, "summary": log.summary()}
+    rows = store.chunk_rows(job.session_id)
+    state = stream_state(rows)
+    if state.contiguous_through < 0:
+        raise LogFormatError("no contiguous chunks from seq 0", location="chunk 0")
+    messages: list[dict[str, Any]] = []
+    for seq in range(state.contiguous_through + 1):
+        ctx.check_cancel()
+        messages.extend(read_chunk_messages(data, job.session_id, seq))
+    if session.calibration is None:
+        raise LogFormatError("streamed chunks need the session's calibration")
+    log = drive_log_from_messages(session.calibration, messages)
+    return log, {"source": "stream", "chunks_used": state.contiguous_through + 1,
+                 "messages": len(messages), "missing_seqs_after": state.missing_seqs, "summary": log.summary()}
+
+
+def stored_log_format(path: Path, checked_as: str) -> str:
+    """The format to load an uploaded log with: the one its upload was checked as (an explicit
+    ``?format=`` may name one that detection misses), or "auto" where detection agrees (detection
+    also finds the log inside a zipped folder)."""
+    from slam_engine.errors import SlamEngineError
+    from slam_engine.formats import detect_format
+
+    try:
+        return "auto" if detect_format(path) == checked_as else checked_as
+    except SlamEngineError:
+        return checked_as
+
+
+@contextlib.contextmanager
+def compiling_status(ctx: JobContext) -> Iterator[None]:
+    """Within the block, the job's status says 'compiling' while the engine compiles a kernel (a
+    marker file in its live folder, :func:`service.jobs.products.engine_compiling`)."""
+    from slam_engine.kernels import compile_notices
+
+    marker = ctx.data.live_dir(ctx.job_id) / COMPILING_FILE
+
+    def on_compiling(compiling: bool) -> None:
+        if compiling:
+            marker.parent.mkdir(parents=True, exist_ok=True)
+            marker.touch()
+        else:
+            marker.unlink(missing_ok=True)
+
+    try:
+        with compile_notices(on_compiling):
+            yield
+    finally:
+        marker.unlink(missing_ok=True)
+
+
+def run_mapping_job(ctx: JobContext) -> None:
+    """Job function for the worker: input -> run_slam -> products (names as the API serves them).
+    While the engine compiles a kernel (no warm cache), the job's status says so."""
+    with compiling_status(ctx):
+        _run_mapping_job(ctx)
+
+
+def _run_mapping_job(ctx: JobContext) -> None:
+    if ctx.job.live:
+        run_live_job(ctx)
+        return
+    from slam_engine.pipeline import run_slam
+
+    log, description = load_input(ctx)
+    ctx.store.set_input(ctx.job_id, description)
+    config = engine_config(ctx.job.config)
+    if ctx.memory is not None:  # streamed input: its scan count (and so its frames) is known only now
+        check_job_memory(config, len(log.scans) if log.scans is not None else 0, ctx.memory.limit_mb)
+    live = LiveMap(ctx.data.live_dir(ctx.job_id))
+
+    def on_progress(progress: Any) -> None:
+        ctx.progress(progress.scans_done, progress.scans_total)
+        live.update(progress.latest_snapshot)
+
+    result = run_slam(log, config, rng=np.random.default_rng(config.seed), progress=on_progress)
+    total = len(log.scans) if log.scans is not None else 0
+    ctx.progress(total, total, force=True)
+    write_job_products(ctx, result, log)

@@ -1,0 +1,142 @@
+"""Where a job's products lie and how they are served: the final files (listed in the job row by
+the worker) and, while the job runs, the live snapshot (``live/occupancy.png`` and
+``live/grid.npz``, replaced atomically by the worker)."""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from api_schemas.jobs import JobStatus
+from service.errors import NotFound, NotReady
+from service.storage.data_dir import DataDir
+from service.storage.rows import JobRow
+from slam_engine.products.files import atomic_path
+from slam_engine.result import OccupancyGrid, TextureMap
+
+MEDIA_TYPES = {  # every file product a job can list; each is served at GET /v1/jobs/{id}/{name}
+    "trajectory.json": "application/json", "trajectory.tum": "text/plain",
+    "dead_reckoning.json": "application/json", "dead_reckoning.tum": "text/plain",
+    "occupancy.png": "image/png", "occupancy_trajectory.png": "image/png", "occupancy.tif": "image/tiff",
+    "map.yaml": "application/yaml",
+    "map.pgm": "image/x-portable-graymap", "texture.png": "image/png", "texture.tif": "image/tiff",
+    "animation.gif": "image/gif", "run.json": "application/json",
+}
+LIVE_FILES = {"occupancy.png": "occupancy.png", "grid.npz": "grid.npz", "trajectory.json": "trajectory.json"}
+GRID_FILE, TEXTURE_FILE = "grid.npz", "texture.npz"  # the service's own copies for tiles
+
+
+COMPILING_FILE = "compiling"  # in a running job's live folder while the engine compiles its kernels
+
+
+def engine_compiling(data: DataDir, job: JobRow) -> bool:
+    """Whether a running job's engine is compiling its numba kernels right now (first use without a
+    warm cache: no scans are mapped meanwhile, so no ETA can be given)."""
+    return job.status is JobStatus.RUNNING and (data.live_dir(job.id) / COMPILING_FILE).exists()
+
+
+def live_product_names(data: DataDir, job: JobRow) -> list[str]:
+    """Products a running job can already show."""
+    if job.status is not JobStatus.RUNNING:
+        return []
+    live = data.live_dir(job.id)
+    names = []
+    if (live / "occupancy.png").exists():
+        names.append("occupancy.png")
+    if (live / GRID_FILE).exists():
+        names.append("tiles/occupancy")
+    if (live / "trajectory.json").exists():
+        names.append("trajectory.json")
+    return names
+
+
+def product_path(data: DataDir, job: JobRow, name: str) -> Path:
+    """The file of product ``name``: final when the job succeeded, the live snapshot while it runs."""
+    stored = job.products.get(name)
+    if stored is not None and job.status is JobStatus.SUCCEEDED:
+        path = data.resolve(str(Path("jobs") / job.id / stored))
+        if path.exists():
+            return path
+    if job.status is JobStatus.RUNNING and name in LIVE_FILES:
+        path = data.live_dir(job.id) / LIVE_FILES[name]
+        if path.exists():
+            return path
+    if job.status is JobStatus.SUCCEEDED:
+        raise NotFound(f"this job has no {name!r} product (e.g. no camera for a texture)",
+                       {"product": name, "available": sorted(job.products)})
+    raise NotReady(f"{name!r} is not available while the job is {job.status}",
+                   {"product": name, "status": job.status})
+
+
+class _GridCache:
+    """A few recently used grids, keyed by file and modification time (tiles hit the same grid)."""
+
+    def __init__(self, size: int = 8):
+        self._items: OrderedDict[tuple[str, int], Any] = OrderedDict()
+        self._size = size
+        self._lock = threading.Lock()
+
+    def get(self, path: Path, loader) -> Any:
+        key = (str(path), path.stat().st_mtime_ns)
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                return self._items[key]
+        value = loader(path)
+        with self._lock:
+            self._items[key] = value
+            while len(self._items) > self._size:
+                self._items.popitem(last=False)
+        return value
+
+
+_cache = _GridCache()
+
+
+def save_grid(grid: OccupancyGrid, path: Path) -> None:
+    """Write a grid as .npz atomically (the tile source)."""
+    with atomic_path(path) as tmp:
+        np.savez(tmp, log_odds=grid.log_odds, resolution_m=grid.resolution_m, origin_x_m=grid.origin_x_m,
+                 origin_y_m=grid.origin_y_m)
+
+
+def save_texture(texture: TextureMap, path: Path) -> None:
+    with atomic_path(path) as tmp:
+        np.savez(tmp, colors=texture.colors, counts=texture.counts, resolution_m=texture.resolution_m,
+                 origin_x_m=texture.origin_x_m, origin_y_m=texture.origin_y_m)
+
+
+def _load_grid(path: Path) -> OccupancyGrid:
+    with np.load(path) as z:
+        return OccupancyGrid(log_odds=z["log_odds"], resolution_m=float(z["resolution_m"]),
+                             origin_x_m=float(z["origin_x_m"]), origin_y_m=float(z["origin_y_m"]))
+
+
+def _load_texture(path: Path) -> TextureMap:
+    with np.load(path) as z:
+        return TextureMap(colors=z["colors"], counts=z["counts"], resolution_m=float(z["resolution_m"]),
+                          origin_x_m=float(z["origin_x_m"]), origin_y_m=float(z["origin_y_m"]))
+
+
+def tile_source(data: DataDir, job: JobRow, layer: str) -> tuple[OccupancyGrid | TextureMap, tuple]:
+    """The grid (or texture) that tiles of ``layer`` are cut from, and a version key for the tile cache
+    (changes whenever the file does)."""
+    job_dir = data.job_dir(job.id)
+    if job.status is JobStatus.SUCCEEDED:
+        path = job_dir / (GRID_FILE if layer == "occupancy" else TEXTURE_FILE)
+        if not path.exists():
+            raise NotFound(f"this job has no {layer} layer", {"layer": layer})
+        return _cache.get(path, _load_grid if layer == "occupancy" else _load_texture), _version(path)
+    if job.status is JobStatus.RUNNING and layer == "occupancy":
+        path = data.live_dir(job.id) / GRID_FILE
+        if path.exists():
+            return _cache.get(path, _load_grid), _version(path)
+    raise NotReady(f"no {layer} tiles while the job is {job.status}", {"layer": layer, "status": job.status})
+
+
+def _version(path: Path) -> tuple:
+    return (str(path), path.stat().st_mtime_ns)

@@ -1,0 +1,214 @@
+"""The embedded job runner, :class:`LocalProcessRunner`: a pool of spawned worker processes on this
+machine (the default; the API talks only to the :class:`~service.runners.base.JobRunner` interface).
+
+A supervisor thread hands queued job ids to idle workers, notices a worker that exits while it holds
+a job (killed, crashed) and fails that job with the exit reason, replaces the worker, and
+terminates a worker whose job ignores a cancel for longer than the grace period.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import queue
+import signal
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+from api_schemas.jobs import JobStatus
+from service.runners.base import DEFAULT_JOB_FUNCTION, RunnerHealth
+from service.storage.data_dir import DataDir
+from service.storage.store import JobStore
+
+logger = logging.getLogger("lidarmap.runner")
+
+
+def exit_reason(exitcode: int | None) -> str:
+    """A person's words for a worker's exit code."""
+    if exitcode is None:
+        return "worker process vanished"
+    if exitcode < 0:
+        try:
+            name = signal.Signals(-exitcode).name
+        except ValueError:
+            name = f"signal {-exitcode}"
+        return f"worker process died (killed by {name})"
+    return f"worker process exited with code {exitcode}"
+
+
+RESPAWN_BACKOFF_S = 2.0  # a worker that dies this soon after starting is replaced only after this pause
+
+
+@dataclass
+class _Slot:
+    index: int
+    process: Any
+    inbox: Any
+    started_s: float
+    job_id: str | None = None
+    respawn_at_s: float | None = None
+
+
+class LocalProcessRunner:
+    """A fixed number of long-lived worker processes (spawn start method) on this machine."""
+
+    def __init__(self, data: DataDir, store: JobStore, workers: int, cancel_grace_s: float = 5.0,
+                 job_function: str = DEFAULT_JOB_FUNCTION, poll_s: float = 0.05, memory_limit_mb: int = 0):
+        self._data = data
+        self._memory_limit_mb = memory_limit_mb
+        self._store = store
+        self._job_function = job_function
+        self._cancel_grace_s = cancel_grace_s
+        self._poll_s = poll_s
+        self._ctx = mp.get_context("spawn")
+        self._outbox = self._ctx.Queue()
+        self._lock = threading.Lock()
+        self._pending: deque[str] = deque()
+        self._cancel_asked: dict[str, float] = {}
+        self._stopping = threading.Event()
+        self._slots = [self._spawn(i) for i in range(workers)]
+        self._supervisor = threading.Thread(target=self._supervise, name="lidarmap-runner", daemon=True)
+        self._supervisor.start()
+
+    # ---- JobRunner ------------------------------------------------------------------------------
+
+    def submit(self, job_id: str) -> None:
+        with self._lock:
+            self._pending.append(job_id)
+
+    def cancel(self, job_id: str) -> None:
+        with self._lock:
+            self._cancel_asked.setdefault(job_id, time.monotonic())
+
+    def health(self) -> RunnerHealth:
+        with self._lock:
+            alive = sum(slot.process.is_alive() for slot in self._slots)
+            busy = sum(slot.job_id is not None for slot in self._slots)
+            return RunnerHealth("local", len(self._slots), alive, busy, len(self._pending))
+
+    def worker_pid(self, job_id: str) -> int | None:
+        """The pid of the worker running ``job_id`` (for operators and tests)."""
+        with self._lock:
+            for slot in self._slots:
+                if slot.job_id == job_id:
+                    return slot.process.pid
+        return None
+
+    def shutdown(self) -> None:
+        self._stopping.set()
+        self._supervisor.join(timeout=5.0)
+        with self._lock:
+            for slot in self._slots:
+                if slot.job_id is None:
+                    slot.inbox.put(None)
+            for slot in self._slots:
+                if slot.job_id is not None:
+                    slot.process.terminate()
+            for slot in self._slots:
+                slot.process.join(timeout=5.0)
+                if slot.process.is_alive():
+                    slot.process.kill()
+                    slot.process.join(timeout=2.0)
+                if slot.job_id is not None:
+                    self._store.finish(slot.job_id, JobStatus.FAILED, "interrupted: the service stopped while the job "
+                                       "was running")
+            for slot in self._slots:
+                slot.inbox.close()
+                slot.inbox.join_thread()
+            self._slots = []
+        self._outbox.close()
+        self._outbox.join_thread()
+
+    # ---- supervision ----------------------------------------------------------------------------
+
+    def _spawn(self, index: int) -> _Slot:
+        inbox = self._ctx.Queue()
+        process = self._ctx.Process(
+            target=_worker_entry, name=f"lidarmap-worker-{index}", daemon=True,
+            args=(str(self._data.root), self._store, self._job_function, index, inbox, self._outbox,
+                  self._memory_limit_mb))
+        process.start()
+        return _Slot(index=index, process=process, inbox=inbox, started_s=time.monotonic())
+
+    def _supervise(self) -> None:
+        while not self._stopping.is_set():
+            try:
+                self._tick()
+            except Exception:  # the supervisor must survive a bad tick (e.g. a locked database)
+                logger.exception("runner supervisor tick failed")
+            self._stopping.wait(self._poll_s)
+
+    def _tick(self) -> None:
+        self._drain_outbox()
+        with self._lock:
+            for slot in list(self._slots):
+                if not slot.process.is_alive():
+                    self._replace_dead(slot)
+            self._enforce_cancels()
+            self._assign_pending()
+
+    def _drain_outbox(self) -> None:
+        while True:
+            try:
+                index, job_id, _status = self._outbox.get_nowait()
+            except queue.Empty:
+                return
+            with self._lock:
+                slot = self._slots[index] if index < len(self._slots) else None
+                if slot is not None and slot.job_id == job_id:
+                    slot.job_id = None
+                self._cancel_asked.pop(job_id, None)
+
+    def _replace_dead(self, slot: _Slot) -> None:
+        slot.process.join(timeout=0)
+        reason = exit_reason(slot.process.exitcode)
+        if slot.job_id is not None:
+            asked = slot.job_id in self._cancel_asked
+            if asked:
+                self._store.finish(slot.job_id, JobStatus.CANCELLED, "cancelled by request (worker stopped)")
+            else:
+                self._store.finish(slot.job_id, JobStatus.FAILED, reason)
+            logger.warning("job %s: %s", slot.job_id, reason)
+            self._cancel_asked.pop(slot.job_id, None)
+            slot.job_id = None
+        if self._stopping.is_set():
+            return
+        now = time.monotonic()
+        if slot.respawn_at_s is None:
+            quick_death = now - slot.started_s < RESPAWN_BACKOFF_S
+            slot.respawn_at_s = now + (RESPAWN_BACKOFF_S if quick_death else 0.0)
+            if quick_death:
+                logger.error("worker %d died %.1f s after starting (%s): respawning in %.0f s", slot.index,
+                             now - slot.started_s, reason, RESPAWN_BACKOFF_S)
+        if now >= slot.respawn_at_s:
+            self._slots[slot.index] = self._spawn(slot.index)
+
+    def _enforce_cancels(self) -> None:
+        now = time.monotonic()
+        for slot in self._slots:
+            asked = self._cancel_asked.get(slot.job_id) if slot.job_id else None
+            if asked is not None and now - asked > self._cancel_grace_s and slot.process.is_alive():
+                logger.warning("job %s ignored its cancel for %.1f s: terminating its worker", slot.job_id,
+                               now - asked)
+                slot.process.terminate()
+
+    def _assign_pending(self) -> None:
+        idle = [s for s in self._slots if s.job_id is None and s.process.is_alive()]
+        while idle and self._pending:
+            job_id = self._pending.popleft()
+            job = self._store.get_job(job_id)
+            if job is None or job.status is not JobStatus.QUEUED:
+                continue
+            slot = idle.pop(0)
+            slot.job_id = job_id
+            slot.inbox.put(job_id)
+
+
+def _worker_entry(data_root: str, store: JobStore, job_function: str, slot: int, inbox: Any, outbox: Any,
+                  memory_limit_mb: int = 0) -> None:
+    from service.runners.worker import worker_main
+
+    worker_main(data_root, store, job_function, slot, inbox, outbox, memory_limit_mb)

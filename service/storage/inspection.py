@@ -1,0 +1,271 @@
+"""Validating an uploaded log with the engine's loader, in separate processes with bounds.
+
+Loading parses the whole log (CPU-heavy, seconds for big logs; a malformed or hostile file could
+grow without end or crash a native reader), so it never runs in the API process. Each upload is
+inspected in a *lane*: one spawned process, used by one upload at a time. Per upload:
+
+* memory: the child's resident size is held under ``memory_limit_mb`` (watchdog, and an
+  address-space limit that turns one huge allocation into a MemoryError), see
+  :class:`service.memory.MemoryGuard`;
+* time: past ``timeout_s`` the child is killed;
+* decompressed size: a gzipped log that inflates past ``max_decompressed_bytes`` is refused before
+  it is parsed.
+
+A lane whose child died or was killed starts a fresh child for its next upload, so one upload's
+failure never answers another's; ``lanes`` uploads are inspected at once (the others wait).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gzip
+import multiprocessing as mp
+import threading
+import zlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from service.errors import InvalidInput, PayloadTooLarge, UnsupportedFormat, shorten_tokens
+
+GZIP_MAGIC = b"\x1f\x8b"
+STARTUP_TIMEOUT_S = 120.0  # a fresh inspection process imports every loader (seconds on a busy machine)
+
+
+@dataclass(frozen=True)
+class InspectionLimits:
+    """Bounds on one upload's inspection."""
+
+    memory_limit_mb: int = 2048
+    timeout_s: float = 120.0
+    max_decompressed_bytes: int = 8 * 1024**3
+    lanes: int = 2
+
+
+def gzip_size_exceeds(path: Path, limit_bytes: int) -> bool:
+    """Whether the gzipped file at ``path`` inflates to more than ``limit_bytes`` (streamed, 1 MB at a time)."""
+    total = 0
+    try:
+        with gzip.open(path, "rb") as handle:
+            while block := handle.read(1 << 20):
+                total += len(block)
+                if total > limit_bytes:
+                    return True
+    except (OSError, EOFError, zlib.error):
+        return False  # a broken stream: the loader reports it with its location
+    return False
+
+
+def inspect_log(path: str, format_name: str, max_decompressed_bytes: int, hidden_prefix: str = "") -> dict[str, Any]:
+    """Load the log at ``path``; ``{"summary": DriveLog.summary()}`` or ``{"error", "message", "location"}``.
+    ``hidden_prefix`` (the server's folder of the upload) is cut from warnings and messages."""
+    from slam_engine.errors import LogFormatError, SlamEngineError, UnknownFormatError
+    from slam_engine.formats import load_log
+
+    file = Path(path)
+    if _is_gzip(file) and gzip_size_exceeds(file, max_decompressed_bytes):
+        return {"error": "too_large", "message": f"the gzipped log inflates beyond the limit of "
+                f"{max_decompressed_bytes} bytes", "location": None}
+    try:
+        log = load_log(file, format=format_name)
+    except UnknownFormatError as exc:
+        return _error("unknown_format", exc.message, exc.location, hidden_prefix)
+    except LogFormatError as exc:
+        return _error("log_format", exc.message, exc.location, hidden_prefix)
+    except SlamEngineError as exc:
+        return _error("log_format", str(exc), None, hidden_prefix)
+    except MemoryError:
+        return _error("memory", "", None)
+    except Exception as exc:  # a loader bug on odd input is still the input's problem to the client
+        return _error("log_format", f"the loader failed: {type(exc).__name__}: {exc}", None, hidden_prefix)
+    summary = log.summary()
+    summary["warnings"] = [_shown(w, hidden_prefix) for w in summary.get("warnings", [])]
+    return {"summary": summary}
+
+
+def _shown(text: str, hidden_prefix: str) -> str:
+    """``text`` without the server's folders and with long tokens cut."""
+    return shorten_tokens(text.replace(hidden_prefix, "") if hidden_prefix else text)
+
+
+def _is_gzip(path: Path) -> bool:
+    if not path.is_file():
+        return False
+    with open(path, "rb") as handle:
+        return handle.read(2) == GZIP_MAGIC
+
+
+def _error(kind: str, message: str, location: str | None, hidden_prefix: str = "") -> dict[str, Any]:
+    """An error result with every long token cut (a quoted 1 GB line must not travel back)."""
+    return {"error": kind, "message": _shown(message, hidden_prefix),
+            "location": location and _shown(location, hidden_prefix)}
+
+
+def is_log_file(path: str, format_name: str) -> dict[str, Any]:
+    """Whether the file itself is a log (e.g. a drive-log archive is a zip, yet no zipped folder)."""
+    from slam_engine.errors import SlamEngineError
+    from slam_engine.formats import detect_format
+
+    try:
+        detected = detect_format(Path(path))
+    except SlamEngineError:
+        return {"is_log": False}
+    return {"is_log": format_name in ("auto", detected)}
+
+
+_CALLS: dict[str, Callable[..., Any]] = {"inspect_log": inspect_log, "is_log_file": is_log_file}
+
+
+def _child_main(conn: Any, memory_limit_mb: int) -> None:
+    """A lane's process: run requests from ``conn`` under the memory bound until the pipe closes."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which stops us
+    from service.memory import MB, MemoryGuard, resident_bytes
+    from slam_engine.formats import _installed_modules
+
+    _installed_modules()  # every loader and its libraries mapped before the address-space bound is set
+    conn.send("ready")
+    retire_above = (resident_bytes() + memory_limit_mb * MB) // 2
+
+    over = {"error": "memory", "message": "", "location": None}
+    while True:
+        try:
+            name, args = conn.recv()
+        except (EOFError, OSError):
+            return
+        with MemoryGuard(memory_limit_mb, on_exceeded=lambda _reason: conn.send(over)):
+            try:
+                result = _CALLS[name](*args)
+            except MemoryError:
+                result = over
+        retire = resident_bytes() > retire_above  # memory a big log left behind would count against the next
+        conn.send({**result, "retire": retire})
+        if retire:
+            return
+
+
+class _Lane:
+    """One inspection process (started on first use, replaced after it dies or is killed)."""
+
+    def __init__(self, memory_limit_mb: int):
+        self.memory_limit_mb = memory_limit_mb
+        self._process: Any = None
+        self._conn: Any = None
+
+    def call(self, name: str, args: tuple, timeout_s: float) -> dict[str, Any]:
+        """Run ``name(*args)`` in the child; ``{"error": "timeout" | "crashed" | "memory"}`` when it failed.
+        ``timeout_s`` counts from the request (a fresh child's start-up is not part of it)."""
+        if self._process is not None and self._conn.poll(0):
+            self.stop()  # an answer nobody waited for (the watchdog's, as it killed the child): start afresh
+        if self._process is None or not self._process.is_alive():
+            self.stop()
+            if not self._start():
+                return {"error": "crashed", "message": "", "location": None}
+        try:
+            self._conn.send((name, args))
+            if not self._conn.poll(timeout_s):
+                self.stop()
+                return {"error": "timeout", "message": "", "location": None}
+            result = self._conn.recv()
+        except Exception:  # the child died mid-answer (EOF, broken pipe, a garbled message)
+            self.stop()
+            return {"error": "crashed", "message": "", "location": None}
+        if result.pop("retire", False) or result.get("error") == "memory":
+            self.stop()  # it is ending (or killing itself): the next upload gets a fresh process
+        return result
+
+    def _start(self) -> bool:
+        """A fresh child, ready (its libraries imported); False when it failed to start."""
+        ctx = mp.get_context("spawn")
+        parent, child = ctx.Pipe()
+        process = ctx.Process(target=_child_main, args=(child, self.memory_limit_mb),
+                              name="lidarmap-inspection", daemon=True)
+        try:
+            process.start()
+        finally:
+            child.close()
+        self._process, self._conn = process, parent
+        try:
+            if parent.poll(STARTUP_TIMEOUT_S) and parent.recv() == "ready":
+                return True
+        except (EOFError, OSError):
+            pass
+        self.stop()
+        return False
+
+    def stop(self) -> None:
+        if self._process is None:
+            return
+        if self._process.is_alive():
+            self._process.kill()
+        self._process.join(timeout=5.0)
+        self._conn.close()
+        self._process = self._conn = None
+
+
+class LogInspector:
+    """Inspects uploads in ``limits.lanes`` bounded processes; one lane per upload at a time."""
+
+    def __init__(self, limits: InspectionLimits | None = None) -> None:
+        self.limits = limits or InspectionLimits()
+        self._lanes = [_Lane(self.limits.memory_limit_mb) for _ in range(self.limits.lanes)]
+        self._idle = list(self._lanes)
+        self._lock = threading.Lock()
+        self._free: asyncio.Semaphore | None = None
+
+    async def _run(self, name: str, args: tuple) -> dict[str, Any]:
+        if self._free is None:
+            self._free = asyncio.Semaphore(self.limits.lanes)
+        async with self._free:
+            with self._lock:
+                lane = self._idle.pop()
+            try:
+                return await asyncio.to_thread(lane.call, name, args, self.limits.timeout_s)
+            finally:
+                with self._lock:
+                    self._idle.append(lane)
+
+    async def summary(self, path: Path, format_name: str, hidden_prefix: str = "") -> dict[str, Any]:
+        """The log's summary, or 415 (unknown format) / 422 (corrupt, with the loader's message; or past
+        the memory or time bound) / 413 (inflates past the limit). ``hidden_prefix`` is cut from texts."""
+        result = await self._run("inspect_log", (str(path), format_name, self.limits.max_decompressed_bytes,
+                                                 hidden_prefix))
+        if "summary" in result:
+            return result["summary"]
+        raise self._failure(result)
+
+    async def is_log_file(self, path: Path, format_name: str) -> bool:
+        """Whether the uploaded file is itself a log (else a .zip is a zipped folder to extract)."""
+        result = await self._run("is_log_file", (str(path), format_name))
+        if "is_log" in result:
+            return result["is_log"]
+        raise self._failure(result)
+
+    def _failure(self, result: dict[str, Any]) -> Exception:
+        kind, detail = result["error"], {"location": result.get("location")}
+        if kind == "unknown_format":
+            return UnsupportedFormat(result["message"], detail)
+        if kind == "too_large":
+            return PayloadTooLarge(result["message"], {"limit_bytes": self.limits.max_decompressed_bytes})
+        if kind == "memory":
+            err = InvalidInput(f"reading this log needs more than the inspection memory limit of "
+                               f"{self.limits.memory_limit_mb} MB", {"limit_mb": self.limits.memory_limit_mb})
+            err.code = "inspection_limit"
+            return err
+        if kind == "timeout":
+            err = InvalidInput(f"reading this log took longer than the inspection time limit of "
+                               f"{self.limits.timeout_s:g} s", {"limit_s": self.limits.timeout_s})
+            err.code = "inspection_limit"
+            return err
+        if kind == "crashed":
+            return InvalidInput("the log crashed the loader process", detail)
+        err = InvalidInput(result["message"], detail)
+        err.code = "log_format"
+        return err
+
+    def shutdown(self) -> None:
+        with self._lock:
+            for lane in self._lanes:
+                lane.stop()
