@@ -92,13 +92,17 @@ class OdometryConfig(_Section):
         "once confident and outside time_offset_band_s; a number: always that (the estimate is still "
         "reported; 0 = pair scans with the odometry at their stamps).")
     time_offset_max_s: float = Field(0.3, ge=0.01, le=1.0, description="'auto' looks for the offset within "
-                                     "+- this [s] (scans wait for odometry up to this far past their stamp "
-                                     "before the estimate counts them).")
+                                     "+- this [s] (a scan counts for the estimate once the odometry has passed "
+                                     "its stamp by this much).")
     time_offset_band_s: float = Field(0.02, ge=0.0, le=1.0, description="Dead band [s]: an estimate smaller "
                                       "than this is not applied (the matcher absorbs it).")
-    time_offset_max_se_s: float = Field(0.01, gt=0.0, le=1.0, description="The estimate is applied once its "
-                                        "standard error is below this [s] ...")
-    time_offset_min_steps: int = Field(20, ge=1, le=100000, description="... and this many processed scans "
+    time_offset_min_evidence: float = Field(50.0, ge=0.0, le=1e6, description="The estimate is applied once "
+                                            "the matched turns fit it better than no offset by this many mean "
+                                            "squared residuals (intel, without an offset, reaches 21; exp2 80 "
+                                            "after 20 scans) ...")
+    time_offset_max_se_s: float = Field(0.02, gt=0.0, le=1.0, description="... its standard error is below "
+                                        "this [s] ...")
+    time_offset_min_steps: int = Field(10, ge=1, le=100000, description="... and this many processed scans "
                                        "have measured it.")
     time_offset_prior_weight: float = Field(0.05, gt=0.0, le=1000.0, description="Weight of the prior "
                                             "'offset = 0' [rad^2/s^2 of squared turn residual].")

@@ -109,7 +109,7 @@ class SlamFilter:
         self.time_offset = TimeOffsetEstimator(
             None if o.time_offset_s == "auto" else float(o.time_offset_s), o.time_offset_max_s,
             o.time_offset_prior_weight, band_s=o.time_offset_band_s, max_se_s=o.time_offset_max_se_s,
-            min_steps=o.time_offset_min_steps)
+            min_steps=o.time_offset_min_steps, min_evidence=o.time_offset_min_evidence)
         self.odometry_history = OdometryHistory(keep_s=2.0 * max(o.time_offset_max_s, abs(self.time_offset.applied_s))
                                                 + 1.0)
         self._beam_offsets_s = beam_time_offsets_s(lidar.num_beams, lidar.time_increment_s) if o.deskew else None

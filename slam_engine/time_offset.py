@@ -13,10 +13,12 @@ matches, the vehicle's true turn ``m_k`` since the previous processed scan. For 
 drift * distance`` (the heading calibration's scale and drift). Over a grid of candidates (5 ms
 apart within +-``max_abs_s``) the estimator sums a truncated squared residual
 ``min((m_k - p_k(d))^2, cap^2)`` over the steps, plus a prior ``prior_weight * d^2``, and takes the
-minimum (refined by a parabola). Only steps where the turn rate changes tell offsets apart; the
-cost's curvature there gives a standard error, and the estimate is applied once that is below
-``max_se_s`` and the estimate lies outside a dead band (small offsets are left to the matcher, and a
-log without one keeps exactly the pairing it had). Steps are evaluated once the odometry has passed
+minimum (refined by a parabola). Only steps where the turn rate changes tell offsets apart. The
+estimate is applied once (a) the cost at it lies far below the cost at offset 0 (``min_evidence``
+mean squared residuals: the cost can have several shallow minima on a log without an offset), (b)
+the cost's curvature there gives a standard error below ``max_se_s``, and (c) it lies outside a dead
+band and three standard errors from 0 (small offsets are left to the matcher, and a log without one
+keeps exactly the pairing it had). Steps are evaluated once the odometry has passed
 ``t_k + max_abs_s`` (so that every candidate is interpolated, not extrapolated); the estimate never
 feeds back into what it measures: the matched turns are the vehicle's whatever offset is applied.
 
@@ -133,11 +135,14 @@ class TimeOffsetEstimator:
     ``prior_weight`` [rad^2/s^2]: weight of the prior 'offset = 0'; ``loss_cap_rad``: residuals
     beyond this count as this (failed matches); ``band_s``: dead band; ``max_se_s``: the standard
     error below which the estimate is used; ``min_steps``: steps measured before it is used;
-    ``enabled``: False estimates nothing."""
+    ``min_evidence``: how much lower the cost at the estimate must be than at offset 0, in units of
+    the mean squared residual (a chi-square with one degree of freedom, but the residuals are not
+    independent: intel's odometry, which has no offset, reaches 21 along the way, exp2's 80 after 20
+    steps); ``enabled``: False estimates nothing."""
 
     def __init__(self, fixed_s: float | None = None, max_abs_s: float = 0.3, prior_weight: float = 0.05,
-                 loss_cap_rad: float = 0.15, band_s: float = 0.02, max_se_s: float = 0.01, min_steps: int = 20,
-                 enabled: bool = True):
+                 loss_cap_rad: float = 0.15, band_s: float = 0.02, max_se_s: float = 0.02, min_steps: int = 10,
+                 min_evidence: float = 50.0, enabled: bool = True):
         self.fixed_s = None if fixed_s is None else float(fixed_s)
         self.max_abs_s = float(max_abs_s)
         self.enabled = bool(enabled)
@@ -145,6 +150,7 @@ class TimeOffsetEstimator:
         self.band_s = float(band_s)
         self.max_se_s = float(max_se_s)
         self.min_steps = int(min_steps)
+        self.min_evidence = float(min_evidence)
         n = int(round(self.max_abs_s / GRID_STEP_S))
         self.candidates_s = np.arange(-n, n + 1) * GRID_STEP_S
         self.prior_weight = float(prior_weight)
@@ -154,6 +160,7 @@ class TimeOffsetEstimator:
         self.steps_used = 0
         self.estimate_s = 0.0
         self.standard_error_s: float | None = None
+        self.evidence = 0.0
         self._confident = False
         self.applied_changes = 0
         self._applied_s = self.fixed_s if self.fixed_s is not None else 0.0
@@ -205,13 +212,20 @@ class TimeOffsetEstimator:
         self.estimate_s = estimate
         k = CURVATURE_STEPS
         self.standard_error_s = None
+        noise = max(float(cost[j] - self.prior_weight * self.candidates_s[j] ** 2), 1e-12) / max(self.steps_used, 1)
         if k <= j < len(cost) - k and self.steps_used > 1:
             curvature = (cost[j - k] - 2 * cost[j] + cost[j + k]) / (k * h) ** 2  # d2 cost / d offset2
-            noise = max(float(cost[j] - self.prior_weight * self.candidates_s[j] ** 2), 1e-12) / self.steps_used
             if curvature > 0:
                 self.standard_error_s = float(np.sqrt(2.0 * noise / curvature))
+        # how much better the estimate explains the turns than no offset, in units of the residual noise
+        # (a chi-square with one degree of freedom; the cost may have several minima, which the local
+        # standard error alone does not see)
+        zero = len(cost) // 2
+        self.evidence = float(cost[zero] - cost[j]) / noise if self.steps_used > 1 and noise > 0 else 0.0
+        # once applied, an estimate stays until its evidence falls below half the threshold (no toggling)
+        needed = self.min_evidence * (0.5 if self._applied_s != 0.0 and self.fixed_s is None else 1.0)
         self._confident = (self.standard_error_s is not None and self.standard_error_s <= self.max_se_s
-                           and self.steps_used >= self.min_steps)
+                           and self.steps_used >= self.min_steps and self.evidence >= needed)
         if self.fixed_s is None:
             significant = abs(estimate) >= max(self.band_s, SIGNIFICANT_SE * (self.standard_error_s or np.inf))
             applied = round(estimate / h) * h if self._confident and significant else 0.0
@@ -224,7 +238,7 @@ class TimeOffsetEstimator:
         return {"enabled": self.enabled, "mode": "auto" if self.fixed_s is None else "fixed",
                 "estimated_s": round(self.estimate_s, 4) if self.steps_used else None,
                 "standard_error_s": None if self.standard_error_s is None else round(self.standard_error_s, 4),
-                "confident": self._confident, "applied_s": round(self._applied_s, 4),
+                "evidence": round(self.evidence, 1), "confident": self._confident, "applied_s": round(self._applied_s, 4),
                 "applied_changes": self.applied_changes, "steps_used": self.steps_used,
                 "search_s": [round(float(self.candidates_s[0]), 4), round(float(self.candidates_s[-1]), 4)]}
 
