@@ -238,7 +238,8 @@ class TimeOffsetEstimator:
         return {"enabled": self.enabled, "mode": "auto" if self.fixed_s is None else "fixed",
                 "estimated_s": round(self.estimate_s, 4) if self.steps_used else None,
                 "standard_error_s": None if self.standard_error_s is None else round(self.standard_error_s, 4),
-                "evidence": round(self.evidence, 1), "confident": self._confident, "applied_s": round(self._applied_s, 4),
+                "evidence": round(self.evidence, 1), "confident": self._confident,
+                "applied_s": round(self._applied_s, 4),
                 "applied_changes": self.applied_changes, "steps_used": self.steps_used,
                 "search_s": [round(float(self.candidates_s[0]), 4), round(float(self.candidates_s[-1]), 4)]}
 

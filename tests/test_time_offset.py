@@ -157,7 +157,8 @@ def test_simulated_rover_whose_scans_lag_its_ticks_by_150_ms() -> None:
     lagged = simulate("office", seed=0, rig="mines-rover", max_duration_s=45.0, cameras=False, scan_lag_s=0.15)
     result = run_slam(lagged.log, SlamConfig(particles=10, seed=0))
     summary = result.input_summary["time_offset"]
-    # measured: estimated -0.143 s (standard error 5 ms), applied -0.145 s, ATE 0.01 m vs 0.8 m dead reckoning
+    # measured: estimated -0.158 s (standard error 7 ms, evidence 450), applied -0.16 s, ATE 0.009 m vs 0.38 m
+    # dead reckoning (the simulated office turns at most 0.9 rad/s: the matcher absorbs the lag there too)
     assert summary["estimated_s"] == pytest.approx(-0.15, abs=0.02)
     assert summary["applied_s"] == pytest.approx(-0.15, abs=0.02)
     assert summary["deskew"] and summary["sweep_s"] == pytest.approx(0.0665, abs=1e-3)
@@ -167,8 +168,8 @@ def test_simulated_rover_whose_scans_lag_its_ticks_by_150_ms() -> None:
 
     plain = simulate("office", seed=0, rig="mines-rover", max_duration_s=45.0, cameras=False)
     summary = run_slam(plain.log, SlamConfig(particles=10, seed=0)).input_summary["time_offset"]
-    assert abs(summary["estimated_s"]) < 0.02
-    assert summary["applied_s"] == 0.0
+    assert abs(summary["estimated_s"]) < 0.03  # measured 0.014 s (standard error 8 ms, evidence 4)
+    assert summary["applied_s"] == 0.0 and not summary["confident"]
 
 
 def test_simulated_lag_stamps_scans_late_and_keeps_the_truth_at_the_measurement() -> None:
