@@ -7,7 +7,8 @@ belong to that run alone.
 Logs: ``intel``, ``freiburg`` (relation errors against the benchmark ground truth), ``exp2``,
 ``malaga`` (maps only: half agreement, :mod:`bench.map_quality`), ``sim:<rig>`` (simulated drive, ATE
 against its exact ground truth, dead-reckoning ATE beside it); every run with its estimated LiDAR
-time offset. Prints one line per run and a summary per log: median / worst accuracy, median CPU s (``time.process_time`` of the SLAM run), median wall s, peak RSS MB.
+time offset. Prints one line per run and a summary per log: median / worst accuracy, median CPU s
+(``time.process_time`` of the SLAM run), median wall s, peak RSS MB.
 """
 
 from __future__ import annotations
