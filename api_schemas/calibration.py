@@ -33,6 +33,8 @@ class LidarCalibration(BaseModel):
     range_max_m: float = Field(gt=0.0, le=1000.0)
     T_vehicle_from_lidar: Matrix4 | None = None
     name: str = Field("lidar", max_length=100)
+    time_increment_s: float | None = Field(None, ge=-0.01, le=0.01, description="Seconds between consecutive "
+                                           "beams (negative: swept in reverse order), for de-skew; null = unknown.")
 
 
 class Calibration(BaseModel):

@@ -72,6 +72,7 @@ class LidarSpec(BaseModel):
     range_max_m: float = Field(gt=0, allow_inf_nan=False)
     T_vehicle_from_lidar: Matrix4
     name: str = "lidar"
+    time_increment_s: float | None = Field(None, allow_inf_nan=False)
 
     _rigid = field_validator("T_vehicle_from_lidar")(_check_rigid)
 

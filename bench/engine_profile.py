@@ -5,9 +5,10 @@ belong to that run alone.
 [--heading-error 1.3,0.02]`` (the last distorts the odometry: :mod:`bench.odometry_bias`)
 
 Logs: ``intel``, ``freiburg`` (relation errors against the benchmark ground truth), ``exp2``,
-``malaga`` (maps only: time), ``sim:<rig>`` (simulated drive, ATE against its exact ground truth,
-dead-reckoning ATE beside it). Prints one line per run and a summary per log: median / worst
-accuracy, median CPU s (``time.process_time`` of the SLAM run), median wall s, peak RSS MB.
+``malaga`` (maps only: half agreement, :mod:`bench.map_quality`), ``sim:<rig>`` (simulated drive, ATE
+against its exact ground truth, dead-reckoning ATE beside it); every run with its estimated LiDAR
+time offset. Prints one line per run and a summary per log: median / worst accuracy, median CPU s
+(``time.process_time`` of the SLAM run), median wall s, peak RSS MB.
 """
 
 from __future__ import annotations
@@ -92,6 +93,12 @@ def run_one(name: str, seed: int, particles: int, overrides: dict, heading_error
         record["trans_m"], record["rot_deg"] = rel.all.trans_mean_m, rel.all.rot_mean_deg
         record["loop_rot_deg"] = rel.loop.rot_mean_deg
         record["local_m"], record["loop_m"] = rel.local.trans_mean_m, rel.loop.trans_mean_m
+    if name in MAPS_ONLY:
+        from bench.map_quality import half_agreement, scan_endpoints_world
+
+        record["half_agreement"] = half_agreement(scan_endpoints_world(log, result.trajectory,
+                                                                       config.grid.max_range_m))["half_agreement"]
+    record["time_offset_s"] = result.input_summary.get("time_offset", {}).get("estimated_s")
     if truth is not None:
         record["ate_m"] = absolute_trajectory_error(result.trajectory, truth)
         record["dr_ate_m"] = absolute_trajectory_error(result.dead_reckoning, truth)
@@ -137,15 +144,20 @@ def main(argv: list[str] | None = None) -> int:
                        f"local {rec['local_m']:.4f} m loop {rec['loop_m']:.4f} m")
             if "ate_m" in rec:
                 acc += f" ATE {rec['ate_m']:.3f} m (odometry {rec['dr_ate_m']:.3f})"
+            if rec.get("half_agreement") is not None:
+                acc += f" half agreement {rec['half_agreement']:.3f}"
+            if rec.get("time_offset_s") is not None:
+                acc += f" time offset {rec['time_offset_s']:+.3f} s"
             print(f"{name} seed {seed}: {acc} cpu {rec['cpu_s']:.1f} s wall {rec['wall_s']:.1f} s "
                   f"peak {rec['peak_mb']:.0f} MB processed {rec['processed']}/{rec['scans']}", flush=True)
         if not records:
             continue
         line = f"== {name}: "
-        for key in ("trans_m", "rot_deg", "ate_m"):
+        for key in ("trans_m", "rot_deg", "ate_m", "half_agreement"):
             vals = [r[key] for r in records if r.get(key) is not None]
             if vals:
-                line += f"{key} median {statistics.median(vals):.4f} worst {max(vals):.4f}; "
+                worst = min(vals) if key == "half_agreement" else max(vals)  # agreement: higher is better
+                line += f"{key} median {statistics.median(vals):.4f} worst {worst:.4f}; "
         cpu = statistics.median(r["cpu_s"] for r in records)
         wall = statistics.median(r["wall_s"] for r in records)
         line += f"cpu median {cpu:.1f} s, wall median {wall:.1f} s, peak {max(r['peak_mb'] for r in records):.0f} MB"

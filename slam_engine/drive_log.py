@@ -40,7 +40,9 @@ class LidarModel:
 
     Beam ``i`` points at ``angle_min_rad + i * angle_increment_rad`` in the LiDAR frame
     (counter-clockwise about its z axis, 0 = its x axis). Ranges outside
-    ``[range_min_m, range_max_m]`` and ``inf`` mean "no return".
+    ``[range_min_m, range_max_m]`` and ``inf`` mean "no return". ``time_increment_s``: time between
+    the measurements of consecutive beams [s] (negative: the beams were swept in reverse order), where
+    the log or the sensor's specification gives it; None = unknown (scans are not de-skewed).
     """
 
     num_beams: int
@@ -50,6 +52,7 @@ class LidarModel:
     range_max_m: float
     T_vehicle_from_lidar: np.ndarray = field(default_factory=lambda: np.eye(4))
     name: str = "lidar"
+    time_increment_s: float | None = None
 
     @property
     def beam_angles_rad(self) -> np.ndarray:

@@ -38,11 +38,13 @@ from slam_engine.poses import is_planar_4x4
 class ProjectedScan:
     """One scan in the vehicle frame: ``ends_v`` (K, 2) ray end points [m], ``is_hit`` (K,) False
     for free-space-only rays, ``free_from_m`` (K,) where each ray starts clearing cells [m]
-    (:func:`free_space_start_m`), ``hits_v`` (H, 2) the returned end points (for matching)."""
+    (:func:`free_space_start_m`), ``hits_v`` (H, 2) the returned end points (for matching),
+    ``beams`` (K,) the index of each ray's beam in the scan (None when not known)."""
 
     ends_v: np.ndarray
     is_hit: np.ndarray
     free_from_m: np.ndarray
+    beams: np.ndarray | None = None
 
     @property
     def hits_v(self) -> np.ndarray:
@@ -76,8 +78,17 @@ class ScanProjector:
         self.ceiling_z_m = float(ceiling_z_m)
         self.free_from_m = free_space_start_m(lidar.num_beams, lidar.angle_increment_rad, resolution_m)
 
-    def project(self, ranges_m: np.ndarray) -> ProjectedScan:
-        """(num_beams,) ranges [m] -> :class:`ProjectedScan`."""
+    def project(self, ranges_m: np.ndarray, beam_poses: np.ndarray | None = None) -> ProjectedScan:
+        """(num_beams,) ranges [m] -> :class:`ProjectedScan`. ``beam_poses`` (num_beams, 3): where the
+        vehicle was when each beam was measured, in its frame at the scan's reference time (de-skew,
+        :func:`slam_engine.time_offset.sweep_poses`); each end point is moved by its beam's pose (the
+        rays still start at ``origin_v``)."""
+        scan = self._project(ranges_m)
+        if beam_poses is None or scan.beams is None:
+            return scan
+        return _moved(scan, np.asarray(beam_poses, dtype=np.float64)[scan.beams])
+
+    def _project(self, ranges_m: np.ndarray) -> ProjectedScan:
         r = np.asarray(ranges_m, dtype=np.float64)
         if r.shape != (self.lidar.num_beams,):
             raise ValueError(f"scan has {r.shape} ranges, the LiDAR model {self.lidar.name!r} "
@@ -94,7 +105,8 @@ class ScanProjector:
             length, is_hit = length[keep], is_hit[keep]
         if self.planar:
             ends = self.origin_v + self.dirs_v[keep] * length[:, None]
-            return ProjectedScan(ends_v=ends, is_hit=is_hit, free_from_m=self.free_from_m[keep])
+            return ProjectedScan(ends_v=ends, is_hit=is_hit, free_from_m=self.free_from_m[keep],
+                                 beams=np.flatnonzero(keep))
         return self._project_tilted(length, is_hit, keep)
 
     def _project_tilted(self, length: np.ndarray, is_hit: np.ndarray, beams: np.ndarray) -> ProjectedScan:
@@ -117,7 +129,16 @@ class ScanProjector:
             limit = np.where(dz < 0, self.ground_z_m, self.ceiling_z_m) - self.T[2, 3]
             frac = np.clip(np.divide(limit, dz, out=np.ones_like(dz), where=dz != 0), 0.0, 1.0)
             ends[free_tilted] = self.origin_v + (ends[free_tilted] - self.origin_v) * frac[:, None]
-        return ProjectedScan(ends_v=ends[keep], is_hit=is_hit[keep], free_from_m=self.free_from_m[beams][keep])
+        return ProjectedScan(ends_v=ends[keep], is_hit=is_hit[keep], free_from_m=self.free_from_m[beams][keep],
+                             beams=np.flatnonzero(beams)[keep])
+
+
+def _moved(scan: ProjectedScan, poses: np.ndarray) -> ProjectedScan:
+    """``scan`` with each end point moved by its (K, 3) pose: ``R(theta) p + (x, y)``."""
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    x, y = scan.ends_v[:, 0], scan.ends_v[:, 1]
+    ends = np.column_stack([poses[:, 0] + c * x - s * y, poses[:, 1] + s * x + c * y])
+    return ProjectedScan(ends_v=ends, is_hit=scan.is_hit, free_from_m=scan.free_from_m, beams=scan.beams)
 
 
 def bracketed_no_return_m(ranges_m: np.ndarray, returned: np.ndarray, dirs: np.ndarray) -> np.ndarray:

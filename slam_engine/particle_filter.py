@@ -6,7 +6,9 @@ passed) since the last processed scan: every particle samples the odometry motio
 onto its own map (scan-matched proposal), is weighted by how well the scan fits there, the set is
 resampled when the effective sample size drops, and the scan is inserted into every map. The
 odometry increments are first corrected for the systematic heading error that the matches have
-measured so far (:mod:`slam_engine.heading_calibration`). Other
+measured so far (:mod:`slam_engine.heading_calibration`), and each scan is paired with the
+odometry at its stamp plus the LiDAR's time offset, estimated online, and de-skewed where the LiDAR
+model gives its beams' timing (:mod:`slam_engine.time_offset`). Other
 scans are *skipped*: their pose is the best particle's last pose moved by odometry, refined by a
 match against the best particle's map (no map update).
 
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numba
@@ -37,6 +40,7 @@ from slam_engine.raycast import insert_scan
 from slam_engine.resampling import low_variance_resample, n_eff, normalize_log_weights
 from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, Trajectory
 from slam_engine.scan_matcher import ScanMatcher
+from slam_engine.time_offset import OdometryHistory, TimeOffsetEstimator, beam_time_offsets_s, matched_turn, sweep_poses
 
 THREADS_ENV = "LIDARMAP_THREADS"
 # added to the motion covariance [m^2, m^2, rad^2]: a vehicle standing still still has a pose to fuse
@@ -101,6 +105,15 @@ class SlamFilter:
         mo = config.motion
         self.alphas = (mo.rot_from_rot, mo.rot_from_trans, mo.trans_from_trans, mo.trans_from_rot)
         self.heading_calibration = HeadingCalibration(**config.heading_calibration.model_dump())
+        o = config.odometry
+        self.time_offset = TimeOffsetEstimator(
+            None if o.time_offset_s == "auto" else float(o.time_offset_s), o.time_offset_max_s,
+            o.time_offset_prior_weight, band_s=o.time_offset_band_s, max_se_s=o.time_offset_max_se_s,
+            min_steps=o.time_offset_min_steps, min_evidence=o.time_offset_min_evidence)
+        self.odometry_history = OdometryHistory(keep_s=2.0 * max(o.time_offset_max_s, abs(self.time_offset.applied_s))
+                                                + 1.0)
+        self._beam_offsets_s = beam_time_offsets_s(lidar.num_beams, lidar.time_increment_s) if o.deskew else None
+        self._beam_poses: np.ndarray | None = None
         # weight of one scan: -(mean squared residual) * independent beams * (res / sigma)^2 / 2
         self.likelihood_gain = m.independent_beams * (g.resolution_m / m.sigma_m) ** 2 / 2.0
         self.particles = np.zeros((n, 3))
@@ -113,9 +126,11 @@ class SlamFilter:
         self.key_frame_scans: list[ProjectedScan] = []  # the scan of every processed step (for the back end)
         self.key_frame_ranges: list[np.ndarray] = []  # its ranges [m]
         self.key_frame_odometry: list[np.ndarray] = []  # the odometry pose at it (uncorrected)
+        self.key_frame_sweeps: list[np.ndarray | None] = []  # its beams' de-skew poses (None: not de-skewed)
         self._last_odom: np.ndarray | None = None
+        self._last_odom_offset_s = 0.0  # the time offset _last_odom was taken with
         self._last_t_s: float | None = None
-        self._pending: ScanMessage | None = None
+        self._pending: deque[ScanMessage] = deque()  # scans waiting for odometry past their stamp
         self._stats: list[tuple[float, float, bool, float, bool, float]] = []
         self.snapshots: list[MapSnapshot] = []
 
@@ -130,44 +145,67 @@ class SlamFilter:
     # --- streaming ------------------------------------------------------------------------
     @property
     def scans_seen(self) -> int:
-        return len(self._records) + (self._pending is not None)
+        return len(self._records) + len(self._pending)
 
     @property
     def steps_processed(self) -> int:
         return len(self._history)
 
     def step(self, message: Message) -> None:
-        """Consume one message (messages must come in time order)."""
+        """Consume one message (messages must come in time order). A scan is handled once the
+        odometry has reached its stamp plus :meth:`_lookahead_s`, or when a scan that much later arrives."""
         if isinstance(message, (EncoderMessage, GyroMessage, OdometryMessage)):
-            if self.integrator.update(message) and self._pending is not None \
-                    and self.integrator.t_s >= self._pending.t_s:
-                self._handle_scan(self._pending)
-                self._pending = None
+            if self.integrator.update(message):
+                self.odometry_history.append(self.integrator.t_s, self.integrator.pose)
+                self.time_offset.update(self.odometry_history)
+                while self._pending and self.integrator.t_s >= self._pending[0].t_s + self._lookahead_s():
+                    self._handle_scan(self._pending.popleft())
         elif isinstance(message, ScanMessage):
-            if self._pending is not None:
-                self._handle_scan(self._pending)
-                self._pending = None
-            if self.integrator.t_s is not None and self.integrator.t_s >= message.t_s:
+            while self._pending and message.t_s >= self._pending[0].t_s + self._lookahead_s():
+                self._handle_scan(self._pending.popleft())
+            if not self._pending and self.integrator.t_s is not None \
+                    and self.integrator.t_s >= message.t_s + self._lookahead_s():
                 self._handle_scan(message)
             else:
-                self._pending = message
+                self._pending.append(message)
 
     def finish(self) -> None:
-        """Handle a scan still waiting for odometry (with the last odometry pose)."""
-        if self._pending is not None:
-            self._handle_scan(self._pending)
-            self._pending = None
+        """Handle the scans still waiting for odometry (with the last odometry pose)."""
+        while self._pending:
+            self._handle_scan(self._pending.popleft())
+        self.time_offset.update(self.odometry_history, final=True)
+
+    def _lookahead_s(self) -> float:
+        """How far past a scan's stamp the odometry must reach before the scan is handled [s]: its
+        time offset plus half its sweep, when positive."""
+        sweep = 0.0 if self._beam_offsets_s is None else float(np.abs(self._beam_offsets_s).max())
+        return max(0.0, self.time_offset.applied_s + sweep)
 
     def _odom_at(self, t_s: float) -> np.ndarray:
+        """The odometry pose at ``t_s`` (odometry clock): from the integrator's last two poses while
+        scans are paired at their stamps without de-skew (the pairing of a log without an offset stays
+        exactly as it was), else from the odometry history."""
         if self.integrator.t_s is None:
             return np.zeros(3)
-        return self.integrator.pose_at(t_s)
+        if self.time_offset.applied_s == 0.0 and self._beam_offsets_s is None:
+            return self.integrator.pose_at(t_s)
+        return self.odometry_history.pose_at(t_s)
 
     def _handle_scan(self, scan: ScanMessage) -> None:
         start = time.perf_counter()
-        odom = self._odom_at(scan.t_s)
-        projected = self.projector.project(scan.ranges_m)
+        offset_s = self.time_offset.applied_s
+        odom = self._odom_at(scan.t_s + offset_s)
+        self._beam_poses = None
+        if self._beam_offsets_s is not None and len(self.odometry_history):
+            self._beam_poses = sweep_poses(self.odometry_history, scan.t_s + offset_s, self._beam_offsets_s,
+                                           self.heading_calibration.applied_scale)
+        projected = self.projector.project(scan.ranges_m, self._beam_poses)
         self._ranges_m = scan.ranges_m
+        if self._last_odom is not None and offset_s != self._last_odom_offset_s and self._last_t_s is not None \
+                and self.odometry_history.covers(self._last_t_s + offset_s):
+            # the offset changed since the last processed scan: take its odometry pose with the new one
+            self._last_odom = self._odom_at(self._last_t_s + offset_s)
+            self._last_odom_offset_s = offset_s
         if self._last_odom is None:
             self._first_scan(scan, odom, projected)
         elif self._due(scan.t_s, odom):
@@ -193,6 +231,7 @@ class SlamFilter:
         insert_scan(self.grids, self.particles[:1], self.projector.origin_v, projected.ends_v, projected.is_hit,
                     g.log_odds_hit, g.log_odds_miss, g.log_odds_min, g.log_odds_max, projected.free_from_m)
         self.grids.resample(np.zeros(self.config.particles, np.int64))  # every particle shares that map
+        self.time_offset.record_step(scan.t_s, None)
         self._record_step(scan.t_s, odom, projected)
         self._stats.append((scan.t_s, float(self.config.particles), False, 1.0, False, 0.0))
 
@@ -201,10 +240,12 @@ class SlamFilter:
         self.key_frame_scans.append(projected)
         self.key_frame_odometry.append(np.asarray(odom, np.float64).copy())
         self.key_frame_ranges.append(self._ranges_m)
+        self.key_frame_sweeps.append(self._beam_poses)
         self._parents.append(self._next_parents)
         self._next_parents = np.arange(self.config.particles)
         self._records.append(_ScanRecord(t_s, len(self._history) - 1, np.zeros(3)))
         self._last_odom = odom
+        self._last_odom_offset_s = self.time_offset.applied_s
         self._last_t_s = t_s
 
     def _match_points(self, projected) -> np.ndarray:
@@ -225,8 +266,12 @@ class SlamFilter:
             poses, log_lik, score, accepted, jtj = self._propose(sampled, motion_cov, hits)
             self.heading_calibration.observe(self._last_odom, odom, self.particles, poses, accepted)
             self.heading_calibration.observe_distance(self._last_odom, odom, self.particles, poses, accepted, jtj)
+            hc = self.heading_calibration
+            self.time_offset.record_step(scan.t_s, matched_turn(self.particles, poses, accepted),
+                                         odometry_increments(self._last_odom, odom)[1], hc.scale, hc.drift_rad_per_m)
         else:
             poses, score, accepted, log_lik = sampled, np.zeros(n), np.zeros(n, bool), np.zeros(n)
+            self.time_offset.record_step(scan.t_s, None)
         self.particles = poses
         self.log_weights = self.log_weights + log_lik
         self.path_log_likelihood = self.path_log_likelihood + log_lik
@@ -367,7 +412,7 @@ class SlamFilter:
         if not self.config.grid.no_return_bounded:
             return self.key_frame_scans
         bounded = make_projector(self.projector.lidar, self.config, no_return_bounded=True)
-        return [bounded.project(r) for r in self.key_frame_ranges]
+        return [bounded.project(r, p) for r, p in zip(self.key_frame_ranges, self.key_frame_sweeps, strict=True)]
 
     def best_grid(self) -> OccupancyGrid:
         return self.grids.occupancy_grid(self.best_particle())

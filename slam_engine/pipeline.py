@@ -141,6 +141,7 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
         input_summary={**log.summary(), "grid_memory_bytes": slam.grids.memory_bytes(),
                        "scans_processed": slam.steps_processed, "texture": texture_status,
                        "odometry_calibration": slam.heading_calibration.summary(),
+                       "time_offset": _time_offset_summary(slam, log, config),
                        "loop_closing": backend.summary(), "odometry_smoothing": smoothing},
     )
 
@@ -159,6 +160,16 @@ def _keep_odometry_precision(front_end_path: np.ndarray, poses: np.ndarray, odom
         return poses, {"applied": False, "reason": "odometry is not more precise than the matches",
                        **noise.summary()}
     return smooth_with_odometry(poses, np.asarray(odometry), noise), {"applied": True, **noise.summary()}
+
+
+def _time_offset_summary(slam: SlamFilter, log: DriveLog, config: SlamConfig) -> dict:
+    """The time offset's estimate and use, and the de-skew: on (the LiDAR model gives its beams'
+    timing and ``odometry.deskew``), the sweep [s] and how many key frames moved during it."""
+    increment = None if log.lidar is None else log.lidar.time_increment_s
+    on = bool(config.odometry.deskew and increment)
+    return {**slam.time_offset.summary(), "deskew": on,
+            "sweep_s": round(abs(increment) * (log.lidar.num_beams - 1), 5) if on and log.lidar else None,
+            "deskewed_key_frames": sum(p is not None for p in slam.key_frame_sweeps)}
 
 
 def _ground_texture(log: DriveLog, trajectory: Trajectory, grid: OccupancyGrid, config: SlamConfig,

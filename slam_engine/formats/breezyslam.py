@@ -5,7 +5,11 @@ undocumented, fields 2 and 3 cumulative left and right wheel ticks, fields 4-23 
 (ignored), fields 24-705 the 682 Hokuyo URG-04LX ranges in millimetres (0 = no return), field 706
 unused. The robot: differential drive, wheel radius 77 mm, axle 330 mm, 2000 ticks per wheel
 revolution; the laser 145 mm ahead of the axle centre, 682 beams 360/1024 deg apart (239.7 deg,
-symmetric about the front).
+symmetric about the front). The file holds no scan timing; the URG-04LX's specification does: 10
+scans per second, 1024 steps per rotation, so consecutive beams are 0.1 / 1024 s apart and a scan's
+682 beams are swept in 67 ms, counter-clockwise (``time_increment_s``, for de-skew). The stamp's
+place in the sweep, and the lag of the scans behind the wheel ticks (about 0.15 s on exp2), are not
+known: the engine estimates them (:mod:`slam_engine.time_offset`).
 
 Ticks per revolution: BreezySLAM turns ticks into wheel angles as ``ticks * 180 / 2000`` degrees
 (read alone: 4000 ticks per revolution), but its pose change is ``r * (phi_l + phi_r)`` forward and
@@ -29,6 +33,7 @@ FIELDS = 707
 BEAMS = 682
 FIRST_RANGE_FIELD = 24
 URG_STEP_RAD = float(np.radians(360 / 1024))
+URG_STEP_S = 0.1 / 1024  # 10 scans/s, 1024 steps per rotation (the sensor's specification)
 MINES_ROVER = VehicleModel(kind=MotionModelKind.DIFFERENTIAL, ticks_per_revolution=2000,
                            wheel_diameters_m=(0.154, 0.154), wheel_names=("left", "right"), track_width_m=0.33,
                            name="Mines rover")
@@ -40,7 +45,7 @@ def urg_04lx(offset_m: float = 0.145, height_m: float = 0.25) -> LidarModel:
     T[0, 3], T[2, 3] = offset_m, height_m
     return LidarModel(num_beams=BEAMS, angle_min_rad=-(BEAMS - 1) / 2 * URG_STEP_RAD,
                       angle_increment_rad=URG_STEP_RAD, range_min_m=0.02, range_max_m=5.6,
-                      T_vehicle_from_lidar=T, name="Hokuyo URG-04LX")
+                      T_vehicle_from_lidar=T, name="Hokuyo URG-04LX", time_increment_s=URG_STEP_S)
 
 
 def sniff(path: Path) -> bool:

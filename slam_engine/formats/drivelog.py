@@ -131,7 +131,8 @@ def lidar_from_json(data: Any) -> LidarModel | None:
                       angle_increment_rad=_number(data.get("angle_increment_rad"), "lidar.angle_increment_rad"),
                       range_min_m=range_min, range_max_m=range_max,
                       T_vehicle_from_lidar=_matrix4(data.get("T_vehicle_from_lidar"), "lidar.T_vehicle_from_lidar"),
-                      name=str(data.get("name", "lidar")))
+                      name=str(data.get("name", "lidar")),
+                      time_increment_s=_number(data.get("time_increment_s"), "lidar.time_increment_s", optional=True))
 
 
 def validate_manifest(manifest: Any) -> tuple[VehicleModel, LidarModel | None, list[dict]]:
@@ -304,7 +305,7 @@ def lidar_to_json(lidar: LidarModel | None) -> dict[str, Any] | None:
         "angle_increment_rad": lidar.angle_increment_rad, "range_min_m": lidar.range_min_m,
         "range_max_m": lidar.range_max_m,
         "T_vehicle_from_lidar": np.asarray(lidar.T_vehicle_from_lidar, dtype=np.float64).tolist(),
-        "name": lidar.name,
+        "name": lidar.name, "time_increment_s": lidar.time_increment_s,
     }
 
 

@@ -159,7 +159,8 @@ def load(path: Path) -> DriveLog:
         lidar = LidarModel(num_beams=len(first_scan.ranges), angle_min_rad=float(first_scan.angle_min),
                            angle_increment_rad=float(first_scan.angle_increment),
                            range_min_m=float(first_scan.range_min), range_max_m=float(first_scan.range_max),
-                           T_vehicle_from_lidar=T, name=f"ROS {scan_topic}")
+                           T_vehicle_from_lidar=T, name=f"ROS {scan_topic}",
+                           time_increment_s=float(first_scan.time_increment) or None)
         values = np.array(ranges, dtype=np.float32)
         values[~np.isfinite(values) | (values < lidar.range_min_m) | (values > lidar.range_max_m)] = np.inf
         order = time_order(np.array(scans_t), path, scan_topic, warnings, lambda i: f"{scan_topic} message {i}")
@@ -251,7 +252,8 @@ def write(log: DriveLog, out_dir: Path, name: str = "log") -> Path:
         for t, r in zip(log.scans.t_s, log.scans.ranges_m, strict=True):
             msg = types[SCAN](header=header(float(t), "laser"), angle_min=lidar.angle_min_rad,
                               angle_max=float(lidar.beam_angles_rad[-1]), angle_increment=lidar.angle_increment_rad,
-                              time_increment=0.0, scan_time=0.0, range_min=lidar.range_min_m,
+                              time_increment=float(lidar.time_increment_s or 0.0), scan_time=0.0,
+                              range_min=lidar.range_min_m,
                               range_max=lidar.range_max_m, ranges=np.asarray(r, dtype=np.float32),
                               intensities=np.zeros(0, dtype=np.float32))
             records.append((int(round(t * 1e9)), "/scan", msg))

@@ -1,7 +1,9 @@
 """``run.json``: what was run on what, how long it took, how the filter behaved, and how accurate it was.
 
 Top-level keys: ``config`` (the SlamConfig used), ``input`` (the log's summary), ``timings``
-(wall time, scans, scans/s, per-step time percentiles), ``memory`` (peak bytes), ``filter`` (resamples,
+(wall time, scans, scans/s, per-step time percentiles), ``memory`` (peak bytes), ``time_offset`` (the
+LiDAR-to-odometry time offset: estimated, its standard error, applied; whether scans were de-skewed),
+``filter`` (resamples,
 match rate, N_eff), ``map`` (size, resolution, origin, cell counts), ``georeference``, ``accuracy``
 (relation errors and/or ATE when relations / ground truth were given, ``texture`` colour error and
 placement for a simulated log with a known floor; else null), ``warnings``,
@@ -71,6 +73,8 @@ def build_run_report(result: SlamResult, input_summary: dict | None = None, geor
         "memory": {"peak_bytes": int(result.peak_memory_bytes)},
         # the back end: submaps, closures found, accepted and rejected (with why), each one's correction
         "loop_closing": result.input_summary.get("loop_closing"),
+        # a scan stamped t was measured at t + offset on the odometry's clock (slam_engine.time_offset)
+        "time_offset": result.input_summary.get("time_offset"),
         "filter": {
             "resample_count": int(np.count_nonzero(stats.resampled)),
             "match_rate": float(np.mean(stats.matched)) if processed else None,

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slam_engine.drive_log import DriveLog
+from slam_engine.drive_log import DriveLog, ScanStream
 from slam_engine.errors import ConfigError, LogFormatError
 from slam_engine.formats import write_log
 from slam_engine.poses import relative, wrap_angle
@@ -70,12 +70,16 @@ def rig_for_format(format: str) -> str:
 
 def simulate(scenario: str | None = "office", seed: int = 0, rig: str = "robot",
              max_duration_s: float | None = None, scan_hz: float | None = None,
-             rng: np.random.Generator | None = None, cameras: bool = True) -> SimulatedDrive:
+             rng: np.random.Generator | None = None, cameras: bool = True, scan_lag_s: float = 0.0) -> SimulatedDrive:
     """Simulate one drive along the scenario's route (a loop with a closure).
 
     ``scenario`` None picks the rig's own (``office`` for robots, ``campus`` for the car);
     ``max_duration_s`` cuts the drive short (tests); ``scan_hz`` overrides the LiDAR rate;
-    ``cameras`` False leaves the rig's cameras out (rendering costs about a second a frame).
+    ``cameras`` False leaves the rig's cameras out (rendering costs about a second a frame);
+    ``scan_lag_s``: the scans are stamped this long after they were measured (a LiDAR whose stamps lag
+    the odometry's clock, like BreezySLAM's exp2 by about 0.15 s: the engine's time offset is then
+    ``-scan_lag_s``); the ground truth is the pose when each scan was measured, at its stamp. A rig
+    whose LiDAR model has a ``time_increment_s`` sweeps its beams while it moves (skewed scans).
     Same seed, same drive (the camera frames are drawn last: with or without them, the other
     streams are the same).
     """
@@ -96,10 +100,12 @@ def simulate(scenario: str | None = "office", seed: int = 0, rig: str = "robot",
     if max_duration_s is not None:
         motion = motion.truncated(max_duration_s)
 
-    t_scan = sample_times(motion, scan_hz or the_rig.scan_hz, the_rig.t0_s, rng)
-    scans = scan_stream(world, motion, t_scan, the_rig, rng)
+    t_measured = sample_times(motion, scan_hz or the_rig.scan_hz, the_rig.t0_s, rng)
+    scans = scan_stream(world, motion, t_measured, the_rig, rng)
+    t_scan = np.round(t_measured + scan_lag_s, 6) if scan_lag_s else t_measured
+    scans = ScanStream(t_s=t_scan, ranges_m=scans.ranges_m)
     encoders = gyro = odometry = None
-    if the_rig.encoders_at_scan_times:
+    if the_rig.encoders_at_scan_times:  # read on each scan's line, at its stamp
         encoders = encoder_stream(motion, t_scan, the_rig, rng)
     elif the_rig.encoder_hz:
         encoders = encoder_stream(motion, sample_times(motion, the_rig.encoder_hz, the_rig.t0_s, rng),
@@ -120,7 +126,7 @@ def simulate(scenario: str | None = "office", seed: int = 0, rig: str = "robot",
             rgbd = render_rgbd_stream(world.floor_rgb, at_frames, the_rig.rgbd)
     log = DriveLog(vehicle=the_rig.vehicle, lidar=the_rig.lidar, scans=scans, encoders=encoders, gyro=gyro,
                    odometry=odometry, stereo=stereo, rgbd=rgbd, source_format="simulated", source_path=None)
-    x, y, theta, _ = motion.at(t_scan - the_rig.t0_s)
+    x, y, theta, _ = motion.at(t_measured - the_rig.t0_s)
     truth = Trajectory(t_s=t_scan.copy(), poses=np.column_stack([x, y, wrap_angle(theta)]))
     return SimulatedDrive(log=log, ground_truth=truth, world=world, rig=the_rig, motion=motion,
                           scenario=scenario, seed=seed)

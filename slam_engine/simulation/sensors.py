@@ -20,6 +20,7 @@ from slam_engine.poses import wrap_angle
 from slam_engine.simulation.motion import Motion
 from slam_engine.simulation.rigs import Rig
 from slam_engine.simulation.world import World
+from slam_engine.time_offset import beam_time_offsets_s
 
 
 def sample_times(motion: Motion, rate_hz: float, t0_s: float, rng: np.random.Generator,
@@ -83,14 +84,20 @@ def odometry_stream(motion: Motion, t_s: np.ndarray, rig: Rig, rng: np.random.Ge
 
 
 def scan_stream(world: World, motion: Motion, t_s: np.ndarray, rig: Rig, rng: np.random.Generator) -> ScanStream:
-    """LiDAR ranges [m] (float32, inf = no return) cast in the world from the true poses."""
+    """LiDAR ranges [m] (float32, inf = no return) cast in the world from the true poses at ``t_s``,
+    the time of each scan's middle beam. A LiDAR model with a ``time_increment_s`` sweeps: each beam
+    is cast from the pose at its own time (the scans are skewed as a real scanner's are)."""
     lidar = rig.lidar
     T = lidar.T_vehicle_from_lidar
     angles = lidar.beam_angles_rad
     beams_vehicle = (T[:3, :3] @ np.vstack([np.cos(angles), np.sin(angles), np.zeros_like(angles)])).T
     x, y, theta, _ = motion.at(t_s - rig.t0_s)
     ranges = np.empty((t_s.size, lidar.num_beams), dtype=np.float32)
+    sweep = beam_time_offsets_s(lidar.num_beams, lidar.time_increment_s)
     for k in range(t_s.size):
+        if sweep is not None:
+            ranges[k] = _swept_scan(world, motion, t_s[k] - rig.t0_s + sweep, T, beams_vehicle, lidar.range_max_m)
+            continue
         c, s = np.cos(theta[k]), np.sin(theta[k])
         R_world = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         origin = np.array([x[k], y[k], 0.0]) + R_world @ T[:3, 3]
@@ -99,3 +106,15 @@ def scan_stream(world: World, motion: Motion, t_s: np.ndarray, rig: Rig, rng: np
     noisy[rng.random(ranges.shape) < rig.dropout_probability] = np.inf
     noisy[(noisy < lidar.range_min_m) | (noisy > lidar.range_max_m)] = np.inf
     return ScanStream(t_s=t_s, ranges_m=noisy)
+
+
+def _swept_scan(world: World, motion: Motion, beam_t_s: np.ndarray, T: np.ndarray, beams_vehicle: np.ndarray,
+                max_range_m: float) -> np.ndarray:
+    """One scan's ranges with each beam cast from the vehicle's pose at its time ``beam_t_s`` (B,)."""
+    x, y, theta, _ = motion.at(beam_t_s)
+    c, s = np.cos(theta), np.sin(theta)
+    origins = np.column_stack([x + c * T[0, 3] - s * T[1, 3], y + s * T[0, 3] + c * T[1, 3],
+                               np.full_like(x, T[2, 3])])
+    directions = np.column_stack([c * beams_vehicle[:, 0] - s * beams_vehicle[:, 1],
+                                  s * beams_vehicle[:, 0] + c * beams_vehicle[:, 1], beams_vehicle[:, 2]])
+    return world.raycast(origins, directions, max_range_m)

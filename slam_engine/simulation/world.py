@@ -25,26 +25,27 @@ class World:
     def raycast(self, origin_xyz: np.ndarray, directions: np.ndarray, max_range_m: float) -> np.ndarray:
         """Ranges [m] along unit 3-D rays from one origin; ``inf`` where nothing is hit in range.
 
-        ``origin_xyz`` (3,) world point; ``directions`` (B, 3) unit vectors in the world frame. A ray
-        stops at the first wall (if it meets it below the wall's top) or at the floor.
+        ``origin_xyz`` (3,) world point, or (B, 3) one per ray (a scanner that moves during its
+        sweep); ``directions`` (B, 3) unit vectors in the world frame. A ray stops at the first wall
+        (if it meets it below the wall's top) or at the floor.
         """
-        o = np.asarray(origin_xyz, dtype=np.float64)
+        o = np.atleast_2d(np.asarray(origin_xyz, dtype=np.float64))  # (1 or B, 3)
         d = np.asarray(directions, dtype=np.float64)
         p = self.segments[:, :2]
         e = self.segments[:, 2:] - p  # (S, 2)
         # Solve o + t d_xy = p + u e per ray and segment; t is the 3-D range since d is unit length.
         denom = d[:, None, 0] * e[None, :, 1] - d[:, None, 1] * e[None, :, 0]  # cross(d, e)  (B, S)
-        w = p[None, :, :] - o[None, None, :2]  # (1, S, 2)
+        w = p[None, :, :] - o[:, None, :2]  # (1 or B, S, 2)
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (w[..., 0] * e[None, :, 1] - w[..., 1] * e[None, :, 0]) / denom
             u = (w[..., 0] * d[:, None, 1] - w[..., 1] * d[:, None, 0]) / denom
-            hit_z = o[2] + t * d[:, None, 2]
+            hit_z = o[:, 2:3] + t * d[:, None, 2]
             valid = (np.abs(denom) > 1e-12) & (t > 1e-6) & (u >= 0.0) & (u <= 1.0)
             valid &= (hit_z >= 0.0) & (hit_z <= self.wall_height_m)
         t = np.where(valid, t, np.inf)
         wall = t.min(axis=1) if t.shape[1] else np.full(len(d), np.inf)
         with np.errstate(divide="ignore"):
-            floor = np.where(d[:, 2] < -1e-9, o[2] / -d[:, 2], np.inf)
+            floor = np.where(d[:, 2] < -1e-9, o[:, 2] / -d[:, 2], np.inf)
         ranges = np.minimum(wall, floor)
         ranges[ranges > max_range_m] = np.inf
         return ranges
