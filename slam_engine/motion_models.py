@@ -15,9 +15,6 @@ from slam_engine.poses import compose, relative, wrap_angle
 
 STATIONARY_TRANS_M = 1e-6
 STATIONARY_ROT_RAD = 1e-7
-# Below this travel [m] the direction of motion is mostly wheel slip and encoder quantisation: the
-# split of a turn into rot1 (towards that direction) and rot2 no longer says how the vehicle turned
-DIRECTION_TRANS_M = 0.2
 
 
 def wheel_distances_m(
@@ -101,16 +98,6 @@ def odometry_increments(odom_from: np.ndarray, odom_to: np.ndarray) -> np.ndarra
     return np.stack([rot1, trans, rot2], axis=-1)
 
 
-def noise_angles(rot1: float, trans: float, rot2: float) -> tuple[float, float]:
-    """|rot1|, |rot2| [rad] as the noise model sees them: a turn on the spot with a few centimetres
-    of slip (rot1 near +-90 deg, rot2 near -+90 deg plus the turn) is a turn of rot1 + rot2, not two
-    large opposite ones. The direction's share of the turn fades in over ``DIRECTION_TRANS_M`` of
-    travel; above it this is the classic split. (Without it, turning 0.5 rad on the spot spread
-    the particles by 0.25 rad.)"""
-    share = min(1.0, abs(trans) / DIRECTION_TRANS_M)
-    return abs(share * rot1), abs(rot1 + rot2 - share * rot1)
-
-
 def apply_odometry_increments(poses: np.ndarray, rot1: np.ndarray, trans: np.ndarray, rot2: np.ndarray) -> np.ndarray:
     """Move (N, 3) poses by rot1, trans, rot2 (each scalar or (N,))."""
     poses = np.asarray(poses, dtype=np.float64)
@@ -140,10 +127,9 @@ def sample_odometry_motion(
     a1, a2, a3, a4 = alphas
     n = particles.shape[0]
     abs_trans = abs(trans)
-    abs_rot1, abs_rot2 = noise_angles(float(rot1), float(trans), float(rot2))
-    sd_rot1 = a1 * abs_rot1 + a2 * abs_trans
-    sd_trans = a3 * abs_trans + a4 * (abs_rot1 + abs_rot2)
-    sd_rot2 = a1 * abs_rot2 + a2 * abs_trans
+    sd_rot1 = a1 * abs(rot1) + a2 * abs_trans
+    sd_trans = a3 * abs_trans + a4 * (abs(rot1) + abs(rot2))
+    sd_rot2 = a1 * abs(rot2) + a2 * abs_trans
     noise = rng.standard_normal((n, 3))
     return apply_odometry_increments(
         particles, rot1 + sd_rot1 * noise[:, 0], trans + sd_trans * noise[:, 1], rot2 + sd_rot2 * noise[:, 2]
@@ -156,9 +142,8 @@ def odometry_motion_covariance(odom_from: np.ndarray, odom_to: np.ndarray,
     :func:`sample_odometry_motion` spreads it, in the frame of the start pose [m^2, m rad, rad^2]."""
     rot1, trans, rot2 = (float(v) for v in odometry_increments(odom_from, odom_to))
     a1, a2, a3, a4 = alphas
-    abs_rot1, abs_rot2 = noise_angles(rot1, trans, rot2)
-    sd = np.array([a1 * abs_rot1 + a2 * abs(trans), a3 * abs(trans) + a4 * (abs_rot1 + abs_rot2),
-                   a1 * abs_rot2 + a2 * abs(trans)])
+    sd = np.array([a1 * abs(rot1) + a2 * abs(trans), a3 * abs(trans) + a4 * (abs(rot1) + abs(rot2)),
+                   a1 * abs(rot2) + a2 * abs(trans)])
     c, s = math.cos(rot1), math.sin(rot1)
     J = np.array([[-trans * s, c, 0.0], [trans * c, s, 0.0], [1.0, 0.0, 1.0]])  # d(dx, dy, dtheta)/d(rot1, trans, rot2)
     return J @ np.diag(sd**2) @ J.T

@@ -329,10 +329,10 @@ class SlamFilter:
             R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
             info_o = np.linalg.inv(R @ motion_cov @ R.transpose(0, 2, 1) + np.diag(MOTION_COV_FLOOR))
         if wide:
-            # search only the dimensions whose window exceeds the fit's basin
+            # translations only where their window exceeds the fit's basin (a turn on the spot needs
+            # headings alone); headings always: a wrong heading is what loses a map
             mean_info = info_o.mean(axis=0)
-            presearch = np.array([window_xy if window_xy > PRESEARCH_BEYOND * m.search_xy_m else 0.0,
-                                  window_theta if window_theta > PRESEARCH_BEYOND * m.search_theta_rad else 0.0,
+            presearch = np.array([window_xy if window_xy > PRESEARCH_BEYOND * m.search_xy_m else 0.0, window_theta,
                                   self.likelihood_gain, mean_info[0, 0], mean_info[1, 1], mean_info[2, 2]])
         fit = self.matcher.fit(self.grids, np.arange(n), sampled, hits, window_xy, window_theta, presearch)
         poses = fit.poses.copy()

@@ -19,7 +19,6 @@ from slam_engine.errors import ConfigError
 from slam_engine.motion_models import (
     differential_drive_increments,
     odometry_increments,
-    odometry_motion_covariance,
     sample_odometry_motion,
     skid_steer_increments,
     wheel_distances_m,
@@ -82,28 +81,6 @@ def test_sampled_motion_spread_matches_the_model() -> None:
     assert abs(out[:, 0].std() - 0.05) < 0.003
     assert abs(out[:, 2].std() - 0.05 * math.sqrt(2)) < 0.003
     assert abs(out[:, 1].std() - 0.05) < 0.003  # lateral spread from rot1 at 1 m
-
-
-def test_turn_on_the_spot_with_slip_spreads_by_the_turn_only() -> None:
-    # 0.5 rad turn on the spot with 2 cm of sideways slip: rot1 ~ 90 deg, rot2 ~ -65 deg
-    odom_to = np.array([0.0, 0.02, 0.5])
-    rot1, _, rot2 = odometry_increments(np.zeros(3), odom_to)
-    assert abs(rot1) > 1.4 and abs(rot2) > 1.0
-    cov = odometry_motion_covariance(np.zeros(3), odom_to, ALPHAS)
-    # about the turn's own noise, 0.1 * 0.5 rad (split in two parts in quadrature: >= 0.035), not the
-    # 0.19 rad that 0.1 * |rot1| and 0.1 * |rot2| would give
-    assert 0.03 < math.sqrt(cov[2, 2]) < 0.055
-    out = sample_odometry_motion(np.zeros((20000, 3)), np.zeros(3), odom_to, ALPHAS, np.random.default_rng(0))
-    assert out[:, 2].std() == pytest.approx(math.sqrt(cov[2, 2]), rel=0.05)
-    assert abs(out[:, 2].mean() - 0.5) < 0.002
-
-
-def test_direction_share_of_the_turn_fades_in_with_travel() -> None:
-    # past DIRECTION_TRANS_M the classic split: a 1 m move 0.3 rad to the left then a 0.1 rad turn back
-    odom_to = np.array([math.cos(0.3), math.sin(0.3), 0.2])
-    cov = odometry_motion_covariance(np.zeros(3), odom_to, ALPHAS)
-    sd_rot1, sd_rot2 = 0.1 * 0.3 + 0.05, 0.1 * 0.1 + 0.05
-    assert cov[2, 2] == pytest.approx(sd_rot1**2 + sd_rot2**2, rel=1e-6)
 
 
 def _vehicle(kind: MotionModelKind = MotionModelKind.DIFFERENTIAL) -> VehicleModel:
