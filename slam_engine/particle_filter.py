@@ -35,7 +35,7 @@ from slam_engine.odometry import OdometryIntegrator, make_integrator
 from slam_engine.poses import compose, relative, wrap_angle
 from slam_engine.raycast import insert_scan
 from slam_engine.resampling import low_variance_resample, n_eff, normalize_log_weights
-from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, Trajectory
+from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, Trajectory, preview_pool_factor
 from slam_engine.scan_matcher import ScanMatcher
 
 THREADS_ENV = "LIDARMAP_THREADS"
@@ -177,8 +177,10 @@ class SlamFilter:
         self._stats[-1] = self._stats[-1][:5] + (time.perf_counter() - start,)
         every = self.config.snapshot_every_scans
         if every and self.steps_processed % every == 0:
+            if self.snapshots:  # kept for the animation: a frame's size is enough
+                self.snapshots[-1] = self.snapshots[-1].reduced()
             self.snapshots.append(MapSnapshot(scan_index=len(self._records) - 1, t_s=scan.t_s,
-                                              grid=self.best_grid(), trajectory=self.trajectory()))
+                                              grid=self.preview_grid(), trajectory=self.trajectory()))
 
     def _due(self, t_s: float, odom: np.ndarray) -> bool:
         s = self.config.scheduling
@@ -367,6 +369,13 @@ class SlamFilter:
 
     def best_grid(self) -> OccupancyGrid:
         return self.grids.occupancy_grid(self.best_particle())
+
+    def preview_grid(self) -> OccupancyGrid:
+        """The best particle's map pooled to at most about ``PREVIEW_MAX_SIDE_CELLS`` a side (what a
+        live preview shows; the full map of a long drive would be hundreds of MB), built without
+        the full-resolution grid."""
+        best = self.best_particle()
+        return self.grids.occupancy_grid(best, pool=preview_pool_factor(max(self.grids.observed_shape(best))))
 
     def scan_stats(self) -> ScanStats:
         rows = self._stats

@@ -31,7 +31,8 @@ from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, SlamResult
 class RunProgress:
     """Progress of a run: scans handled so far, scans in the log, seconds since the start, and the
     newest map snapshot kept so far (``config.snapshot_every_scans``; None before the first), for live
-    previews."""
+    previews (its map pooled to at most about ``PREVIEW_MAX_SIDE_CELLS`` a side; older snapshots are
+    pooled further, to an animation frame's size)."""
 
     scans_done: int
     scans_total: int
@@ -81,12 +82,8 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
     slam = SlamFilter.from_log(log, config, rng)
     odometry_only = DriveLog(vehicle=log.vehicle, encoders=log.encoders, gyro=log.gyro, odometry=log.odometry,
                              scans=log.scans)
-    kept = 0
     for message in odometry_only.messages():
         slam.step(message)
-        if len(slam.snapshots) != kept:
-            kept = len(slam.snapshots)
-            reduce_older_snapshots(slam.snapshots)
         if progress is not None and isinstance(message, ScanMessage):
             progress(RunProgress(slam.scans_seen, scans_total, time.perf_counter() - start,
                                  slam.snapshots[-1] if slam.snapshots else None))
@@ -96,21 +93,16 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
     return filter_result(slam, log, config, start)
 
 
-def reduce_older_snapshots(snapshots: list[MapSnapshot]) -> None:
-    """Pool the maps of every kept snapshot but the newest (:meth:`MapSnapshot.reduced`), in place:
-    the animation needs no more, live previews show the newest at full resolution, and memory no
-    longer grows with (snapshots x map size). A caller that steps a filter itself calls this after
-    each new snapshot."""
-    for i in range(len(snapshots) - 1):
-        snapshots[i] = snapshots[i].reduced()
-
-
 def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s: float) -> SlamResult:
     """The :class:`SlamResult` of a filter that has stepped through every message of ``log`` (in
     time order) and been finished: what :func:`run_slam` returns, also for a caller that fed the
-    filter itself, message by message as they arrived. ``started_s`` is the run's
+    filter itself, message by message as they arrived. Only the best particle's map is kept in the
+    filter afterwards (the others are freed): it is not stepped further. ``started_s`` is the run's
     ``time.perf_counter()`` at its start (for the wall time)."""
     warnings = list(log.warnings)
+    grid_memory_bytes = slam.grids.memory_bytes()
+    # from here on only the best particle's map is read: the others' tiles are freed before the back end
+    slam.grids.keep_only(slam.best_particle())
     backend = close_loops(slam.key_frame_path(), [scan.hits_v for scan in slam.key_frame_scans], config.loop_closing,
                           config.grid.resolution_m)
     trajectory = slam.trajectory(backend.poses)
@@ -134,7 +126,7 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
         wall_time_s=time.perf_counter() - started_s,
         peak_memory_bytes=_peak_rss_bytes(),
         warnings=warnings,
-        input_summary={**log.summary(), "grid_memory_bytes": slam.grids.memory_bytes(),
+        input_summary={**log.summary(), "grid_memory_bytes": grid_memory_bytes,
                        "scans_processed": slam.steps_processed, "texture": texture_status,
                        "odometry_calibration": slam.heading_calibration.summary(),
                        "loop_closing": backend.summary()},
