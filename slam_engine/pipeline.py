@@ -9,6 +9,9 @@ A caller that steps a filter itself (messages that arrive over time) collects th
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import functools
 import resource
 import time
 from collections.abc import Callable
@@ -46,6 +49,23 @@ ProgressCallback = Callable[[RunProgress], None]
 def _peak_rss_bytes() -> int:
     """Peak resident memory of this process so far [bytes] (Linux reports KiB)."""
     return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+
+
+def _return_freed_memory() -> None:
+    """Give the pages of freed heap memory back to the system (glibc's ``malloc_trim``): the maps and
+    temporaries of one phase, freed in the middle of the heap, would otherwise stay resident while
+    the next phase allocates anew. Nothing where the C library has no such call."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
+@functools.cache
+def _malloc_trim():
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
 
 
 def _empty_stats() -> ScanStats:
@@ -103,8 +123,10 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     grid_memory_bytes = slam.grids.memory_bytes()
     # from here on only the best particle's map is read: the others' tiles are freed before the back end
     slam.grids.keep_only(slam.best_particle())
+    _return_freed_memory()
     backend = close_loops(slam.key_frame_path(), [scan.hits_v for scan in slam.key_frame_scans], config.loop_closing,
                           config.grid.resolution_m)
+    _return_freed_memory()
     trajectory = slam.trajectory(backend.poses)
     resampled = slam.scan_stats().resampled
     if len(resampled) > 1 and resampled.mean() > 0.9:

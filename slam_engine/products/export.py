@@ -115,6 +115,6 @@ def write_products(result: SlamResult, out_dir: str | Path, geo: GeoOrigin | Non
     report = build_run_report(result, input_summary=input_summary,
                               georeference=georef.describe(),
                               accuracy=accuracy,
-                              products=sorted([*written, "run.json"]))
+                              products=sorted([*written, "run.json"]), rasters=rasters)
     written["run.json"] = write_run_json(report, out / "run.json")
     return written

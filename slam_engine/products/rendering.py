@@ -17,6 +17,7 @@ from slam_engine.result import OccupancyGrid, TextureMap, Trajectory
 OCCUPIED_THRESHOLD = 0.65  # probability above which a cell counts as occupied (also map.yaml)
 FREE_THRESHOLD = 0.196  # probability below which a cell counts as free (also map.yaml)
 UNKNOWN_GRAY = 205  # grey level of never-observed cells (the ROS map_saver convention)
+ROS_OCCUPIED, ROS_FREE, ROS_UNKNOWN = 0, 254, 205  # trinary ROS map values (map_saver)
 TRAJECTORY_RGB = (220, 30, 30)
 REFERENCE_RGB = (30, 90, 230)  # dead reckoning or ground truth
 START_RGB = (20, 160, 40)
@@ -43,12 +44,32 @@ _BAND_ROWS = 256  # rasters are computed this many rows at a time: float64 tempo
 @dataclass(frozen=True)
 class OccupancyRasters:
     """North-up rasters of one grid, computed once for every product that shows it:
-    ``gray`` (H, W) uint8 as :func:`occupancy_gray`; ``probability`` (H, W) float32, -1 where
-    unknown (the GeoTIFF's values; the ROS map's thresholds compare the same on it as on float64:
-    stored log-odds are multiples of 0.01, none near a threshold)."""
+    ``gray`` (H, W) uint8 as :func:`occupancy_gray`; ``trinary`` (H, W) uint8, the ROS map's
+    values (:data:`ROS_OCCUPIED` where the probability as float32 is above
+    :data:`OCCUPIED_THRESHOLD`, :data:`ROS_FREE` below :data:`FREE_THRESHOLD`, else
+    :data:`ROS_UNKNOWN`); and the numbers of known, occupied and free cells (float64
+    probability, for run.json). The GeoTIFF's float32 probability raster is written strip by strip
+    instead (:func:`probability_band`): a float32 raster is 4 bytes a cell."""
 
     gray: np.ndarray
-    probability: np.ndarray
+    trinary: np.ndarray
+    known_cells: int
+    occupied_cells: int
+    free_cells: int
+
+
+def north_up_log_odds(grid: OccupancyGrid, r0: int, r1: int) -> np.ndarray:
+    """North-up rows ``r0..r1`` of the grid's log-odds (a view)."""
+    h = grid.shape[0]
+    return grid.log_odds[h - r1:h - r0][::-1]
+
+
+def probability_band(grid: OccupancyGrid, r0: int, r1: int) -> np.ndarray:
+    """North-up rows ``r0..r1`` of the GeoTIFF's values: float32 probability, -1 where unknown
+    (the same values as from the whole-grid :func:`occupancy_north_up`)."""
+    log_odds = north_up_log_odds(grid, r0, r1)
+    p = 1.0 / (1.0 + np.exp(-log_odds.astype(np.float64)))
+    return np.where(log_odds != 0.0, p, -1.0).astype(np.float32)
 
 
 def occupancy_rasters(grid: OccupancyGrid) -> OccupancyRasters:
@@ -56,15 +77,25 @@ def occupancy_rasters(grid: OccupancyGrid) -> OccupancyRasters:
     each from :func:`occupancy_north_up`, without its full-size float64 temporaries)."""
     h, w = grid.shape
     gray = np.empty((h, w), np.uint8)
-    probability = np.empty((h, w), np.float32)
+    trinary = np.empty((h, w), np.uint8)
+    known_cells = occupied_cells = free_cells = 0
     for r0 in range(0, h, _BAND_ROWS):
         r1 = min(h, r0 + _BAND_ROWS)
-        log_odds = grid.log_odds[h - r1:h - r0][::-1]  # north-up rows r0..r1
+        log_odds = north_up_log_odds(grid, r0, r1)
         known = log_odds != 0.0
         p = 1.0 / (1.0 + np.exp(-log_odds.astype(np.float64)))
         gray[r0:r1] = occupancy_gray(p, known)
-        probability[r0:r1] = np.where(known, p, -1.0)
-    return OccupancyRasters(gray, probability)
+        # the ROS map compares the GeoTIFF's float32 values (stored log-odds are multiples of 0.01,
+        # none near a threshold: the same cells as float64)
+        p32 = np.where(known, p, -1.0).astype(np.float32)
+        band = np.full(p32.shape, ROS_UNKNOWN, np.uint8)
+        band[known & (p32 > OCCUPIED_THRESHOLD)] = ROS_OCCUPIED
+        band[known & (p32 < FREE_THRESHOLD)] = ROS_FREE
+        trinary[r0:r1] = band
+        known_cells += int(np.count_nonzero(known))
+        occupied_cells += int(np.count_nonzero(known & (p > OCCUPIED_THRESHOLD)))
+        free_cells += int(np.count_nonzero(known & (p < FREE_THRESHOLD)))
+    return OccupancyRasters(gray, trinary, known_cells, occupied_cells, free_cells)
 
 
 def occupancy_image(grid: OccupancyGrid) -> Image.Image:
