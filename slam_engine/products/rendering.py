@@ -131,14 +131,67 @@ def occupancy_with_trajectories(grid: OccupancyGrid, trajectory: Trajectory,
     trajectory (red) on top and a green start dot. ``gray``: the grid's grey image when already made
     (:class:`OccupancyRasters`)."""
     image = (occupancy_image(grid) if gray is None else Image.fromarray(gray)).convert("RGB")
-    draw = ImageDraw.Draw(image)
-    for traj, rgb in ((reference, REFERENCE_RGB), (trajectory, TRAJECTORY_RGB)):
+    _draw_trajectories(ImageDraw.Draw(image), grid, trajectory, reference, (REFERENCE_RGB, TRAJECTORY_RGB, START_RGB))
+    return image
+
+
+def _draw_trajectories(draw: ImageDraw.ImageDraw, grid: OccupancyGrid, trajectory: Trajectory,
+                       reference: Trajectory | None, inks: tuple) -> None:
+    """The reference track, the trajectory and the start dot with ``inks`` (reference, trajectory, start)."""
+    for traj, ink in ((reference, inks[0]), (trajectory, inks[1])):
         if traj is not None and len(traj) > 1:
-            draw.line([tuple(p) for p in map_pixels(grid, traj.poses)], fill=rgb, width=1)
+            draw.line([tuple(p) for p in map_pixels(grid, traj.poses)], fill=ink, width=1)
     if len(trajectory):
         c, r = map_pixels(grid, trajectory.poses[:1])[0]
-        draw.ellipse([c - 2, r - 2, c + 2, r + 2], fill=START_RGB)
-    return image
+        draw.ellipse([c - 2, r - 2, c + 2, r + 2], fill=inks[2])
+
+
+def write_occupancy_with_trajectories_png(path, grid: OccupancyGrid, trajectory: Trajectory,
+                                          reference: Trajectory | None, gray: np.ndarray) -> None:
+    """Write :func:`occupancy_with_trajectories` (the same pixels) as an RGB PNG without the RGB image
+    in memory: the tracks are drawn once into a one-byte-a-pixel mask of which ink goes where, and
+    the PNG is encoded a band of rows at a time (zlib level :data:`PNG_COMPRESS_LEVEL`)."""
+    mask = Image.new("L", (gray.shape[1], gray.shape[0]), 0)
+    _draw_trajectories(ImageDraw.Draw(mask), grid, trajectory, reference, (1, 2, 3))
+    inks = np.array([(0, 0, 0), REFERENCE_RGB, TRAJECTORY_RGB, START_RGB], np.uint8)
+    ink = np.asarray(mask)
+
+    def rows():
+        for r0 in range(0, gray.shape[0], _BAND_ROWS):
+            band = np.repeat(gray[r0:r0 + _BAND_ROWS, :, None], 3, axis=2)
+            drawn = ink[r0:r0 + _BAND_ROWS]
+            marked = drawn > 0
+            band[marked] = inks[drawn[marked]]
+            yield band
+
+    write_png_rows(path, gray.shape[1], gray.shape[0], rows())
+
+
+def write_png_rows(path, width: int, height: int, bands) -> None:
+    """Write an 8-bit RGB PNG from ``bands``: (rows, width, 3) uint8 arrays, top to bottom, ``height``
+    rows in all; each row unfiltered, the stream compressed as it is written."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    compressor = zlib.compressobj(PNG_COMPRESS_LEVEL)
+    written = 0
+    with open(path, "wb") as out:
+        out.write(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)))
+        for band in bands:
+            band = np.ascontiguousarray(band, np.uint8).reshape(band.shape[0], width * 3)
+            filtered = np.empty((band.shape[0], width * 3 + 1), np.uint8)
+            filtered[:, 0] = 0  # filter type None
+            filtered[:, 1:] = band
+            written += band.shape[0]
+            data = compressor.compress(filtered.tobytes())
+            if data:
+                out.write(chunk(b"IDAT", data))
+        out.write(chunk(b"IDAT", compressor.flush()) + chunk(b"IEND", b""))
+    if written != height:
+        raise ValueError(f"write_png_rows: {written} rows given for a {height}-row image")
 
 
 def png_bytes(image: Image.Image) -> bytes:
