@@ -230,17 +230,19 @@ class ParticleGrids:
         self.free_stack[: len(free)] = free[::-1]
         self.n_free = len(free)
 
-    def keep_only(self, particle: int) -> None:
-        """Drop every map but particle ``particle``'s: the other tables are emptied and the pool
-        shrinks to that particle's tiles (what reading its map needs once the drive is over)."""
-        table = self.tables[particle]
-        observed = np.flatnonzero(table.ravel() >= 0)
+    def keep_only(self, particle: int | None) -> None:
+        """Drop every map but particle ``particle``'s (None: every map): the other tables are emptied
+        and the pool shrinks to that particle's tiles (what reading its map needs once the drive is
+        over)."""
+        table = self.tables[0] if particle is None else self.tables[particle]
+        observed = np.flatnonzero(table.ravel() >= 0) if particle is not None else np.zeros(0, np.int64)
         tiles = table.ravel()[observed]
         self.levels = [np.ascontiguousarray(lv[tiles]) for lv in self.levels]
         kept = np.full(table.shape, -1, np.int32)
         kept.ravel()[observed] = np.arange(len(tiles), dtype=np.int32)
         self.tables = np.full(self.tables.shape, -1, np.int32)
-        self.tables[particle] = kept
+        if particle is not None:
+            self.tables[particle] = kept
         self.refcount = np.ones(len(tiles), np.int32)
         self.free_stack = np.zeros(0, np.int32)
         self.n_free = 0

@@ -34,6 +34,24 @@ MARGIN = 1.25
 TILE_BYTES = sum((TILE >> k) ** 2 for k in range(N_LEVELS)) * np.dtype(POOL_DTYPE).itemsize
 
 
+def peak_resident_bytes() -> int:
+    """This process's peak resident memory so far [bytes]: the kernel's high-water mark of its own
+    address space (``VmHWM``). Not ``getrusage``'s ``ru_maxrss``: on Linux, a process started by
+    another (fork or vfork, then exec) counts the parent's resident size at that moment into its
+    ``ru_maxrss``, so a small run started from a large process (a long test session) seemed to peak
+    at that process's size. ``ru_maxrss`` only where ``/proc`` is missing."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    import resource
+
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+
+
 def log_array_bytes(log: DriveLog) -> int:
     """Bytes of the log's numpy arrays (every stream's fields)."""
     total = 0

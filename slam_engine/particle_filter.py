@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import overload
 
 import numba
 import numpy as np
@@ -71,6 +73,34 @@ def make_projector(lidar: LidarModel, config: SlamConfig, no_return_bounded: boo
                          g.no_return_stop_short_m)
 
 
+class ProjectedScans(Sequence[ProjectedScan]):
+    """Scans projected by ``projector`` from their ``ranges`` (a list that may still grow), each
+    when it is read: the projection is deterministic, and a drive keeps its ranges (4-8 bytes a beam,
+    usually views into the log) instead of projected end points (about 25 bytes a beam)."""
+
+    def __init__(self, projector: ScanProjector, ranges: list[np.ndarray]):
+        self.projector = projector
+        self.ranges = ranges
+
+    def __len__(self) -> int:
+        return len(self.ranges)
+
+    @overload
+    def __getitem__(self, index: int) -> ProjectedScan: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> list[ProjectedScan]: ...
+
+    def __getitem__(self, index: int | slice) -> ProjectedScan | list[ProjectedScan]:
+        if isinstance(index, slice):
+            return [self.projector.project(r) for r in self.ranges[index]]
+        return self.projector.project(self.ranges[index])
+
+    def __iter__(self) -> Iterator[ProjectedScan]:
+        for r in self.ranges:
+            yield self.projector.project(r)
+
+
 @dataclass
 class _ScanRecord:
     """Where a scan's pose comes from: processed step ``step`` composed with ``offset``."""
@@ -110,8 +140,9 @@ class SlamFilter:
         self._parents: list[np.ndarray] = []
         self._next_parents = np.arange(n)
         self._records: list[_ScanRecord] = []
-        self.key_frame_scans: list[ProjectedScan] = []  # the scan of every processed step (for the back end)
-        self.key_frame_ranges: list[np.ndarray] = []  # its ranges [m]
+        self.key_frame_ranges: list[np.ndarray] = []  # the ranges [m] of every processed step's scan
+        # its projected scan (for the back end), projected again when read
+        self.key_frame_scans = ProjectedScans(self.projector, self.key_frame_ranges)
         self._last_odom: np.ndarray | None = None
         self._last_t_s: float | None = None
         self._pending: ScanMessage | None = None
@@ -199,7 +230,6 @@ class SlamFilter:
 
     def _record_step(self, t_s: float, odom: np.ndarray, projected: ProjectedScan) -> None:
         self._history.append(self.particles.copy())
-        self.key_frame_scans.append(projected)
         self.key_frame_ranges.append(self._ranges_m)
         self._parents.append(self._next_parents)
         self._next_parents = np.arange(self.config.particles)
@@ -359,13 +389,13 @@ class SlamFilter:
         offsets = np.array([r.offset for r in self._records])
         return Trajectory(t_s=np.array([r.t_s for r in self._records]), poses=compose(path[steps], offsets))
 
-    def product_scans(self) -> list[ProjectedScan]:
+    def product_scans(self) -> Sequence[ProjectedScan]:
         """The key frames' scans as the product map takes them: with ``grid.no_return_bounded`` a
         beam without a return clears only up to its bracketing returns (no halo around buildings)."""
         if not self.config.grid.no_return_bounded:
             return self.key_frame_scans
         bounded = make_projector(self.projector.lidar, self.config, no_return_bounded=True)
-        return [bounded.project(r) for r in self.key_frame_ranges]
+        return ProjectedScans(bounded, self.key_frame_ranges)
 
     def best_grid(self) -> OccupancyGrid:
         return self.grids.occupancy_grid(self.best_particle())

@@ -12,7 +12,6 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import functools
-import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -24,6 +23,7 @@ from slam_engine.backend.map_builder import render_occupancy
 from slam_engine.config import SlamConfig
 from slam_engine.drive_log import DriveLog
 from slam_engine.errors import ConfigError
+from slam_engine.memory_estimate import peak_resident_bytes
 from slam_engine.messages import ScanMessage
 from slam_engine.odometry import dead_reckoning, odometry_source
 from slam_engine.particle_filter import SlamFilter
@@ -47,8 +47,8 @@ ProgressCallback = Callable[[RunProgress], None]
 
 
 def _peak_rss_bytes() -> int:
-    """Peak resident memory of this process so far [bytes] (Linux reports KiB)."""
-    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+    """Peak resident memory of this process so far [bytes] (:func:`peak_resident_bytes`)."""
+    return peak_resident_bytes()
 
 
 def _return_freed_memory() -> None:
@@ -110,7 +110,10 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
     slam.finish()
     if progress is not None:
         progress(RunProgress(scans_total, scans_total, time.perf_counter() - start))
-    return filter_result(slam, log, config, start)
+    result = filter_result(slam, log, config, start)
+    del slam
+    _return_freed_memory()
+    return result
 
 
 def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s: float) -> SlamResult:
@@ -133,6 +136,8 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
         warnings.append("the particle set was resampled after almost every scan: the map may be unreliable "
                         "(odometry much worse than the motion noise assumes?)")
     if any(c.accepted for c in backend.closures) or config.grid.no_return_bounded:
+        slam.grids.keep_only(None)  # the product map is re-rendered: no particle's map is read any more
+        _return_freed_memory()
         grid = render_occupancy(slam.product_scans(), backend.poses, slam.projector.origin_v, config.grid)
     else:  # the poses are the best particle's: its own map is the same grid
         grid = slam.best_grid()

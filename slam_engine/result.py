@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 
 SNAPSHOT_MAX_SIDE_CELLS = 800  # a kept snapshot's map is pooled to at most this (what an animation frame shows)
 PREVIEW_MAX_SIDE_CELLS = 2048  # the newest snapshot's map (live previews) is pooled to at most about this
-_POOL_BAND_ROWS = 256  # pool a grid this many output rows at a time: temporaries stay small
+_POOL_BAND_ROWS = 256  # pool a grid about this many input rows at a time: temporaries stay small
 
 
 @dataclass
@@ -74,8 +74,9 @@ class OccupancyGrid:
             return self
         h, w = self.shape
         out = np.zeros((math.ceil(h / factor), math.ceil(w / factor)), np.float32)
-        for r0 in range(0, out.shape[0], _POOL_BAND_ROWS):
-            band = self.log_odds[r0 * factor:(r0 + _POOL_BAND_ROWS) * factor]
+        band_rows = max(1, _POOL_BAND_ROWS // factor)  # output rows a band
+        for r0 in range(0, out.shape[0], band_rows):
+            band = self.log_odds[r0 * factor:(r0 + band_rows) * factor]
             rows = math.ceil(band.shape[0] / factor)
             padded = np.full((rows * factor, out.shape[1] * factor), -np.inf, np.float32)
             padded[:band.shape[0], :w] = np.where(band != 0.0, band, -np.inf)

@@ -16,9 +16,9 @@ REPO = Path(__file__).resolve().parent.parent
 # Maps a short simulated drive and writes every product, in a fresh process; prints the estimate
 # and the process's peak resident memory.
 MEASURE = """
-import json, resource, sys, tempfile
+import json, sys, tempfile
 from slam_engine.config import SlamConfig
-from slam_engine.memory_estimate import estimate_job_memory_bytes
+from slam_engine.memory_estimate import estimate_job_memory_bytes, peak_resident_bytes
 from slam_engine.pipeline import run_slam
 from slam_engine.products import write_products
 from slam_engine.simulation import simulate
@@ -26,7 +26,7 @@ log = simulate("office", seed=1, rig="robot", max_duration_s=20.0).log
 config = SlamConfig(particles=10, snapshot_every_scans=10)
 estimate = estimate_job_memory_bytes(config, log)
 write_products(run_slam(log, config), tempfile.mkdtemp())
-print(json.dumps({"estimate": estimate, "peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
+print(json.dumps({"estimate": estimate, "peak": peak_resident_bytes()}))
 """
 
 

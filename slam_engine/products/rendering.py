@@ -38,7 +38,7 @@ def occupancy_gray(probability: np.ndarray, known: np.ndarray) -> np.ndarray:
     return np.where(known, shade, np.uint8(UNKNOWN_GRAY))
 
 
-_BAND_ROWS = 256  # rasters are computed this many rows at a time: float64 temporaries stay small
+_BAND_ROWS = 64  # rasters are computed this many rows at a time: float64 temporaries stay small
 
 
 @dataclass(frozen=True)
