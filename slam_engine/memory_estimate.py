@@ -20,7 +20,7 @@ Where a run's memory goes (whole process, measured on the benchmark logs):
 
 The map's area is the dead-reckoning track's bounding box grown by the range the map uses; drift
 makes the real area differ, so the estimate errs high on purpose (:data:`MARGIN`; on the benchmark
-logs it is 1.3-2.6x the measured peak).
+logs it is 1.2-2.4x the measured peak).
 """
 
 from __future__ import annotations
