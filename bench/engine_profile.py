@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import statistics
 import subprocess
 import sys
@@ -102,7 +101,9 @@ def run_one(name: str, seed: int, particles: int, overrides: dict, heading_error
     if truth is not None:
         record["ate_m"] = absolute_trajectory_error(result.trajectory, truth)
         record["dr_ate_m"] = absolute_trajectory_error(result.dead_reckoning, truth)
-    record["peak_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    from slam_engine.memory_estimate import peak_resident_bytes
+
+    record["peak_mb"] = peak_resident_bytes() / 2**20
     return record
 
 

@@ -115,7 +115,9 @@ def run_one(case: BenchCase, seed: int, options: BenchOptions, out_dir: Path) ->
             f"exit code {child.returncode}"
         record = {"case": case.name, "log_path": case.log_path, "scored": case.scored, "seed": seed,
                   "particles": options.particles, "status": "error", "error": f"{reason}: {tail}"}
-    record["peak_memory_mb"] = usage.ru_maxrss / 1024.0  # Linux reports KiB
+    # the worker's own high-water mark; wait4's ru_maxrss also counts this process's size when it
+    # started the worker (Linux), which it only falls back on (a worker that failed)
+    record["peak_memory_mb"] = record.pop("peak_process_mb", None) or usage.ru_maxrss / 1024.0  # KiB
     record["process_s"] = process_s
     result_path.write_text(json.dumps(finite_or_none(record), indent=1))
     return record

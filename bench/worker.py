@@ -12,7 +12,6 @@ from __future__ import annotations
 import importlib
 import json
 import math
-import resource
 import sys
 import time
 
@@ -77,6 +76,7 @@ def run_job(job: dict) -> dict:
     from bench.map_quality import map_quality
     from slam_engine.config import SlamConfig
     from slam_engine.evaluation import align_rigid_2d, read_ground_truth, read_relations
+    from slam_engine.memory_estimate import peak_resident_bytes
     from slam_engine.products import write_products
     from slam_engine.products.animation import snapshot_interval
     from slam_engine.products.rendering import occupancy_with_trajectories
@@ -97,7 +97,7 @@ def run_job(job: dict) -> dict:
     ground_truth = read_ground_truth(case["ground_truth_path"]) if case.get("ground_truth_path") else None
 
     run_slam = resolve(job.get("runner") or DEFAULT_RUNNER)
-    peak_before_slam_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+    peak_before_slam_mb = peak_resident_bytes() / 2**20  # this process's own (not ru_maxrss: see there)
     started = time.perf_counter()
     result = run_slam(log, config, rng=np.random.default_rng(seed))
     wall_s = time.perf_counter() - started
@@ -106,7 +106,7 @@ def run_job(job: dict) -> dict:
     write_products(result, out_dir / f"{case['name']}_seed{seed}_products", log=log)
     products_s = time.perf_counter() - started
     # what a user's `lidarmap run` peaks at: the scoring below (bench only) is not part of it
-    peak_run_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak_run_mb = peak_resident_bytes() / 2**20
 
     scans = len(log.scans) if log.scans is not None else 0
     span = log.time_span_s()
@@ -152,6 +152,9 @@ def main(argv: list[str]) -> int:
         return 2
     job = json.loads(Path(argv[0]).read_text())
     record = run_job(job)
+    from slam_engine.memory_estimate import peak_resident_bytes
+
+    record["peak_process_mb"] = peak_resident_bytes() / 2**20  # the whole process, scoring included
     Path(argv[1]).write_text(json.dumps(record, indent=1))
     return 0
 

@@ -37,6 +37,22 @@ LOG_ODDS_UNIT = 0.01  # stored log-odds are integers in these units
 POOL_DTYPE = np.int16
 
 
+POOL_GROWTH_DIVISOR = 8  # the pool grows by 1 / this of its size (at least)
+
+
+def _grown(array: np.ndarray, length: int) -> np.ndarray:
+    """``array`` with its first axis grown to ``length``, new entries 0. An array that owns its
+    memory is resized in place (realloc: a large pool is moved by remapping its pages, never copied,
+    so growing needs no second pool); the pool arrays are only ever passed to kernels for one call,
+    never kept (a view held across a growth would point to freed memory). Otherwise: copied."""
+    if array.flags.owndata and array.base is None:
+        array.resize((length,) + array.shape[1:], refcheck=False)
+        return array
+    grown = np.zeros((length,) + array.shape[1:], array.dtype)
+    grown[: array.shape[0]] = array
+    return grown
+
+
 def quantize_log_odds(value: float) -> int:
     """A log-odds value (increment or clamp) in stored units (nonzero values stay nonzero)."""
     q = int(round(value / LOG_ODDS_UNIT))
@@ -168,13 +184,15 @@ class ParticleGrids:
         self._mark = np.zeros(tables.shape, np.uint8)
 
     def ensure_free(self, n_tiles: int) -> None:
-        """Grow the pool so that ``n_tiles`` tiles can be allocated."""
+        """Grow the pool so that ``n_tiles`` tiles can be allocated: by an eighth at least, in place
+        where possible (the allocator moves the pages instead of copying them: no second pool while
+        growing), so the pool stays within about an eighth of the most tiles the drive ever needed."""
         if self.n_free >= n_tiles:
             return
         old = self.capacity
-        new = max(2 * old, old + n_tiles - self.n_free + 64)
-        self.levels = [np.concatenate([lv, np.zeros((new - old,) + lv.shape[1:], POOL_DTYPE)]) for lv in self.levels]
-        self.refcount = np.concatenate([self.refcount, np.zeros(new - old, np.int32)])
+        new = max(old + old // POOL_GROWTH_DIVISOR, old + n_tiles - self.n_free + 64)
+        self.levels = [_grown(lv, new) for lv in self.levels]
+        self.refcount = _grown(self.refcount, new)
         stack = np.empty(new, np.int32)
         stack[: self.n_free] = self.free_stack[: self.n_free]
         stack[self.n_free: self.n_free + new - old] = np.arange(new - 1, old - 1, -1, dtype=np.int32)
@@ -212,6 +230,23 @@ class ParticleGrids:
         self.free_stack[: len(free)] = free[::-1]
         self.n_free = len(free)
 
+    def keep_only(self, particle: int | None) -> None:
+        """Drop every map but particle ``particle``'s (None: every map): the other tables are emptied
+        and the pool shrinks to that particle's tiles (what reading its map needs once the drive is
+        over)."""
+        table = self.tables[0] if particle is None else self.tables[particle]
+        observed = np.flatnonzero(table.ravel() >= 0) if particle is not None else np.zeros(0, np.int64)
+        tiles = table.ravel()[observed]
+        self.levels = [np.ascontiguousarray(lv[tiles]) for lv in self.levels]
+        kept = np.full(table.shape, -1, np.int32)
+        kept.ravel()[observed] = np.arange(len(tiles), dtype=np.int32)
+        self.tables = np.full(self.tables.shape, -1, np.int32)
+        if particle is not None:
+            self.tables[particle] = kept
+        self.refcount = np.ones(len(tiles), np.int32)
+        self.free_stack = np.zeros(0, np.int32)
+        self.n_free = 0
+
     # --- reporting ------------------------------------------------------------------------
     def tiles_in_use(self) -> int:
         return self.capacity - self.n_free
@@ -221,19 +256,39 @@ class ParticleGrids:
         return int(sum(lv.nbytes for lv in self.levels) + self.refcount.nbytes + self.free_stack.nbytes
                    + self.tables.nbytes + self._mark.nbytes + self._touched.nbytes)
 
-    def occupancy_grid(self, particle: int) -> OccupancyGrid:
-        """Particle ``particle``'s level-0 map as a dense grid cropped to its observed tiles."""
+    def observed_shape(self, particle: int) -> tuple[int, int]:
+        """(rows, cols) of :meth:`occupancy_grid` of ``particle`` at full resolution (without making it)."""
+        rows, cols = np.nonzero(self.tables[particle] >= 0)
+        if len(rows) == 0:
+            return 1, 1
+        return int(rows.max() - rows.min() + 1) * TILE, int(cols.max() - cols.min() + 1) * TILE
+
+    def occupancy_grid(self, particle: int, pool: int = 1) -> OccupancyGrid:
+        """Particle ``particle``'s level-0 map as a dense float32 grid cropped to its observed tiles;
+        with ``pool`` > 1, that grid pooled by ``pool`` (:meth:`OccupancyGrid.pooled`), built a few
+        tile rows at a time so that the full-resolution grid never exists."""
         table = self.tables[particle]
         rows, cols = np.nonzero(table >= 0)
         if len(rows) == 0:
             return OccupancyGrid(np.zeros((1, 1), np.float32), self.resolution_m, 0.0, 0.0)
         r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
-        out = np.zeros(((r1 - r0) * TILE, (c1 - c0) * TILE), POOL_DTYPE)
-        for r, c in zip(rows, cols, strict=True):
-            out[(r - r0) * TILE:(r - r0 + 1) * TILE, (c - c0) * TILE:(c - c0 + 1) * TILE] = self.levels[0][table[r, c]]
-        return OccupancyGrid(
-            log_odds=out.astype(np.float32) / np.float32(1.0 / LOG_ODDS_UNIT),
-            resolution_m=self.resolution_m,
-            origin_x_m=float((self.tile_x0 + c0) * self.tile_size_m),
-            origin_y_m=float((self.tile_y0 + r0) * self.tile_size_m),
-        )
+        origin_x = float((self.tile_x0 + c0) * self.tile_size_m)
+        origin_y = float((self.tile_y0 + r0) * self.tile_size_m)
+        pool = max(1, int(pool))
+        # a band of `pool` tile rows pools to whole blocks (TILE rows): bands pool independently
+        band_tiles = r1 - r0 if pool == 1 else pool
+        scale = np.float32(1.0 / LOG_ODDS_UNIT)
+        bands = []
+        for b0 in range(r0, r1, band_tiles):
+            b1 = min(r1, b0 + band_tiles)
+            band = np.zeros(((b1 - b0) * TILE, (c1 - c0) * TILE), np.float32)
+            for r in range(b0, b1):
+                for c in np.flatnonzero(table[r, c0:c1] >= 0):
+                    tile = self.levels[0][table[r, c0 + c]]
+                    # the same float32 values as converting the whole int16 grid, then dividing
+                    np.divide(tile, scale, out=band[(r - b0) * TILE:(r - b0 + 1) * TILE, c * TILE:(c + 1) * TILE],
+                              dtype=np.float32)
+            if pool == 1:
+                return OccupancyGrid(band, self.resolution_m, origin_x, origin_y)
+            bands.append(OccupancyGrid(band, self.resolution_m, origin_x, origin_y).pooled(pool).log_odds)
+        return OccupancyGrid(np.concatenate(bands), self.resolution_m * pool, origin_x, origin_y)

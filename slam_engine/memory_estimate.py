@@ -1,18 +1,26 @@
 """A job's peak memory, estimated from its configuration and log before it runs (so that a service
-can refuse or bound a job it cannot hold).
+can refuse or bound a job it cannot hold), and the measured peak (:func:`peak_resident_bytes`).
 
 Where a run's memory goes (whole process, measured on the benchmark logs):
 
-- the imported libraries (numba/llvmlite, numpy, scipy, pydantic, Pillow, tifffile): ~130 MB, and
-  the numba kernels loaded from the cache: ~65 MB;
+- the interpreter and the libraries the front end needs (numpy, numba/llvmlite, pydantic): ~115 MB,
+  numba's compiler context and the kernels loaded from the cache: ~70 MB. The back end's GTSAM and
+  scipy.sparse (~60 MB) and the products' libraries are imported when first used, after the front
+  end's peak; OpenCV, pyproj and Open3D only for camera data, geo origins and tilted LiDARs;
 - the log: its arrays, plus the parser's temporaries while loading (about 3x the arrays);
-- the map: the particles' copy-on-write tile pool (the area seen, times the fraction of tiles
-  particles hold privately), the per-particle tile tables, the best particle's dense grid
-  (float32) and the products rendered from it (grey, RGB, probability rasters: ~12 bytes a cell);
-- the newest full-resolution map snapshot (older ones are pooled to <= 800 cells a side).
+- per scan: the key frames' ranges (the log's own rows), the back end's end points and the
+  trajectories (:data:`SCAN_BYTES_PER_BEAM` a beam, an upper bound);
+- the particles' copy-on-write tile pool: the tiles of the area seen, plus the tiles each particle
+  holds privately (touched since its map diverged: up to about :data:`PRIVATE_TILES_PER_PARTICLE`,
+  fewer on a small map), with a quarter of slack as the pool grows; the per-particle tile tables;
+- the product map: the final grid (float32) and, while the products are written, its grey, ROS
+  and track-mask rasters (one byte a cell each; the GeoTIFF and the PNG with the tracks are
+  streamed), and the product map's own single-particle tiles: :data:`DENSE_BYTES_PER_CELL`;
+- snapshots: the newest pooled to <= 2048 cells a side, older ones compressed (a few MB).
 
 The map's area is the dead-reckoning track's bounding box grown by the range the map uses; drift
-makes the real area differ, so the estimate errs high on purpose (:data:`MARGIN`).
+makes the real area differ, so the estimate errs high on purpose (:data:`MARGIN`; on the benchmark
+logs it is 1.2-2.4x the measured peak).
 """
 
 from __future__ import annotations
@@ -21,17 +29,36 @@ import numpy as np
 
 from slam_engine.config import SlamConfig
 from slam_engine.drive_log import DriveLog
-from slam_engine.grid import N_LEVELS, POOL_DTYPE, TILE
+from slam_engine.grid import N_LEVELS, POOL_DTYPE, POOL_GROWTH_DIVISOR, TILE
 
-# interpreter, imports (~130 MB; GTSAM and scipy.sparse for the back end), numba kernels (~65 MB loaded; more
-# while compiling). A tiny run measured 320-410 MB in a clean process but 770 MB inside the full test session
-# (cause not found): the base covers the larger figure.
-BASE_BYTES = 650 * 1024**2
+# interpreter, libraries, numba's compiler context and kernels: a short simulated run (10 particles)
+# peaked at 211 MB in a fresh process (its own high-water mark: see peak_resident_bytes)
+BASE_BYTES = 200 * 1024**2
 LOG_LOAD_FACTOR = 3.0  # peak while loading / the log's arrays
-DENSE_BYTES_PER_CELL = 4 + 4 + 12  # final grid float32 + newest snapshot float32 + product rasters
-PRIVATE_TILE_FRACTION = 0.03  # per particle: private tiles beyond the shared map (pool ~1.8x the area at 30)
+SCAN_BYTES_PER_BEAM = 48  # key frames, the back end's end points (float64 x, y, and their copies)
+DENSE_BYTES_PER_CELL = 4 + 3 + 3  # final grid float32 + product rasters + the product map's tiles
+PRIVATE_TILES_PER_PARTICLE = 256  # intel: 7 610 tiles in use at most with 30 particles on a 169-tile map
+POOL_SLACK = 1.0 + 1.0 / POOL_GROWTH_DIVISOR
 MARGIN = 1.25
 TILE_BYTES = sum((TILE >> k) ** 2 for k in range(N_LEVELS)) * np.dtype(POOL_DTYPE).itemsize
+
+
+def peak_resident_bytes() -> int:
+    """This process's peak resident memory so far [bytes]: the kernel's high-water mark of its own
+    address space (``VmHWM``). Not ``getrusage``'s ``ru_maxrss``: on Linux, a process started by
+    another (fork or vfork, then exec) counts the parent's resident size at that moment into its
+    ``ru_maxrss``, so a small run started from a large process (a long test session) seemed to peak
+    at that process's size. ``ru_maxrss`` only where ``/proc`` is missing."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    import resource
+
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
 
 
 def log_array_bytes(log: DriveLog) -> int:
@@ -74,8 +101,11 @@ def estimate_job_memory_bytes(config: SlamConfig, log: DriveLog) -> int:
     res = config.grid.resolution_m
     cells = (width_m / res) * (height_m / res)
     tiles = cells / TILE**2
-    pool = tiles * (1.0 + PRIVATE_TILE_FRACTION * config.particles) * TILE_BYTES
+    private = config.particles * min(tiles, PRIVATE_TILES_PER_PARTICLE)
+    pool = (tiles + private) * TILE_BYTES * POOL_SLACK
     tables = tiles * config.particles * 5  # int32 table + uint8 marks per particle
     dense = cells * DENSE_BYTES_PER_CELL
-    total = BASE_BYTES + LOG_LOAD_FACTOR * log_array_bytes(log) + pool + tables + dense
+    beams = 0 if log.scans is None else int(np.asarray(log.scans.ranges_m).size)
+    total = (BASE_BYTES + LOG_LOAD_FACTOR * log_array_bytes(log) + SCAN_BYTES_PER_BEAM * beams + pool + tables
+             + dense)
     return int(MARGIN * total)

@@ -21,7 +21,9 @@ from __future__ import annotations
 import os
 import time
 from collections import deque
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import overload
 
 import numba
 import numpy as np
@@ -38,7 +40,7 @@ from slam_engine.odometry import OdometryIntegrator, make_integrator
 from slam_engine.poses import compose, relative, wrap_angle
 from slam_engine.raycast import insert_scan
 from slam_engine.resampling import low_variance_resample, n_eff, normalize_log_weights
-from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, Trajectory
+from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, Trajectory, preview_pool_factor
 from slam_engine.scan_matcher import ScanMatcher
 from slam_engine.time_offset import OdometryHistory, TimeOffsetEstimator, beam_time_offsets_s, matched_turn, sweep_poses
 
@@ -73,6 +75,36 @@ def make_projector(lidar: LidarModel, config: SlamConfig, no_return_bounded: boo
     return ScanProjector(lidar, g.max_range_m, config.lidar_filter.ground_z_m, config.lidar_filter.ceiling_z_m,
                          g.resolution_m, g.no_return_clear_m, g.no_return_min_sensor_range_m, no_return_bounded,
                          g.no_return_stop_short_m)
+
+
+class ProjectedScans(Sequence[ProjectedScan]):
+    """Scans projected by ``projector`` from their ``ranges`` (a list that may still grow) and de-skew
+    ``sweeps`` (a list beside it), each when it is read: the projection is deterministic, and a drive
+    keeps its ranges (4-8 bytes a beam, usually views into the log) instead of projected end points
+    (about 25 bytes a beam)."""
+
+    def __init__(self, projector: ScanProjector, ranges: list[np.ndarray], sweeps: list[np.ndarray | None]):
+        self.projector = projector
+        self.ranges = ranges
+        self.sweeps = sweeps  # per scan: its beams' de-skew poses, or None
+
+    def __len__(self) -> int:
+        return len(self.ranges)
+
+    @overload
+    def __getitem__(self, index: int) -> ProjectedScan: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> list[ProjectedScan]: ...
+
+    def __getitem__(self, index: int | slice) -> ProjectedScan | list[ProjectedScan]:
+        if isinstance(index, slice):
+            return [self.projector.project(r, p) for r, p in zip(self.ranges[index], self.sweeps[index], strict=True)]
+        return self.projector.project(self.ranges[index], self.sweeps[index])
+
+    def __iter__(self) -> Iterator[ProjectedScan]:
+        for r, p in zip(self.ranges, self.sweeps, strict=True):
+            yield self.projector.project(r, p)
 
 
 @dataclass
@@ -123,10 +155,11 @@ class SlamFilter:
         self._parents: list[np.ndarray] = []
         self._next_parents = np.arange(n)
         self._records: list[_ScanRecord] = []
-        self.key_frame_scans: list[ProjectedScan] = []  # the scan of every processed step (for the back end)
-        self.key_frame_ranges: list[np.ndarray] = []  # its ranges [m]
-        self.key_frame_odometry: list[np.ndarray] = []  # the odometry pose at it (uncorrected)
+        self.key_frame_ranges: list[np.ndarray] = []  # the ranges [m] of every processed step's scan
         self.key_frame_sweeps: list[np.ndarray | None] = []  # its beams' de-skew poses (None: not de-skewed)
+        # its projected scan (for the back end), projected again when read
+        self.key_frame_scans = ProjectedScans(self.projector, self.key_frame_ranges, self.key_frame_sweeps)
+        self.key_frame_odometry: list[np.ndarray] = []  # the odometry pose at it (uncorrected)
         self._last_odom: np.ndarray | None = None
         self._last_odom_offset_s = 0.0  # the time offset _last_odom was taken with
         self._last_t_s: float | None = None
@@ -216,8 +249,10 @@ class SlamFilter:
         self._stats[-1] = self._stats[-1][:5] + (time.perf_counter() - start,)
         every = self.config.snapshot_every_scans
         if every and self.steps_processed % every == 0:
+            if self.snapshots:  # kept for the animation: a frame's size is enough
+                self.snapshots[-1] = self.snapshots[-1].reduced()
             self.snapshots.append(MapSnapshot(scan_index=len(self._records) - 1, t_s=scan.t_s,
-                                              grid=self.best_grid(), trajectory=self.trajectory()))
+                                              grid=self.preview_grid(), trajectory=self.trajectory()))
 
     def _due(self, t_s: float, odom: np.ndarray) -> bool:
         s = self.config.scheduling
@@ -237,7 +272,6 @@ class SlamFilter:
 
     def _record_step(self, t_s: float, odom: np.ndarray, projected: ProjectedScan) -> None:
         self._history.append(self.particles.copy())
-        self.key_frame_scans.append(projected)
         self.key_frame_odometry.append(np.asarray(odom, np.float64).copy())
         self.key_frame_ranges.append(self._ranges_m)
         self.key_frame_sweeps.append(self._beam_poses)
@@ -406,16 +440,23 @@ class SlamFilter:
         offsets = np.array([r.offset for r in self._records])
         return Trajectory(t_s=np.array([r.t_s for r in self._records]), poses=compose(path[steps], offsets))
 
-    def product_scans(self) -> list[ProjectedScan]:
+    def product_scans(self) -> Sequence[ProjectedScan]:
         """The key frames' scans as the product map takes them: with ``grid.no_return_bounded`` a
         beam without a return clears only up to its bracketing returns (no halo around buildings)."""
         if not self.config.grid.no_return_bounded:
             return self.key_frame_scans
         bounded = make_projector(self.projector.lidar, self.config, no_return_bounded=True)
-        return [bounded.project(r, p) for r, p in zip(self.key_frame_ranges, self.key_frame_sweeps, strict=True)]
+        return ProjectedScans(bounded, self.key_frame_ranges, self.key_frame_sweeps)
 
     def best_grid(self) -> OccupancyGrid:
         return self.grids.occupancy_grid(self.best_particle())
+
+    def preview_grid(self) -> OccupancyGrid:
+        """The best particle's map pooled to at most about ``PREVIEW_MAX_SIDE_CELLS`` a side (what a
+        live preview shows; the full map of a long drive would be hundreds of MB), built without
+        the full-resolution grid."""
+        best = self.best_particle()
+        return self.grids.occupancy_grid(best, pool=preview_pool_factor(max(self.grids.observed_shape(best))))
 
     def scan_stats(self) -> ScanStats:
         rows = self._stats

@@ -9,7 +9,9 @@ A caller that steps a filter itself (messages that arrive over time) collects th
 
 from __future__ import annotations
 
-import resource
+import ctypes
+import ctypes.util
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -22,6 +24,7 @@ from slam_engine.backend.odometry_smoothing import estimate_noise, smooth_with_o
 from slam_engine.config import SlamConfig
 from slam_engine.drive_log import DriveLog
 from slam_engine.errors import ConfigError
+from slam_engine.memory_estimate import peak_resident_bytes
 from slam_engine.messages import ScanMessage
 from slam_engine.odometry import dead_reckoning, odometry_source
 from slam_engine.particle_filter import SlamFilter
@@ -32,7 +35,8 @@ from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, SlamResult
 class RunProgress:
     """Progress of a run: scans handled so far, scans in the log, seconds since the start, and the
     newest map snapshot kept so far (``config.snapshot_every_scans``; None before the first), for live
-    previews."""
+    previews (its map pooled to at most about ``PREVIEW_MAX_SIDE_CELLS`` a side; older snapshots are
+    pooled further, to an animation frame's size)."""
 
     scans_done: int
     scans_total: int
@@ -44,8 +48,25 @@ ProgressCallback = Callable[[RunProgress], None]
 
 
 def _peak_rss_bytes() -> int:
-    """Peak resident memory of this process so far [bytes] (Linux reports KiB)."""
-    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+    """Peak resident memory of this process so far [bytes] (:func:`peak_resident_bytes`)."""
+    return peak_resident_bytes()
+
+
+def _return_freed_memory() -> None:
+    """Give the pages of freed heap memory back to the system (glibc's ``malloc_trim``): the maps and
+    temporaries of one phase, freed in the middle of the heap, would otherwise stay resident while
+    the next phase allocates anew. Nothing where the C library has no such call."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
+@functools.cache
+def _malloc_trim():
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
 
 
 def _empty_stats() -> ScanStats:
@@ -82,39 +103,35 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
     slam = SlamFilter.from_log(log, config, rng)
     odometry_only = DriveLog(vehicle=log.vehicle, encoders=log.encoders, gyro=log.gyro, odometry=log.odometry,
                              scans=log.scans)
-    kept = 0
     for message in odometry_only.messages():
         slam.step(message)
-        if len(slam.snapshots) != kept:
-            kept = len(slam.snapshots)
-            reduce_older_snapshots(slam.snapshots)
         if progress is not None and isinstance(message, ScanMessage):
             progress(RunProgress(slam.scans_seen, scans_total, time.perf_counter() - start,
                                  slam.snapshots[-1] if slam.snapshots else None))
     slam.finish()
     if progress is not None:
         progress(RunProgress(scans_total, scans_total, time.perf_counter() - start))
-    return filter_result(slam, log, config, start)
-
-
-def reduce_older_snapshots(snapshots: list[MapSnapshot]) -> None:
-    """Pool the maps of every kept snapshot but the newest (:meth:`MapSnapshot.reduced`), in place:
-    the animation needs no more, live previews show the newest at full resolution, and memory no
-    longer grows with (snapshots x map size). A caller that steps a filter itself calls this after
-    each new snapshot."""
-    for i in range(len(snapshots) - 1):
-        snapshots[i] = snapshots[i].reduced()
+    result = filter_result(slam, log, config, start)
+    del slam
+    _return_freed_memory()
+    return result
 
 
 def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s: float) -> SlamResult:
     """The :class:`SlamResult` of a filter that has stepped through every message of ``log`` (in
     time order) and been finished: what :func:`run_slam` returns, also for a caller that fed the
-    filter itself, message by message as they arrived. ``started_s`` is the run's
+    filter itself, message by message as they arrived. Only the best particle's map is kept in the
+    filter afterwards (the others are freed): it is not stepped further. ``started_s`` is the run's
     ``time.perf_counter()`` at its start (for the wall time)."""
     warnings = list(log.warnings)
+    grid_memory_bytes = slam.grids.memory_bytes()
+    # from here on only the best particle's map is read: the others' tiles are freed before the back end
+    slam.grids.keep_only(slam.best_particle())
+    _return_freed_memory()
     front_end_path = slam.key_frame_path()
     backend = close_loops(front_end_path, [scan.hits_v for scan in slam.key_frame_scans], config.loop_closing,
                           config.grid.resolution_m)
+    _return_freed_memory()
     key_frames, smoothing = _keep_odometry_precision(front_end_path, backend.poses, slam.key_frame_odometry,
                                                      config)
     trajectory = slam.trajectory(key_frames)
@@ -123,6 +140,8 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
         warnings.append("the particle set was resampled after almost every scan: the map may be unreliable "
                         "(odometry much worse than the motion noise assumes?)")
     if any(c.accepted for c in backend.closures) or config.grid.no_return_bounded or smoothing.get("applied"):
+        slam.grids.keep_only(None)  # the product map is re-rendered: no particle's map is read any more
+        _return_freed_memory()
         grid = render_occupancy(slam.product_scans(), key_frames, slam.projector.origin_v, config.grid)
     else:  # the poses are the best particle's: its own map is the same grid
         grid = slam.best_grid()
@@ -138,7 +157,7 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
         wall_time_s=time.perf_counter() - started_s,
         peak_memory_bytes=_peak_rss_bytes(),
         warnings=warnings,
-        input_summary={**log.summary(), "grid_memory_bytes": slam.grids.memory_bytes(),
+        input_summary={**log.summary(), "grid_memory_bytes": grid_memory_bytes,
                        "scans_processed": slam.steps_processed, "texture": texture_status,
                        "odometry_calibration": slam.heading_calibration.summary(),
                        "time_offset": _time_offset_summary(slam, log, config),

@@ -9,6 +9,7 @@ so row index grows with y (north up means flipping rows for an image).
 from __future__ import annotations
 
 import math
+import zlib
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -18,7 +19,8 @@ if TYPE_CHECKING:
     from slam_engine.config import SlamConfig
 
 SNAPSHOT_MAX_SIDE_CELLS = 800  # a kept snapshot's map is pooled to at most this (what an animation frame shows)
-_POOL_BAND_ROWS = 256  # pool a grid this many output rows at a time: temporaries stay small
+PREVIEW_MAX_SIDE_CELLS = 2048  # the newest snapshot's map (live previews) is pooled to at most about this
+_POOL_BAND_ROWS = 256  # pool a grid about this many input rows at a time: temporaries stay small
 
 
 @dataclass
@@ -72,14 +74,41 @@ class OccupancyGrid:
             return self
         h, w = self.shape
         out = np.zeros((math.ceil(h / factor), math.ceil(w / factor)), np.float32)
-        for r0 in range(0, out.shape[0], _POOL_BAND_ROWS):
-            band = self.log_odds[r0 * factor:(r0 + _POOL_BAND_ROWS) * factor]
+        band_rows = max(1, _POOL_BAND_ROWS // factor)  # output rows a band
+        for r0 in range(0, out.shape[0], band_rows):
+            band = self.log_odds[r0 * factor:(r0 + band_rows) * factor]
             rows = math.ceil(band.shape[0] / factor)
             padded = np.full((rows * factor, out.shape[1] * factor), -np.inf, np.float32)
             padded[:band.shape[0], :w] = np.where(band != 0.0, band, -np.inf)
             block_max = padded.reshape(rows, factor, out.shape[1], factor).max(axis=(1, 3))
             out[r0:r0 + rows] = np.where(np.isfinite(block_max), block_max, 0.0)
         return OccupancyGrid(out, self.resolution_m * factor, self.origin_x_m, self.origin_y_m)
+
+
+class CompactGrid(OccupancyGrid):
+    """An :class:`OccupancyGrid` kept zlib-compressed (its float32 values, losslessly: maps are mostly
+    large flat areas, a tenth of the size or less); ``log_odds`` is decompressed on each access, a
+    read-only array. What a run keeps of its older snapshots."""
+
+    def __init__(self, grid: OccupancyGrid):
+        values = np.ascontiguousarray(grid.log_odds, np.float32)
+        self._shape: tuple[int, int] = (int(values.shape[0]), int(values.shape[1]))
+        self._packed = zlib.compress(values.tobytes(), 1)
+        self.resolution_m = grid.resolution_m
+        self.origin_x_m = grid.origin_x_m
+        self.origin_y_m = grid.origin_y_m
+
+    @property
+    def log_odds(self) -> np.ndarray:  # type: ignore[override]  # read-only here
+        return np.frombuffer(zlib.decompress(self._packed), np.float32).reshape(self._shape)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self._shape
+
+    @property
+    def packed_bytes(self) -> int:
+        return len(self._packed)
 
 
 @dataclass
@@ -118,11 +147,24 @@ class MapSnapshot:
 
     def reduced(self, max_side_cells: int = SNAPSHOT_MAX_SIDE_CELLS) -> MapSnapshot:
         """This snapshot with its map pooled (:meth:`OccupancyGrid.pooled`) to at most
-        ``max_side_cells`` cells on the longer side; itself when that small already."""
+        ``max_side_cells`` cells on the longer side and kept compressed (:class:`CompactGrid`);
+        itself when that already."""
         factor = math.ceil(max(self.grid.shape) / max_side_cells)
-        if factor <= 1:
+        if factor <= 1 and isinstance(self.grid, CompactGrid):
             return self
-        return MapSnapshot(self.scan_index, self.t_s, self.grid.pooled(factor), self.trajectory)
+        return MapSnapshot(self.scan_index, self.t_s, CompactGrid(self.grid.pooled(factor)), self.trajectory)
+
+
+def preview_pool_factor(side_cells: int, max_side_cells: int = PREVIEW_MAX_SIDE_CELLS) -> int:
+    """The pool factor of the newest snapshot's map, whose full-resolution map is ``side_cells`` on
+    its longer side: the smallest that brings it to ``max_side_cells`` among the divisors of the
+    factor :meth:`MapSnapshot.reduced` applies to the full map, so that reducing the pooled map later
+    gives exactly the reduced full map (pooling by f, then by F / f, is pooling by F)."""
+    final = max(1, math.ceil(side_cells / SNAPSHOT_MAX_SIDE_CELLS))
+    for factor in range(1, final + 1):
+        if final % factor == 0 and math.ceil(side_cells / factor) <= max_side_cells:
+            return factor
+    return final
 
 
 @dataclass

@@ -125,7 +125,7 @@ class LiveRun:
         if len(trajectory) == 0:
             return None
         return MapSnapshot(scan_index=len(trajectory) - 1, t_s=float(trajectory.t_s[-1]),
-                           grid=self.slam.best_grid(), trajectory=trajectory)
+                           grid=self.slam.preview_grid(), trajectory=trajectory)
 
     def result(self, started_s: float) -> tuple[SlamResult, DriveLog]:
         """Finish the filter and collect the run's result over every message fed."""

@@ -24,16 +24,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import dijkstra
 
 from slam_engine.backend.correlative import MatchGrid, refine_pose, search
 from slam_engine.backend.pose_graph import PoseGraph
 from slam_engine.backend.submaps import SubmapGrids, split_into_submaps
 from slam_engine.config import LoopClosingConfig
 from slam_engine.poses import compose, relative, wrap_angle
+
+if TYPE_CHECKING:  # scipy.sparse (~25 MB) is imported by the back end itself, after the front end's peak
+    from scipy.sparse import csr_matrix
 
 # how much drift an accepted closure leaves between the key frames it joins, in metres of travel
 CLOSURE_TRAVEL_M = 1.0
@@ -184,6 +186,9 @@ class LoopCloser:
         """(K,) how much drive separates key frame k from every other in the graph so far [m]: the
         shortest path over front-end motions (their travel) and accepted closures (each worth
         ``CLOSURE_TRAVEL_M``). Drift, and so the search window, grows with it."""
+        from scipy.sparse import csr_matrix
+        from scipy.sparse.csgraph import dijkstra
+
         if self._links_matrix is None or self._links_matrix[0] != len(self._closure_links):
             n = len(self.path)
             step = np.maximum(np.diff(self.travel_m), 1e-3)

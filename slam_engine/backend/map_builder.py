@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from slam_engine.config import GridConfig
@@ -11,7 +13,7 @@ from slam_engine.raycast import insert_scan
 from slam_engine.result import OccupancyGrid
 
 
-def render_occupancy(scans: list[ProjectedScan], poses: np.ndarray, origin_v: np.ndarray, grid: GridConfig
+def render_occupancy(scans: Sequence[ProjectedScan], poses: np.ndarray, origin_v: np.ndarray, grid: GridConfig
                      ) -> OccupancyGrid:
     """Log-odds grid of every scan in ``scans`` inserted at its vehicle pose ``poses`` (K, 3, world
     frame); ``origin_v`` (2,) is the LiDAR's position in the vehicle frame [m]."""

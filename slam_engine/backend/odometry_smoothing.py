@@ -21,9 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import gtsam
 import numpy as np
-from scipy.optimize import nnls
 
 from slam_engine.poses import relative, wrap_angle
 
@@ -64,6 +62,8 @@ def _fit_growth(lags: np.ndarray, variances: np.ndarray) -> tuple[float, float]:
     """Fixed part a and growth per step b (both >= 0) of variance = a + b L: non-negative least
     squares on relative errors. Systematic drift (the front end's map bending, the odometry's bias)
     also grows and is counted as odometry noise: the odometry is trusted less, never more."""
+    from scipy.optimize import nnls  # imported on first use, like GTSAM: after the front end's peak
+
     A = np.stack([np.ones_like(lags), lags], axis=1) / variances[:, None]
     (a, b), _ = nnls(A, np.ones_like(lags))
     return float(a), float(b)
@@ -100,6 +100,8 @@ def estimate_noise(path: np.ndarray, odometry: np.ndarray) -> NoiseEstimate | No
 def smooth_with_odometry(poses: np.ndarray, odometry: np.ndarray, noise: NoiseEstimate) -> np.ndarray:
     """Key-frame ``poses`` (K, 3, world) held with the match noise and tied in sequence by the
     odometry's increments (``odometry`` (K, 3)) with the odometry noise: the least-squares poses."""
+    import gtsam
+
     poses = np.asarray(poses, np.float64)
     steps = relative(odometry[:-1], odometry[1:])
     graph = gtsam.NonlinearFactorGraph()

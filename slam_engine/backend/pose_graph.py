@@ -10,7 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-import gtsam
 import numpy as np
 
 
@@ -49,6 +48,8 @@ class PoseGraph:
         """Optimised poses of nodes ``0..nodes-1`` (default all; edges reaching beyond are left out),
         starting from ``estimate`` (default the initial guess); ``robust`` False treats every edge by
         least squares (a verified closure far from the guess then pulls instead of being ignored)."""
+        import gtsam  # imported when first needed: ~40 MB that a run closing no loop never uses
+
         start = self.initial if estimate is None else np.asarray(estimate, np.float64)
         n = len(start) if nodes is None else int(nodes)
         graph = gtsam.NonlinearFactorGraph()

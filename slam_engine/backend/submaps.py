@@ -100,16 +100,19 @@ def match_grid_from_points(points_m: np.ndarray, resolution_m: float, margin_m: 
 
 class SubmapGrids:
     """Match grids of submaps, built when first asked for and kept for the ``keep`` most recently
-    used. ``poses`` are the front end's key-frame poses (only relative poses within a submap matter)."""
+    used, as long as they hold at most ``keep_bytes`` together (the newest is always kept; a grid
+    with its pyramid is a few MB). ``poses`` are the front end's key-frame poses (only relative
+    poses within a submap matter)."""
 
     def __init__(self, submaps: list[Submap], poses: np.ndarray, points_v: list[np.ndarray], resolution_m: float,
-                 margin_m: float, keep: int = 8):
+                 margin_m: float, keep: int = 8, keep_bytes: int = 16 * 1024**2):
         self.submaps = submaps
         self.poses = poses
         self.points_v = points_v
         self.resolution_m = resolution_m
         self.margin_m = margin_m
         self.keep = keep
+        self.keep_bytes = keep_bytes
         self._cache: OrderedDict[int, MatchGrid | None] = OrderedDict()
 
     def grid(self, index: int) -> MatchGrid | None:
@@ -120,9 +123,13 @@ class SubmapGrids:
         pts = submap_points(self.submaps[index], self.poses, self.points_v)
         grid = match_grid_from_points(pts, self.resolution_m, self.margin_m) if len(pts) else None
         self._cache[index] = grid
-        if len(self._cache) > self.keep:
+        while len(self._cache) > 1 and (len(self._cache) > self.keep or self.cached_bytes() > self.keep_bytes):
             self._cache.popitem(last=False)
         return grid
+
+    def cached_bytes(self) -> int:
+        """Bytes of the grids kept (values and pyramids)."""
+        return sum(g.values.nbytes + g.pyramid.nbytes for g in self._cache.values() if g is not None)
 
 
 def node_in_submap_frame(anchor_pose: np.ndarray, node_pose: np.ndarray) -> np.ndarray:

@@ -28,8 +28,8 @@ from slam_engine.products.geotiff import write_occupancy_geotiff, write_texture_
 from slam_engine.products.rendering import (
     PNG_COMPRESS_LEVEL,
     occupancy_rasters,
-    occupancy_with_trajectories,
     texture_image,
+    write_occupancy_with_trajectories_png,
 )
 from slam_engine.products.ros_map import write_ros_map
 from slam_engine.products.run_report import build_run_report, to_jsonable, write_run_json
@@ -97,8 +97,9 @@ def write_products(result: SlamResult, out_dir: str | Path, geo: GeoOrigin | Non
                                                            frame=MAP_FRAME, config=config)
     rasters = occupancy_rasters(result.grid)  # rendered once for the PNGs, the GeoTIFF and the ROS map
     save_image(Image.fromarray(rasters.gray), "occupancy.png", "PNG")
-    save_image(occupancy_with_trajectories(result.grid, result.trajectory, result.dead_reckoning, rasters.gray),
-               "occupancy_trajectory.png", "PNG")
+    with atomic_path(out / "occupancy_trajectory.png") as tmp:  # streamed: no RGB image of the whole map
+        write_occupancy_with_trajectories_png(tmp, result.grid, result.trajectory, result.dead_reckoning, rasters.gray)
+    written["occupancy_trajectory.png"] = out / "occupancy_trajectory.png"
     written["occupancy.tif"] = write_occupancy_geotiff(result.grid, out / "occupancy.tif", georef, rasters=rasters)
     pgm, yaml_path = write_ros_map(result.grid, out, "map", rasters=rasters)
     written[pgm.name], written[yaml_path.name] = pgm, yaml_path
@@ -115,6 +116,6 @@ def write_products(result: SlamResult, out_dir: str | Path, geo: GeoOrigin | Non
     report = build_run_report(result, input_summary=input_summary,
                               georeference=georef.describe(),
                               accuracy=accuracy,
-                              products=sorted([*written, "run.json"]))
+                              products=sorted([*written, "run.json"]), rasters=rasters)
     written["run.json"] = write_run_json(report, out / "run.json")
     return written

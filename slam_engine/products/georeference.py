@@ -15,13 +15,14 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from pyproj import CRS, Geod, Transformer
-from pyproj.aoi import AreaOfInterest
-from pyproj.database import query_utm_crs_info
 
 from slam_engine.errors import ConfigError
+
+if TYPE_CHECKING:  # pyproj (~12 MB) is imported only where a geo origin is given
+    from pyproj import Transformer
 
 LOCAL_CRS_NAME = "lidarmap local map frame"
 WEB_MERCATOR_EPSG = 3857
@@ -66,6 +67,8 @@ class Georeference:
     @classmethod
     def utm(cls, origin: GeoOrigin, start_pose: np.ndarray) -> Georeference:
         """UTM placement given the geo origin of ``start_pose`` = [x_m, y_m, theta_rad] (map frame)."""
+        from pyproj import CRS, Geod
+
         epsg = utm_epsg(origin.latitude_deg, origin.longitude_deg)
         to_utm = _transformer(4326, epsg)
         geod = Geod(ellps="WGS84")
@@ -122,6 +125,9 @@ class Georeference:
 def utm_epsg(latitude_deg: float, longitude_deg: float) -> int:
     """EPSG code of the WGS 84 UTM zone containing the point (326xx north, 327xx south; the
     Norway and Svalbard exceptions included), from the PROJ database."""
+    from pyproj.aoi import AreaOfInterest
+    from pyproj.database import query_utm_crs_info
+
     infos = query_utm_crs_info(datum_name="WGS 84", area_of_interest=AreaOfInterest(
         longitude_deg, latitude_deg, longitude_deg, latitude_deg))
     prefix = "326" if latitude_deg >= 0.0 else "327"
@@ -133,6 +139,8 @@ def utm_epsg(latitude_deg: float, longitude_deg: float) -> int:
 
 @functools.lru_cache(maxsize=32)
 def _transformer(src_epsg: int, dst_epsg: int) -> Transformer:
+    from pyproj import Transformer
+
     return Transformer.from_crs(src_epsg, dst_epsg, always_xy=True)
 
 

@@ -17,6 +17,7 @@ from slam_engine.result import OccupancyGrid, TextureMap, Trajectory
 OCCUPIED_THRESHOLD = 0.65  # probability above which a cell counts as occupied (also map.yaml)
 FREE_THRESHOLD = 0.196  # probability below which a cell counts as free (also map.yaml)
 UNKNOWN_GRAY = 205  # grey level of never-observed cells (the ROS map_saver convention)
+ROS_OCCUPIED, ROS_FREE, ROS_UNKNOWN = 0, 254, 205  # trinary ROS map values (map_saver)
 TRAJECTORY_RGB = (220, 30, 30)
 REFERENCE_RGB = (30, 90, 230)  # dead reckoning or ground truth
 START_RGB = (20, 160, 40)
@@ -37,18 +38,38 @@ def occupancy_gray(probability: np.ndarray, known: np.ndarray) -> np.ndarray:
     return np.where(known, shade, np.uint8(UNKNOWN_GRAY))
 
 
-_BAND_ROWS = 256  # rasters are computed this many rows at a time: float64 temporaries stay small
+_BAND_ROWS = 64  # rasters are computed this many rows at a time: float64 temporaries stay small
 
 
 @dataclass(frozen=True)
 class OccupancyRasters:
     """North-up rasters of one grid, computed once for every product that shows it:
-    ``gray`` (H, W) uint8 as :func:`occupancy_gray`; ``probability`` (H, W) float32, -1 where
-    unknown (the GeoTIFF's values; the ROS map's thresholds compare the same on it as on float64:
-    stored log-odds are multiples of 0.01, none near a threshold)."""
+    ``gray`` (H, W) uint8 as :func:`occupancy_gray`; ``trinary`` (H, W) uint8, the ROS map's
+    values (:data:`ROS_OCCUPIED` where the probability as float32 is above
+    :data:`OCCUPIED_THRESHOLD`, :data:`ROS_FREE` below :data:`FREE_THRESHOLD`, else
+    :data:`ROS_UNKNOWN`); and the numbers of known, occupied and free cells (float64
+    probability, for run.json). The GeoTIFF's float32 probability raster is written strip by strip
+    instead (:func:`probability_band`): a float32 raster is 4 bytes a cell."""
 
     gray: np.ndarray
-    probability: np.ndarray
+    trinary: np.ndarray
+    known_cells: int
+    occupied_cells: int
+    free_cells: int
+
+
+def north_up_log_odds(grid: OccupancyGrid, r0: int, r1: int) -> np.ndarray:
+    """North-up rows ``r0..r1`` of the grid's log-odds (a view)."""
+    h = grid.shape[0]
+    return grid.log_odds[h - r1:h - r0][::-1]
+
+
+def probability_band(grid: OccupancyGrid, r0: int, r1: int) -> np.ndarray:
+    """North-up rows ``r0..r1`` of the GeoTIFF's values: float32 probability, -1 where unknown
+    (the same values as from the whole-grid :func:`occupancy_north_up`)."""
+    log_odds = north_up_log_odds(grid, r0, r1)
+    p = 1.0 / (1.0 + np.exp(-log_odds.astype(np.float64)))
+    return np.where(log_odds != 0.0, p, -1.0).astype(np.float32)
 
 
 def occupancy_rasters(grid: OccupancyGrid) -> OccupancyRasters:
@@ -56,15 +77,25 @@ def occupancy_rasters(grid: OccupancyGrid) -> OccupancyRasters:
     each from :func:`occupancy_north_up`, without its full-size float64 temporaries)."""
     h, w = grid.shape
     gray = np.empty((h, w), np.uint8)
-    probability = np.empty((h, w), np.float32)
+    trinary = np.empty((h, w), np.uint8)
+    known_cells = occupied_cells = free_cells = 0
     for r0 in range(0, h, _BAND_ROWS):
         r1 = min(h, r0 + _BAND_ROWS)
-        log_odds = grid.log_odds[h - r1:h - r0][::-1]  # north-up rows r0..r1
+        log_odds = north_up_log_odds(grid, r0, r1)
         known = log_odds != 0.0
         p = 1.0 / (1.0 + np.exp(-log_odds.astype(np.float64)))
         gray[r0:r1] = occupancy_gray(p, known)
-        probability[r0:r1] = np.where(known, p, -1.0)
-    return OccupancyRasters(gray, probability)
+        # the ROS map compares the GeoTIFF's float32 values (stored log-odds are multiples of 0.01,
+        # none near a threshold: the same cells as float64)
+        p32 = np.where(known, p, -1.0).astype(np.float32)
+        band = np.full(p32.shape, ROS_UNKNOWN, np.uint8)
+        band[known & (p32 > OCCUPIED_THRESHOLD)] = ROS_OCCUPIED
+        band[known & (p32 < FREE_THRESHOLD)] = ROS_FREE
+        trinary[r0:r1] = band
+        known_cells += int(np.count_nonzero(known))
+        occupied_cells += int(np.count_nonzero(known & (p > OCCUPIED_THRESHOLD)))
+        free_cells += int(np.count_nonzero(known & (p < FREE_THRESHOLD)))
+    return OccupancyRasters(gray, trinary, known_cells, occupied_cells, free_cells)
 
 
 def occupancy_image(grid: OccupancyGrid) -> Image.Image:
@@ -100,14 +131,67 @@ def occupancy_with_trajectories(grid: OccupancyGrid, trajectory: Trajectory,
     trajectory (red) on top and a green start dot. ``gray``: the grid's grey image when already made
     (:class:`OccupancyRasters`)."""
     image = (occupancy_image(grid) if gray is None else Image.fromarray(gray)).convert("RGB")
-    draw = ImageDraw.Draw(image)
-    for traj, rgb in ((reference, REFERENCE_RGB), (trajectory, TRAJECTORY_RGB)):
+    _draw_trajectories(ImageDraw.Draw(image), grid, trajectory, reference, (REFERENCE_RGB, TRAJECTORY_RGB, START_RGB))
+    return image
+
+
+def _draw_trajectories(draw: ImageDraw.ImageDraw, grid: OccupancyGrid, trajectory: Trajectory,
+                       reference: Trajectory | None, inks: tuple) -> None:
+    """The reference track, the trajectory and the start dot with ``inks`` (reference, trajectory, start)."""
+    for traj, ink in ((reference, inks[0]), (trajectory, inks[1])):
         if traj is not None and len(traj) > 1:
-            draw.line([tuple(p) for p in map_pixels(grid, traj.poses)], fill=rgb, width=1)
+            draw.line([tuple(p) for p in map_pixels(grid, traj.poses)], fill=ink, width=1)
     if len(trajectory):
         c, r = map_pixels(grid, trajectory.poses[:1])[0]
-        draw.ellipse([c - 2, r - 2, c + 2, r + 2], fill=START_RGB)
-    return image
+        draw.ellipse([c - 2, r - 2, c + 2, r + 2], fill=inks[2])
+
+
+def write_occupancy_with_trajectories_png(path, grid: OccupancyGrid, trajectory: Trajectory,
+                                          reference: Trajectory | None, gray: np.ndarray) -> None:
+    """Write :func:`occupancy_with_trajectories` (the same pixels) as an RGB PNG without the RGB image
+    in memory: the tracks are drawn once into a one-byte-a-pixel mask of which ink goes where, and
+    the PNG is encoded a band of rows at a time (zlib level :data:`PNG_COMPRESS_LEVEL`)."""
+    mask = Image.new("L", (gray.shape[1], gray.shape[0]), 0)
+    _draw_trajectories(ImageDraw.Draw(mask), grid, trajectory, reference, (1, 2, 3))
+    inks = np.array([(0, 0, 0), REFERENCE_RGB, TRAJECTORY_RGB, START_RGB], np.uint8)
+    ink = np.asarray(mask)
+
+    def rows():
+        for r0 in range(0, gray.shape[0], _BAND_ROWS):
+            band = np.repeat(gray[r0:r0 + _BAND_ROWS, :, None], 3, axis=2)
+            drawn = ink[r0:r0 + _BAND_ROWS]
+            marked = drawn > 0
+            band[marked] = inks[drawn[marked]]
+            yield band
+
+    write_png_rows(path, gray.shape[1], gray.shape[0], rows())
+
+
+def write_png_rows(path, width: int, height: int, bands) -> None:
+    """Write an 8-bit RGB PNG from ``bands``: (rows, width, 3) uint8 arrays, top to bottom, ``height``
+    rows in all; each row unfiltered, the stream compressed as it is written."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    compressor = zlib.compressobj(PNG_COMPRESS_LEVEL)
+    written = 0
+    with open(path, "wb") as out:
+        out.write(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)))
+        for band in bands:
+            band = np.ascontiguousarray(band, np.uint8).reshape(band.shape[0], width * 3)
+            filtered = np.empty((band.shape[0], width * 3 + 1), np.uint8)
+            filtered[:, 0] = 0  # filter type None
+            filtered[:, 1:] = band
+            written += band.shape[0]
+            data = compressor.compress(filtered.tobytes())
+            if data:
+                out.write(chunk(b"IDAT", data))
+        out.write(chunk(b"IDAT", compressor.flush()) + chunk(b"IEND", b""))
+    if written != height:
+        raise ValueError(f"write_png_rows: {written} rows given for a {height}-row image")
 
 
 def png_bytes(image: Image.Image) -> bytes:

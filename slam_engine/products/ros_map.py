@@ -23,22 +23,24 @@ from slam_engine.products.files import atomic_path, write_text_atomic
 from slam_engine.products.rendering import (
     FREE_THRESHOLD,
     OCCUPIED_THRESHOLD,
+    ROS_FREE,
+    ROS_OCCUPIED,
+    ROS_UNKNOWN,
     OccupancyRasters,
     occupancy_north_up,
 )
 from slam_engine.result import OccupancyGrid
 
 ROS_MODES = ("trinary", "scale")
-_OCCUPIED, _FREE, _UNKNOWN = 0, 254, 205
+_OCCUPIED, _FREE, _UNKNOWN = ROS_OCCUPIED, ROS_FREE, ROS_UNKNOWN
 
 
 def ros_map_image(grid: OccupancyGrid, mode: str = "trinary", rasters: OccupancyRasters | None = None) -> Image.Image:
     """The map_server image of the grid ("L" for trinary, "LA" for scale), north up. ``rasters``:
     the grid's rasters when already made (trinary mode uses them)."""
     if mode == "trinary" and rasters is not None:
-        probability, known = rasters.probability, rasters.probability >= 0.0
-    else:
-        probability, known = occupancy_north_up(grid)
+        return Image.fromarray(rasters.trinary)
+    probability, known = occupancy_north_up(grid)
     if mode == "trinary":
         gray = np.full(probability.shape, _UNKNOWN, dtype=np.uint8)
         gray[known & (probability > OCCUPIED_THRESHOLD)] = _OCCUPIED

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from slam_engine.products.files import write_text_atomic
-from slam_engine.products.rendering import FREE_THRESHOLD, OCCUPIED_THRESHOLD
+from slam_engine.products.rendering import OccupancyRasters, occupancy_rasters
 from slam_engine.result import SlamResult
 
 FORMAT_NAME = "lidarmap-run"
@@ -49,14 +49,16 @@ def to_jsonable(value):
 
 
 def build_run_report(result: SlamResult, input_summary: dict | None = None, georeference: dict | None = None,
-                     accuracy: dict | None = None, products: list[str] | None = None) -> dict:
-    """The run.json document (see module docstring)."""
+                     accuracy: dict | None = None, products: list[str] | None = None,
+                     rasters: OccupancyRasters | None = None) -> dict:
+    """The run.json document (see module docstring); ``rasters``: the grid's rasters when already
+    made (their cell counts)."""
     stats = result.scan_stats
     step = np.asarray(stats.step_time_s, dtype=np.float64)
     processed = int(step.size)
     wall = float(result.wall_time_s)
     scans = len(result.trajectory)
-    probability, known = result.grid.probability(), result.grid.known()
+    counts = rasters if rasters is not None else occupancy_rasters(result.grid)
     h, w = result.grid.shape
     return to_jsonable({
         "format": FORMAT_NAME,
@@ -86,9 +88,9 @@ def build_run_report(result: SlamResult, input_summary: dict | None = None, geor
             "resolution_m": float(result.grid.resolution_m),
             "width_cells": int(w), "height_cells": int(h),
             "origin_m": [float(result.grid.origin_x_m), float(result.grid.origin_y_m)],
-            "known_cells": int(np.count_nonzero(known)),
-            "occupied_cells": int(np.count_nonzero(known & (probability > OCCUPIED_THRESHOLD))),
-            "free_cells": int(np.count_nonzero(known & (probability < FREE_THRESHOLD))),
+            "known_cells": counts.known_cells,
+            "occupied_cells": counts.occupied_cells,
+            "free_cells": counts.free_cells,
             "has_texture": result.texture is not None,
             "snapshots": len(result.snapshots),
         },

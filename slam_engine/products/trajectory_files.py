@@ -24,7 +24,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from slam_engine.errors import TrajectoryFormatError
 from slam_engine.products.files import atomic_path, write_text_atomic
@@ -54,7 +53,9 @@ def write_trajectory_json(traj: Trajectory, path: str | Path, frame: str = "map"
 def write_trajectory_tum(traj: Trajectory, path: str | Path) -> Path:
     """Write ``traj`` in TUM format ``t x y z qx qy qz qw``; returns the path."""
     n = len(traj)
-    quat_xyzw = Rotation.from_euler("z", traj.poses[:, 2:3]).as_quat() if n else np.zeros((0, 4))
+    # a rotation about z by theta: (0, 0, sin(theta / 2), cos(theta / 2)), as scipy's Rotation gives it
+    half = traj.poses[:, 2] / 2.0
+    quat_xyzw = np.column_stack([np.zeros(n), np.zeros(n), np.sin(half), np.cos(half)])
     table = np.column_stack([traj.t_s, traj.poses[:, 0], traj.poses[:, 1], np.zeros(n), quat_xyzw])
     with atomic_path(path) as tmp:
         np.savetxt(tmp, table, fmt="%.9f", header="t x y z qx qy qz qw (s, m, unit quaternion)")
@@ -121,6 +122,8 @@ def _parse_tum(text: str, path: Path) -> Trajectory:
         rows.append(values)
     if not rows:
         return _checked_trajectory(np.zeros(0), np.zeros((0, 3)), path)
+    from scipy.spatial.transform import Rotation  # ~26 MB: imported only to read TUM files
+
     table = np.array(rows)
     yaw = Rotation.from_quat(table[:, 4:8]).as_euler("ZYX")[:, 0]
     return _checked_trajectory(table[:, 0], np.column_stack([table[:, 1], table[:, 2], yaw]), path)

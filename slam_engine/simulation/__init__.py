@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,7 +25,6 @@ from slam_engine.errors import ConfigError, LogFormatError
 from slam_engine.formats import write_log
 from slam_engine.poses import relative, wrap_angle
 from slam_engine.result import Trajectory
-from slam_engine.simulation.camera_render import FloorRgb, render_rgbd_stream, render_stereo_stream
 from slam_engine.simulation.motion import Motion, drive_route
 from slam_engine.simulation.rigs import FORMAT_RIGS, RIGS, Rig
 from slam_engine.simulation.sensors import (
@@ -35,6 +35,9 @@ from slam_engine.simulation.sensors import (
     scan_stream,
 )
 from slam_engine.simulation.world import SCENARIOS, World
+
+if TYPE_CHECKING:  # the camera renderer (OpenCV, ~15 MB) is imported only to simulate cameras
+    from slam_engine.simulation.camera_render import FloorRgb
 
 # Loop-closure relations join scans at least this far apart in time whose poses are this close.
 LOOP_MIN_DT_S = 20.0
@@ -120,6 +123,7 @@ def simulate(scenario: str | None = "office", seed: int = 0, rig: str = "robot",
         t_camera = sample_times(motion, the_rig.camera_hz, the_rig.t0_s, rng)
         x, y, theta, _ = motion.at(t_camera - the_rig.t0_s)
         at_frames = Trajectory(t_s=t_camera, poses=np.column_stack([x, y, wrap_angle(theta)]))
+        from slam_engine.simulation.camera_render import render_rgbd_stream, render_stereo_stream
         if the_rig.stereo is not None:
             stereo = render_stereo_stream(world.floor_rgb, at_frames, the_rig.stereo)
         if the_rig.rgbd is not None:

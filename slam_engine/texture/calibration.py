@@ -10,7 +10,6 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from slam_engine.drive_log import RgbdCalibration, StereoCalibration
@@ -122,6 +121,7 @@ def write_camera_yaml(path: str | Path, image_size_wh: tuple[int, int], K: np.nd
                       R: np.ndarray, P: np.ndarray, camera_name: str) -> Path:
     """Write one camera's OpenCV/ROS calibration YAML (what :func:`load_ece276a_stereo_calibration`
     reads: image size, K, plumb_bob D, rectification R, projection P); returns the path."""
+    import cv2  # imported when used: OpenCV (~15 MB) only for camera data
     storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     try:
         storage.write("image_width", int(image_size_wh[0]))
@@ -169,6 +169,7 @@ _YAML_MATRICES = {"K": ("camera_matrix", (3, 3)), "D": ("distortion_coefficients
 
 def _read_camera_yaml(path: Path) -> dict:
     """Image size and K, D, R, P of one camera from an OpenCV/ROS camera YAML file."""
+    import cv2  # imported when used: OpenCV (~15 MB) only for camera data
     if not path.is_file():
         raise LogFormatError("calibration file missing", path)
     try:

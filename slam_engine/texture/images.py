@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from slam_engine.errors import LogFormatError
@@ -19,6 +18,7 @@ BAYER_LAYOUTS = {"BG": "RGGB", "GB": "GRBG", "RG": "BGGR", "GR": "GBRG"}
 
 def read_frame(source: str | Path | np.ndarray, what: str) -> np.ndarray:
     """An image from a path or an array; ``what`` names it in errors (e.g. ``"stereo left frame 12"``)."""
+    import cv2  # imported when used: OpenCV (~15 MB) only for camera data
     if isinstance(source, np.ndarray):
         image = source
     else:
@@ -49,6 +49,7 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
 def demosaic(image: np.ndarray, bayer_pattern: str | None) -> np.ndarray:
     """RGB image from a raw Bayer frame (OpenCV pattern name), or the image itself when
     ``bayer_pattern`` is None or the frame already has three channels."""
+    import cv2  # imported when used: OpenCV (~15 MB) only for camera data
     if bayer_pattern is None or image.ndim == 3:
         return image
     if bayer_pattern not in BAYER_LAYOUTS:

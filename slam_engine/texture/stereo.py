@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from slam_engine.config import TextureConfig
@@ -34,6 +33,7 @@ class StereoRectifier:
     """Undistortion + rectification maps of one calibrated stereo pair (computed once)."""
 
     def __init__(self, calibration: StereoCalibration):
+        import cv2  # imported when used: OpenCV (~15 MB) only for camera data
         self.calibration = calibration
         size = tuple(int(v) for v in calibration.image_size_wh)
         self._maps = [
@@ -47,6 +47,7 @@ class StereoRectifier:
 
     def rectify(self, left: np.ndarray, right: np.ndarray, what: str = "stereo frame") -> tuple[np.ndarray, np.ndarray]:
         """Rectified (left, right) images, demosaiced to RGB first for raw Bayer cameras."""
+        import cv2  # imported when used: OpenCV (~15 MB) only for camera data
         w, h = self.calibration.image_size_wh
         out = []
         for side, image, (map_x, map_y) in (("left", left, self._maps[0]), ("right", right, self._maps[1])):
@@ -60,6 +61,7 @@ class StereoRectifier:
 
 def compute_disparity(left_rect: np.ndarray, right_rect: np.ndarray, config: TextureConfig) -> np.ndarray:
     """(H, W) float32 disparity [px] of rectified images with StereoSGBM; NaN where invalid."""
+    import cv2  # imported when used: OpenCV (~15 MB) only for camera data
     left_gray = _gray(left_rect)
     right_gray = _gray(right_rect)
     block = config.sgbm_block_size
@@ -110,4 +112,5 @@ def stereo_frame_points(left: np.ndarray, right: np.ndarray, rectifier: StereoRe
 
 
 def _gray(image: np.ndarray) -> np.ndarray:
+    import cv2  # imported when used: OpenCV (~15 MB) only for camera data
     return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
