@@ -37,6 +37,7 @@ from slam_engine.lidar_points import ProjectedScan, ScanProjector
 from slam_engine.messages import EncoderMessage, GyroMessage, Message, OdometryMessage, ScanMessage
 from slam_engine.motion_models import odometry_increments, odometry_motion_covariance, sample_odometry_motion
 from slam_engine.odometry import OdometryIntegrator, make_integrator
+from slam_engine.odometry_noise import OdometryPrecision
 from slam_engine.poses import compose, relative, wrap_angle
 from slam_engine.raycast import insert_scan
 from slam_engine.resampling import low_variance_resample, n_eff, normalize_log_weights
@@ -137,6 +138,7 @@ class SlamFilter:
         mo = config.motion
         self.alphas = (mo.rot_from_rot, mo.rot_from_trans, mo.trans_from_trans, mo.trans_from_rot)
         self.heading_calibration = HeadingCalibration(**config.heading_calibration.model_dump())
+        self.odometry_precision = OdometryPrecision()
         o = config.odometry
         self.time_offset = TimeOffsetEstimator(
             None if o.time_offset_s == "auto" else float(o.time_offset_s), o.time_offset_max_s,
@@ -293,11 +295,22 @@ class SlamFilter:
     def _process(self, scan: ScanMessage, odom: np.ndarray, projected) -> None:
         n = self.config.particles
         target = self.heading_calibration.corrected_target(self._last_odom, odom)
-        sampled = sample_odometry_motion(self.particles, self._last_odom, target, self.alphas, self.rng)
+        # the motion model scaled to the odometry's measured precision (the configured one unless the
+        # odometry has proved more precise than the matches)
+        precision = self.odometry_precision
+        alphas = precision.scaled(self.alphas)
+        sampled = sample_odometry_motion(self.particles, self._last_odom, target, alphas, self.rng)
         hits = self._match_points(projected)
         if len(hits) >= 3:
-            motion_cov = odometry_motion_covariance(self._last_odom, target, self.alphas)
-            poses, log_lik, score, accepted, jtj = self._propose(sampled, motion_cov, hits)
+            motion_cov = odometry_motion_covariance(self._last_odom, target, alphas)
+            fused = precision.trusted or self.config.matcher.proposal == "fused"
+            poses, log_lik, score, accepted, jtj, fitted = self._propose(sampled, motion_cov, hits, fused)
+            model_cov = odometry_motion_covariance(self._last_odom, target, self.alphas)
+            a3, a4 = self.alphas[2], self.alphas[3]
+            rot1, trans, rot2 = odometry_increments(self._last_odom, target)
+            leader = int(np.argmax(self.log_weights + log_lik))
+            precision.observe(fitted[leader], odom, a3 * abs(trans) + a4 * (abs(rot1) + abs(rot2)),
+                              float(np.sqrt(model_cov[2, 2])))
             self.heading_calibration.observe(self._last_odom, odom, self.particles, poses, accepted)
             self.heading_calibration.observe_distance(self._last_odom, odom, self.particles, poses, accepted, jtj)
             hc = self.heading_calibration
@@ -337,16 +350,18 @@ class SlamFilter:
                 float(np.clip(m.search_sigmas * sd_theta, m.search_theta_rad,
                               max(m.search_theta_rad, m.max_search_theta_rad))))
 
-    def _propose(self, sampled: np.ndarray, motion_cov: np.ndarray, hits: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _propose(self, sampled: np.ndarray, motion_cov: np.ndarray, hits: np.ndarray, fused: bool
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The scan-matched proposal: each particle's scan is fitted from its motion sample
         ``sampled`` (N, 3) within a window sized by the motion covariance ``motion_cov`` (3, 3, start
         frame), searched correlatively first where that window is wider than the Gauss-Newton basin.
-        With ``matcher.proposal = "fused"`` the fit is then combined with the sample by their
+        With ``fused`` (``matcher.proposal = "fused"``, or odometry measured to be more precise than
+        the matches: :class:`OdometryPrecision`) the fit is then combined with the sample by their
         information (the fit's Gauss-Newton matrix, the inverse motion covariance; Grisetti et al.
         2007), so that precise odometry is kept along directions the scan leaves open. A rejected
         match keeps the motion sample. Weights: the likelihood of the scan at the fitted pose.
-        Returns (poses, log weight increments, mean scores, accepted, the fits' J^T J (N, 3, 3))."""
+        Returns (poses, log weight increments, mean scores, accepted, the fits' J^T J (N, 3, 3), the
+        fitted poses before any fusion)."""
         m = self.config.matcher
         n = len(sampled)
         gain = self.likelihood_gain / len(hits)
@@ -356,7 +371,7 @@ class SlamFilter:
         # the fit's own basin covers the smallest window and a good deal more: search first only
         # where the window is well beyond it
         wide = window_xy > PRESEARCH_BEYOND * m.search_xy_m or window_theta > PRESEARCH_BEYOND * m.search_theta_rad
-        if wide or m.proposal == "fused":
+        if wide or fused:
             # motion covariance in the world frame of each particle's start, with a floor (standing still)
             c, s = np.cos(self.particles[:, 2]), np.sin(self.particles[:, 2])
             R = np.zeros((n, 3, 3))
@@ -370,14 +385,14 @@ class SlamFilter:
                                   self.likelihood_gain, mean_info[0, 0], mean_info[1, 1], mean_info[2, 2]])
         fit = self.matcher.fit(self.grids, np.arange(n), sampled, hits, window_xy, window_theta, presearch)
         poses = fit.poses.copy()
-        if m.proposal == "fused":
+        if fused:
             info_m = m.proposal_information * 2.0 * gain * fit.jtj
             to_match = fit.poses - sampled
             to_match[:, 2] = wrap_angle(to_match[:, 2])
-            fused = sampled + np.einsum("nij,njk,nk->ni", np.linalg.inv(info_m + info_o), info_m, to_match)
-            fused[:, 2] = wrap_angle(fused[:, 2])
-            poses = np.where(fit.accepted[:, None], fused, poses)
-        return poses, -gain * fit.sq_residual, fit.mean_score, fit.accepted, fit.jtj
+            combined = sampled + np.einsum("nij,njk,nk->ni", np.linalg.inv(info_m + info_o), info_m, to_match)
+            combined[:, 2] = wrap_angle(combined[:, 2])
+            poses = np.where(fit.accepted[:, None], combined, poses)
+        return poses, -gain * fit.sq_residual, fit.mean_score, fit.accepted, fit.jtj, fit.poses
 
     def _insert(self, projected, clones_of: np.ndarray | None) -> None:
         """Insert the scan into every particle's map. Particles with the same ``clones_of`` entry

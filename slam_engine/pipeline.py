@@ -20,13 +20,14 @@ import numpy as np
 
 from slam_engine.backend.loop_closer import close_loops
 from slam_engine.backend.map_builder import render_occupancy
-from slam_engine.backend.odometry_smoothing import estimate_noise, smooth_with_odometry
+from slam_engine.backend.odometry_smoothing import smooth_with_odometry
 from slam_engine.config import SlamConfig
 from slam_engine.drive_log import DriveLog
 from slam_engine.errors import ConfigError
 from slam_engine.memory_estimate import peak_resident_bytes
 from slam_engine.messages import ScanMessage
 from slam_engine.odometry import dead_reckoning, odometry_source
+from slam_engine.odometry_noise import estimate_noise
 from slam_engine.particle_filter import SlamFilter
 from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, SlamResult, TextureMap, Trajectory
 
@@ -160,6 +161,7 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
         input_summary={**log.summary(), "grid_memory_bytes": grid_memory_bytes,
                        "scans_processed": slam.steps_processed, "texture": texture_status,
                        "odometry_calibration": slam.heading_calibration.summary(),
+                       "odometry_precision": slam.odometry_precision.summary(),
                        "time_offset": _time_offset_summary(slam, log, config),
                        "loop_closing": backend.summary(), "odometry_smoothing": smoothing},
     )

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam_engine.backend.odometry_smoothing import estimate_noise, smooth_with_odometry
+from slam_engine.backend.odometry_smoothing import smooth_with_odometry
+from slam_engine.odometry_noise import OdometryPrecision, estimate_noise
 from slam_engine.poses import compose, relative, wrap_angle
 
 
@@ -61,3 +62,32 @@ def test_rough_odometry_is_not_trusted() -> None:
 def test_short_drives_are_left_alone() -> None:
     truth = _drive(20)
     assert estimate_noise(truth, truth) is None
+
+
+def test_front_end_trusts_precise_odometry_and_scales_its_motion_model() -> None:
+    rng = np.random.default_rng(3)
+    truth = _drive(150)
+    odo = _odometry(truth, 0.001, 0.0002, rng)
+    fitted = truth + rng.normal(0.0, 1.0, truth.shape) * np.array([0.02, 0.02, 0.002])
+    precision = OdometryPrecision(every_steps=25, window_steps=200)
+    assert precision.scaled((0.1, 0.05, 0.05, 0.02)) == (0.1, 0.05, 0.05, 0.02)  # the model until measured
+    for k in range(len(truth)):
+        precision.observe(fitted[k], odo[k], model_sd_m=0.05, model_sd_rad=0.05)
+    assert precision.trusted and precision.changes == 1
+    # measured: about 1 mm and 0.0002 rad per step against the model's 5 cm and 0.05 rad
+    assert 0.02 <= precision.trans_scale < 0.15 and 0.02 <= precision.rot_scale < 0.02 * 1.5
+    a1, a2, a3, a4 = precision.scaled((0.1, 0.05, 0.05, 0.02))
+    assert a1 == 0.1 * precision.rot_scale and a3 == 0.05 * precision.trans_scale
+    assert precision.summary()["trusted"] is True
+
+
+def test_front_end_keeps_its_motion_model_for_rough_odometry() -> None:
+    rng = np.random.default_rng(4)
+    truth = _drive(150)
+    odo = _odometry(truth, 0.05, 0.03, rng)
+    fitted = truth + rng.normal(0.0, 1.0, truth.shape) * np.array([0.01, 0.01, 0.002])
+    precision = OdometryPrecision()
+    for k in range(len(truth)):
+        precision.observe(fitted[k], odo[k], model_sd_m=0.05, model_sd_rad=0.05)
+    assert precision.estimate is not None and not precision.trusted
+    assert precision.scaled((0.1, 0.05, 0.05, 0.02)) == (0.1, 0.05, 0.05, 0.02)

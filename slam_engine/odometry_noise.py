@@ -1,0 +1,156 @@
+"""How precise a log's odometry is, compared with its scan matches, measured on the log itself.
+
+Between key frames ``L`` steps apart, the front end's relative motion differs from the odometry's by
+the noise of two matches (fixed) plus ``L`` steps of odometry noise (growing): in heading, and in the
+distance between the two key frames (which a heading error barely changes), so
+
+    E |difference over L steps|^2 = 2 sd_match^2 + L sd_odometry^2,
+
+fitted over L = 1..16 separately for heading and translation. The front end uses it to size its
+motion model (:class:`OdometryPrecision`), the back end to keep precise odometry's local precision
+(:mod:`slam_engine.backend.odometry_smoothing`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam_engine.poses import relative, wrap_angle
+
+LAGS = (1, 2, 4, 8, 16)
+# median of |N(0, 1)|: median -> sd
+HALF_NORMAL_MEDIAN = 0.6745
+# odometry edges only matter where they are this much more precise per step than a match [ratio]
+MIN_ADVANTAGE = 1.0
+MIN_KEY_FRAMES = 3 * LAGS[-1]
+# floors [m, rad]: no source is trusted beyond these
+MATCH_SD_FLOOR = (1e-3, 1e-4)
+ODOMETRY_SD_FLOOR = (2e-4, 2e-5)
+
+
+@dataclass(frozen=True)
+class NoiseEstimate:
+    """Standard deviations measured on the log: a match's pose noise and the odometry's noise per
+    key-frame step, for translation (per axis) [m] and heading [rad]."""
+
+    match_sd_m: float
+    match_sd_rad: float
+    odometry_sd_m: float
+    odometry_sd_rad: float
+
+    @property
+    def odometry_helps(self) -> bool:
+        """Odometry is locally more precise than the matches in translation or heading."""
+        return (self.odometry_sd_m * MIN_ADVANTAGE < self.match_sd_m
+                or self.odometry_sd_rad * MIN_ADVANTAGE < self.match_sd_rad)
+
+    def summary(self) -> dict[str, float]:
+        return {"match_sd_m": round(self.match_sd_m, 5), "match_sd_rad": round(self.match_sd_rad, 6),
+                "odometry_sd_m_per_step": round(self.odometry_sd_m, 5),
+                "odometry_sd_rad_per_step": round(self.odometry_sd_rad, 6)}
+
+
+def _fit_growth(lags: np.ndarray, variances: np.ndarray) -> tuple[float, float]:
+    """Fixed part a and growth per step b (both >= 0) of variance = a + b L: non-negative least
+    squares on relative errors. Systematic drift (the front end's map bending, the odometry's bias)
+    also grows and is counted as odometry noise: the odometry is trusted less, never more."""
+    from scipy.optimize import nnls  # imported on first use, like GTSAM: after the front end's peak
+
+    A = np.stack([np.ones_like(lags), lags], axis=1) / variances[:, None]
+    (a, b), _ = nnls(A, np.ones_like(lags))
+    return float(a), float(b)
+
+
+def estimate_noise(path: np.ndarray, odometry: np.ndarray) -> NoiseEstimate | None:
+    """Match and odometry noise from the front end's key-frame ``path`` (K, 3) and the odometry poses
+    at the same key frames ``odometry`` (K, 3); None for a drive too short to tell. Medians, so that
+    a few bad matches or wheel slips do not decide it."""
+    path = np.asarray(path, np.float64)
+    odometry = np.asarray(odometry, np.float64)
+    if len(path) < MIN_KEY_FRAMES:
+        return None
+    lags = np.array(LAGS, np.float64)
+    var_xy = np.empty(len(LAGS))
+    var_th = np.empty(len(LAGS))
+    for n, lag in enumerate(LAGS):
+        front = relative(path[:-lag], path[lag:])
+        odo = relative(odometry[:-lag], odometry[lag:])
+        # translation: the difference of the distances travelled, which a heading error leaves alone
+        # (the heading is measured on its own), one axis' worth of noise
+        d_xy = np.abs(np.hypot(front[:, 0], front[:, 1]) - np.hypot(odo[:, 0], odo[:, 1]))
+        d_th = np.abs(wrap_angle(front[:, 2] - odo[:, 2]))
+        var_xy[n] = (np.median(d_xy) / HALF_NORMAL_MEDIAN) ** 2
+        var_th[n] = (np.median(d_th) / HALF_NORMAL_MEDIAN) ** 2
+    a_xy, b_xy = _fit_growth(lags, np.maximum(var_xy, 1e-12))
+    a_th, b_th = _fit_growth(lags, np.maximum(var_th, 1e-16))
+    return NoiseEstimate(match_sd_m=max(float(np.sqrt(a_xy / 2.0)), MATCH_SD_FLOOR[0]),
+                         match_sd_rad=max(float(np.sqrt(a_th / 2.0)), MATCH_SD_FLOOR[1]),
+                         odometry_sd_m=max(float(np.sqrt(b_xy)), ODOMETRY_SD_FLOOR[0]),
+                         odometry_sd_rad=max(float(np.sqrt(b_th)), ODOMETRY_SD_FLOOR[1]))
+
+
+class OdometryPrecision:
+    """The front end's running view of :func:`estimate_noise`: every ``every_steps`` processed steps,
+    the last ``window_steps`` key frames (the fitted poses of the best particle, before any fusion
+    with the odometry, so that trusting the odometry cannot feed on itself) against the odometry.
+
+    Where the odometry is measured to be more precise than the matches, the motion model's standard
+    deviations are scaled down to what was measured (``rot_scale`` for the heading terms,
+    ``trans_scale`` for the distance terms, at most 1: the configured model is an upper bound) and the
+    proposal fuses each match with its motion sample; elsewhere the model stays as configured."""
+
+    def __init__(self, every_steps: int = 25, window_steps: int = 200, min_scale: float = 0.02):
+        self.every_steps = int(every_steps)
+        self.window_steps = int(window_steps)
+        self.min_scale = float(min_scale)
+        self._fitted: list[np.ndarray] = []
+        self._odometry: list[np.ndarray] = []
+        self._model_sd: list[tuple[float, float]] = []
+        self.estimate: NoiseEstimate | None = None
+        self.trusted = False
+        self.rot_scale = 1.0
+        self.trans_scale = 1.0
+        self.changes = 0
+        self._steps = 0
+
+    def observe(self, fitted_pose: np.ndarray, odometry_pose: np.ndarray, model_sd_m: float,
+                model_sd_rad: float) -> None:
+        """One processed step: the best particle's fitted pose, the odometry pose and the configured
+        model's standard deviations of that step's motion [m, rad]."""
+        self._fitted.append(np.asarray(fitted_pose, np.float64).copy())
+        self._odometry.append(np.asarray(odometry_pose, np.float64).copy())
+        self._model_sd.append((float(model_sd_m), float(model_sd_rad)))
+        if len(self._fitted) > self.window_steps:
+            del self._fitted[0], self._odometry[0], self._model_sd[0]
+        self._steps += 1
+        if self._steps % self.every_steps == 0:
+            self._update()
+
+    def _update(self) -> None:
+        estimate = estimate_noise(np.array(self._fitted), np.array(self._odometry))
+        if estimate is None:
+            return
+        self.estimate = estimate
+        trusted = estimate.odometry_helps
+        if trusted:
+            model = np.median(np.array(self._model_sd), axis=0)
+            self.trans_scale = float(np.clip(estimate.odometry_sd_m / max(model[0], 1e-9), self.min_scale, 1.0))
+            self.rot_scale = float(np.clip(estimate.odometry_sd_rad / max(model[1], 1e-12), self.min_scale, 1.0))
+        else:
+            self.trans_scale = self.rot_scale = 1.0
+        self.changes += int(trusted != self.trusted)
+        self.trusted = trusted
+
+    def scaled(self, alphas: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+        """The motion model's ``(rot_from_rot, rot_from_trans, trans_from_trans, trans_from_rot)``
+        scaled to the measured precision."""
+        a1, a2, a3, a4 = alphas
+        return (a1 * self.rot_scale, a2 * self.rot_scale, a3 * self.trans_scale, a4 * self.trans_scale)
+
+    def summary(self) -> dict[str, object]:
+        """For run.json."""
+        return {"trusted": self.trusted, "rot_scale": round(self.rot_scale, 4),
+                "trans_scale": round(self.trans_scale, 4), "changes": self.changes,
+                **(self.estimate.summary() if self.estimate is not None else {})}
