@@ -169,8 +169,9 @@ def files_beside_log(log_path: str | Path) -> tuple[Path | None, Path | None]:
     log_path = Path(log_path)
     folder = log_path if log_path.is_dir() else log_path.parent
     name = log_path.name.split(".", 1)[0] if log_path.is_file() else log_path.name
-    relations: Path | None = folder / f"{name}.relations"
-    if not relations.exists():
+    own_relations = folder / f"{name}.relations"
+    relations: Path | None = own_relations
+    if not own_relations.exists():
         candidates = sorted(folder.glob("*.relations"))
         relations = candidates[0] if len(candidates) == 1 else None
     truth = next((p for p in (folder / f"{name}.gt.txt", folder / "ground_truth.txt") if p.exists()), None)

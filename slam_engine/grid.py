@@ -27,7 +27,8 @@ from slam_engine.result import OccupancyGrid
 # Thread pool of the parallel per-particle loops (raycast, scan_matcher): OpenMP first. numba would
 # try TBB first, and Open3D's bundled TBB is too old for numba: a warning, then OpenMP anyway.
 if not {"NUMBA_THREADING_LAYER", "NUMBA_THREADING_LAYER_PRIORITY"} & os.environ.keys():
-    nb.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+    # numba.config creates its settings through globals() at import, invisible to its type information
+    nb.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]  # type: ignore[attr-defined]
 
 TILE_SHIFT = 6
 TILE = 1 << TILE_SHIFT  # cells per tile side at level 0

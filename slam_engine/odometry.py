@@ -84,6 +84,7 @@ class OdometryIntegrator:
         n_wheels = 4 if v.kind == MotionModelKind.SKID_STEER else 2
         if not v.ticks_per_revolution or v.ticks_per_revolution <= 0:
             raise ConfigError(f"vehicle {v.name!r}: wheel encoders need ticks_per_revolution > 0")
+        self._ticks_per_revolution: float = v.ticks_per_revolution
         if not v.wheel_diameters_m or len(v.wheel_diameters_m) not in (1, n_wheels):
             raise ConfigError(f"vehicle {v.name!r}: wheel encoders need {n_wheels} wheel diameters, "
                               f"got {v.wheel_diameters_m!r}")
@@ -133,7 +134,7 @@ class OdometryIntegrator:
                 self._advance(message.t_s, self.pose)
                 self.prev_t_s = message.t_s
                 return True
-            meters = wheel_distances_m((ticks - self._ticks)[None, :], self.vehicle.ticks_per_revolution,
+            meters = wheel_distances_m((ticks - self._ticks)[None, :], self._ticks_per_revolution,
                                        self._diameters)
             delta_yaw = np.array([yaw - self._yaw_at_last_ticks]) if self.use_gyro and self._gyro_t is not None \
                 else None
@@ -174,6 +175,7 @@ def odometry_track(log: DriveLog) -> Trajectory:
     poses: list[np.ndarray] = []
     for message in odometry_only.messages():
         if integrator.update(message):
+            assert integrator.t_s is not None  # an update that advanced the pose set its time
             t_list.append(integrator.t_s)
             poses.append(integrator.pose)
     return Trajectory(t_s=np.asarray(t_list, dtype=np.float64),

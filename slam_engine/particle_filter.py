@@ -58,7 +58,8 @@ def engine_threads() -> int:
     ``LIDARMAP_THREADS`` (capped at numba's thread count, all cores by default) or, unset, all of
     numba's. The results do not depend on it."""
     raw = os.environ.get(THREADS_ENV, "").strip()
-    available = numba.config.NUMBA_NUM_THREADS
+    # numba.config creates its settings through globals() at import, invisible to its type information
+    available: int = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]
     if not raw:
         return available
     try:
@@ -191,6 +192,7 @@ class SlamFilter:
         odometry has reached its stamp plus :meth:`_lookahead_s`, or when a scan that much later arrives."""
         if isinstance(message, (EncoderMessage, GyroMessage, OdometryMessage)):
             if self.integrator.update(message):
+                assert self.integrator.t_s is not None  # an update that advanced the pose set its time
                 self.odometry_history.append(self.integrator.t_s, self.integrator.pose)
                 self.time_offset.update(self.odometry_history)
                 while self._pending and self.integrator.t_s >= self._pending[0].t_s + self._lookahead_s():
@@ -257,6 +259,7 @@ class SlamFilter:
                                               grid=self.preview_grid(), trajectory=self.trajectory()))
 
     def _due(self, t_s: float, odom: np.ndarray) -> bool:
+        assert self._last_odom is not None and self._last_t_s is not None  # set by the first scan's step
         s = self.config.scheduling
         _, trans, _ = odometry_increments(self._last_odom, odom)
         turn = abs(relative(self._last_odom, odom)[2])
@@ -293,6 +296,7 @@ class SlamFilter:
         return hits
 
     def _process(self, scan: ScanMessage, odom: np.ndarray, projected) -> None:
+        assert self._last_odom is not None  # set by the first scan's step
         n = self.config.particles
         target = self.heading_calibration.corrected_target(self._last_odom, odom)
         # the motion model scaled to the odometry's measured precision (the configured one unless the
@@ -380,12 +384,14 @@ class SlamFilter:
         if wide:
             # translations only where their window exceeds the fit's basin (a turn on the spot needs
             # headings alone); headings always: a wrong heading is what loses a map
+            assert info_o is not None  # computed above whenever the window is wide
             mean_info = info_o.mean(axis=0)
             presearch = np.array([window_xy if window_xy > PRESEARCH_BEYOND * m.search_xy_m else 0.0, window_theta,
                                   self.likelihood_gain, mean_info[0, 0], mean_info[1, 1], mean_info[2, 2]])
         fit = self.matcher.fit(self.grids, np.arange(n), sampled, hits, window_xy, window_theta, presearch)
         poses = fit.poses.copy()
         if fused:
+            assert info_o is not None  # computed above for the fused proposal
             info_m = m.proposal_information * 2.0 * gain * fit.jtj
             to_match = fit.poses - sampled
             to_match[:, 2] = wrap_angle(to_match[:, 2])
@@ -412,6 +418,7 @@ class SlamFilter:
             self.grids.resample(particles[inverse])
 
     def _skip(self, scan: ScanMessage, odom: np.ndarray, projected) -> None:
+        assert self._last_odom is not None  # set by the first scan's step
         best = self.best_particle()
         current = self.particles[best]  # equals its recorded pose at the last processed step
         predicted = compose(current, relative(self._last_odom,

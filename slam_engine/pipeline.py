@@ -89,7 +89,7 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
     odometry_source(log)  # ConfigError when there is none
     rng = np.random.default_rng(config.seed) if rng is None else rng
     scans_total = 0 if log.scans is None else len(log.scans)
-    if scans_total == 0 or log.lidar is None:
+    if log.scans is None or scans_total == 0 or log.lidar is None:
         dr = dead_reckoning(log)
         warnings = [*log.warnings, "the log has no LiDAR scans: the result is dead reckoning only, with an empty map"]
         return SlamResult(
@@ -189,7 +189,8 @@ def _time_offset_summary(slam: SlamFilter, log: DriveLog, config: SlamConfig) ->
     increment = None if log.lidar is None else log.lidar.time_increment_s
     on = bool(config.odometry.deskew and increment)
     return {**slam.time_offset.summary(), "deskew": on,
-            "sweep_s": round(abs(increment) * (log.lidar.num_beams - 1), 5) if on and log.lidar else None,
+            "sweep_s": round(abs(increment) * (log.lidar.num_beams - 1), 5)
+            if on and increment is not None and log.lidar else None,
             "deskewed_key_frames": sum(p is not None for p in slam.key_frame_sweeps)}
 
 

@@ -55,9 +55,7 @@ class _Laser:
     laser_pose: list[tuple[float, float, float]] = field(default_factory=list)
     robot_pose: list[tuple[float, float, float]] = field(default_factory=list)
     lines: list[int] = field(default_factory=list)
-    start_angle: float | None = None
-    resolution: float | None = None
-    max_range: float | None = None
+    geometry: tuple[float, float, float] | None = None  # (start angle, resolution, max range) of the first record
 
 
 def sniff(path: Path) -> bool:
@@ -132,9 +130,9 @@ def _parse_new_laser(tokens: list[str], laser: _Laser, path: Path, line_no: int,
     laser.t.append(float(rest[-1]))
     laser.lines.append(line_no)
     start, _fov, resolution, max_range = (float(v) for v in header)
-    if laser.start_angle is None:
-        laser.start_angle, laser.resolution, laser.max_range = start, resolution, max_range
-    elif abs(start - laser.start_angle) > 1e-6 or abs(resolution - laser.resolution) > 1e-9:
+    if laser.geometry is None:
+        laser.geometry = (start, resolution, max_range)
+    elif abs(start - laser.geometry[0]) > 1e-6 or abs(resolution - laser.geometry[1]) > 1e-9:
         raise LogFormatError("laser geometry (start angle / resolution) changes within the log",
                              path=str(path), location=f"line {line_no}")
 
@@ -231,9 +229,9 @@ def _laser_stream(path: Path, kind: str, laser: _Laser, params: dict[str, str], 
     if n == 0:
         raise LogFormatError(f"{kind} scans have no beams", path=str(path), location=f"line {laser.lines[0]}")
     side = "rear" if kind in ("RLASER", "ROBOTLASER2") else "front"
-    if laser.start_angle is not None:
-        angle_min, increment = laser.start_angle, laser.resolution
-        threshold = laser.max_range if laser.max_range and laser.max_range > 0 else DEFAULT_NO_RETURN_M
+    if laser.geometry is not None:
+        angle_min, increment, max_range = laser.geometry
+        threshold = max_range if max_range and max_range > 0 else DEFAULT_NO_RETURN_M
     else:
         angle_min = -np.pi / 2
         increment = np.pi / (n - 1) if n % 2 == 1 and n > 1 else np.pi / n
@@ -318,16 +316,15 @@ def write(log: DriveLog, out_dir: Path, name: str = "log") -> Path:
     for t, (x, y, th) in zip(odometry.t_s, odometry.poses, strict=True):
         records.append((float(t), 0, f"ODOM {x:.6f} {y:.6f} {th:.6f} 0 0 0 {t:.6f} lidarmap {t:.6f}"))
     if log.scans is not None and log.lidar is not None:
-        records.extend(_laser_lines(log, odometry, mount))
+        records.extend(_laser_lines(log.lidar, log.scans, odometry, mount))
     records.sort(key=lambda r: (r[0], r[1]))
     lines.extend(r[2] for r in records)
     path.write_text("\n".join(lines) + "\n")
     return path
 
 
-def _laser_lines(log: DriveLog, odometry: OdometryStream,
+def _laser_lines(lidar: LidarModel, scans: ScanStream, odometry: OdometryStream,
                  mount: np.ndarray) -> list[tuple[float, int, str]]:
-    lidar, scans = log.lidar, log.scans
     robot = interpolate(odometry.t_s, odometry.poses, scans.t_s)
     laser = compose(robot, mount)
     no_return = max(lidar.range_max_m, DEFAULT_NO_RETURN_M) + 1.91

@@ -16,7 +16,7 @@ import stat
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -38,6 +38,7 @@ FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
 MAX_ENTRIES = 64
 MAX_MANIFEST_BYTES = 1 << 20
+_Stream = TypeVar("_Stream", ScanStream, EncoderStream, GyroStream, OdometryStream)
 MAX_TOTAL_BYTES = 8 << 30  # uncompressed
 # stream kind -> {column: (dtype kind, trailing shape or None for "any", required)}
 STREAM_COLUMNS: dict[str, dict[str, tuple[str, tuple[int, ...] | None]]] = {
@@ -70,13 +71,15 @@ def _require(condition: bool, message: str, where: str) -> None:
         raise LogFormatError(message, path=None, location=where)
 
 
-def _number(value: Any, where: str, positive: bool = False, optional: bool = False) -> float | None:
-    if value is None and optional:
-        return None
+def _number(value: Any, where: str, positive: bool = False) -> float:
     _require(isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value),
              f"must be a finite number, got {value!r}", where)
     _require(not positive or value > 0, f"must be positive, got {value!r}", where)
     return float(value)
+
+
+def _optional_number(value: Any, where: str, positive: bool = False) -> float | None:
+    return None if value is None else _number(value, where, positive=positive)
 
 
 def _matrix4(value: Any, where: str) -> np.ndarray:
@@ -84,7 +87,8 @@ def _matrix4(value: Any, where: str) -> np.ndarray:
         T = np.array(value, dtype=np.float64)
     except (TypeError, ValueError):
         T = None
-    _require(T is not None and T.shape == (4, 4) and bool(np.isfinite(T).all()), "must be a 4x4 matrix", where)
+    if T is None or T.shape != (4, 4) or not bool(np.isfinite(T).all()):
+        raise LogFormatError("must be a 4x4 matrix", path=None, location=where)
     _require(np.allclose(T[3], [0, 0, 0, 1]) and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6),
              "must be a rigid transform (orthonormal rotation, last row 0 0 0 1)", where)
     return T
@@ -105,12 +109,11 @@ def vehicle_from_json(data: Any) -> VehicleModel:
              "vehicle.wheel_names")
     return VehicleModel(
         kind=MotionModelKind(data["kind"]),
-        ticks_per_revolution=_number(data.get("ticks_per_revolution"), "vehicle.ticks_per_revolution",
-                                     positive=True, optional=True),
+        ticks_per_revolution=_optional_number(data.get("ticks_per_revolution"), "vehicle.ticks_per_revolution",
+                                              positive=True),
         wheel_diameters_m=diameters, wheel_names=tuple(names),
-        track_width_m=_number(data.get("track_width_m"), "vehicle.track_width_m", positive=True, optional=True),
-        gyro_lowpass_hz=_number(data.get("gyro_lowpass_hz"), "vehicle.gyro_lowpass_hz", positive=True,
-                                optional=True),
+        track_width_m=_optional_number(data.get("track_width_m"), "vehicle.track_width_m", positive=True),
+        gyro_lowpass_hz=_optional_number(data.get("gyro_lowpass_hz"), "vehicle.gyro_lowpass_hz", positive=True),
         T_vehicle_from_gyro=_matrix4(data.get("T_vehicle_from_gyro", np.eye(4).tolist()),
                                      "vehicle.T_vehicle_from_gyro"),
         name=str(data.get("name", "vehicle")))
@@ -132,7 +135,7 @@ def lidar_from_json(data: Any) -> LidarModel | None:
                       range_min_m=range_min, range_max_m=range_max,
                       T_vehicle_from_lidar=_matrix4(data.get("T_vehicle_from_lidar"), "lidar.T_vehicle_from_lidar"),
                       name=str(data.get("name", "lidar")),
-                      time_increment_s=_number(data.get("time_increment_s"), "lidar.time_increment_s", optional=True))
+                      time_increment_s=_optional_number(data.get("time_increment_s"), "lidar.time_increment_s"))
 
 
 def validate_manifest(manifest: Any) -> tuple[VehicleModel, LidarModel | None, list[dict]]:
@@ -230,18 +233,29 @@ def load(path: Path, max_total_bytes: int = MAX_TOTAL_BYTES) -> DriveLog:
         except LogFormatError as error:
             raise LogFormatError(error.message, path=str(path), location=f"manifest.json {error.location}") from None
         warnings: list[str] = []
-        built: dict[str, object] = {}
+        built: dict[str, ScanStream | EncoderStream | GyroStream | OdometryStream] = {}
         for stream in streams:
             kind = stream["kind"]
             columns = {c: _read_column(archive, m, path) for c, m in stream["columns"].items()}
             built[kind] = _stream(kind, columns, stream["count"], lidar, vehicle, path, warnings)
-    return DriveLog(vehicle=vehicle, lidar=lidar, scans=built.get("scans"), encoders=built.get("encoders"),
-                    gyro=built.get("gyro"), odometry=built.get("odometry"), source_format="drivelog",
+    return DriveLog(vehicle=vehicle, lidar=lidar, scans=_built(built, "scans", ScanStream),
+                    encoders=_built(built, "encoders", EncoderStream), gyro=_built(built, "gyro", GyroStream),
+                    odometry=_built(built, "odometry", OdometryStream), source_format="drivelog",
                     source_path=str(path), warnings=warnings)
 
 
+def _built(built: dict[str, ScanStream | EncoderStream | GyroStream | OdometryStream], kind: str,
+           cls: type[_Stream]) -> _Stream | None:
+    """The stream of ``kind`` that :func:`_stream` built (None when the log has none)."""
+    stream = built.get(kind)
+    if stream is not None and not isinstance(stream, cls):
+        raise TypeError(f"{kind} stream is a {type(stream).__name__}, not a {cls.__name__}")
+    return stream
+
+
 def _stream(kind: str, columns: dict[str, np.ndarray], count: int, lidar: LidarModel | None,
-            vehicle: VehicleModel, path: Path, warnings: list[str]):
+            vehicle: VehicleModel, path: Path,
+            warnings: list[str]) -> ScanStream | EncoderStream | GyroStream | OdometryStream:
     for column, (dtype_kind, trailing) in STREAM_COLUMNS[kind].items():
         array = columns[column]
         where = f"{kind}/{column}.npy"
@@ -259,6 +273,8 @@ def _stream(kind: str, columns: dict[str, np.ndarray], count: int, lidar: LidarM
     order = time_order(t, path, kind, warnings, label)
     if kind == "scans":
         ranges = columns["ranges_m"]
+        if lidar is None:  # validate_manifest requires a lidar model for a scans stream
+            raise LogFormatError("a scans stream needs a lidar model", path=str(path), location="manifest.json lidar")
         if ranges.ndim != 2 or ranges.shape[1] != lidar.num_beams:
             raise LogFormatError(f"shape {ranges.shape}, expected ({count}, {lidar.num_beams}) beams",
                                  path=str(path), location="scans/ranges_m.npy")

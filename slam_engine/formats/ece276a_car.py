@@ -240,7 +240,7 @@ def rpy_deg(R: np.ndarray) -> tuple[float, float, float]:
     pitch = np.arcsin(-np.clip(R[2, 0], -1.0, 1.0))
     roll = np.arctan2(R[2, 1], R[2, 2])
     yaw = np.arctan2(R[1, 0], R[0, 0])
-    return tuple(float(np.degrees(a)) for a in (roll, pitch, yaw))
+    return float(np.degrees(roll)), float(np.degrees(pitch)), float(np.degrees(yaw))
 
 
 def _extrinsic_text(title: str, T: np.ndarray, note: str = "") -> str:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import sqlite3
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -104,14 +105,22 @@ def load(path: Path) -> DriveLog:
             wanted = scan_conns + odom_conns + imu_conns + tf_conns
             if not wanted:
                 raise LogFormatError("bag has no LaserScan, Odometry, Imu or tf_static messages", path=str(path))
-            scans_t, ranges, first_scan, scan_frame = [], [], None, None
-            odom_t, poses, base_frame = [], [], None
-            imu_t, rates, imu_frame = [], [], None
+            scans_t: list[float] = []
+            ranges: list[np.ndarray] = []
+            first_scan: Any = None  # a deserialized sensor_msgs/LaserScan
+            scan_frame: str | None = None
+            odom_t: list[float] = []
+            poses: list[tuple[float, float, float]] = []
+            base_frame: str | None = None
+            imu_t: list[float] = []
+            rates: list[tuple[float, float, float]] = []
+            imu_frame: str | None = None
             tree: dict[str, tuple[str, np.ndarray]] = {}
             for conn, bag_ns, raw in reader.messages(connections=wanted):
                 where = f"topic {conn.topic} message at {bag_ns} ns"
                 try:
-                    msg = reader.deserialize(raw, conn.msgtype)
+                    # rosbags types it `object`: the message class is the one conn.msgtype names
+                    msg: Any = reader.deserialize(raw, conn.msgtype)
                 except Exception as error:  # noqa: BLE001 - rosbags raises several types for corrupt data
                     raise LogFormatError(f"cannot decode {conn.msgtype}: {error}", path=str(path),
                                          location=where) from None
@@ -152,14 +161,14 @@ def load(path: Path) -> DriveLog:
                                                    BASE_FRAMES[0])
     lidar, scans = None, None
     if first_scan is not None:
-        T = _chain(tree, scan_frame.lstrip("/"), base)
-        if T is None:
+        T_base_from_lidar = _chain(tree, (scan_frame or "").lstrip("/"), base)
+        if T_base_from_lidar is None:
             warnings.append(f"{path}: no tf_static from {scan_frame!r} to {base!r}; LiDAR assumed at the base origin")
-            T = np.eye(4)
+            T_base_from_lidar = np.eye(4)
         lidar = LidarModel(num_beams=len(first_scan.ranges), angle_min_rad=float(first_scan.angle_min),
                            angle_increment_rad=float(first_scan.angle_increment),
                            range_min_m=float(first_scan.range_min), range_max_m=float(first_scan.range_max),
-                           T_vehicle_from_lidar=T, name=f"ROS {scan_topic}",
+                           T_vehicle_from_lidar=T_base_from_lidar, name=f"ROS {scan_topic}",
                            time_increment_s=float(first_scan.time_increment) or None)
         values = np.array(ranges, dtype=np.float32)
         values[~np.isfinite(values) | (values < lidar.range_min_m) | (values > lidar.range_max_m)] = np.inf
@@ -178,9 +187,9 @@ def load(path: Path) -> DriveLog:
     gyro = None
     if imu_t:
         R = np.eye(3)
-        T = _chain(tree, (imu_frame or "").lstrip("/"), base)
-        if T is not None:
-            R = T[:3, :3]
+        T_base_from_imu = _chain(tree, (imu_frame or "").lstrip("/"), base)
+        if T_base_from_imu is not None:
+            R = T_base_from_imu[:3, :3]
         yaw_rate = (np.array(rates) @ R.T)[:, 2]
         order = time_order(np.array(imu_t), path, imu_topic, warnings, lambda i: f"{imu_topic} message {i}")
         gyro = GyroStream(t_s=np.array(imu_t)[order], yaw_rate_rad_s=yaw_rate[order])
@@ -284,6 +293,6 @@ def write(log: DriveLog, out_dir: Path, name: str = "log") -> Path:
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         connections = {topic: writer.add_connection(topic, msgtype, typestore=store)
                        for topic, msgtype in msgtypes.items() if any(r[1] == topic for r in records)}
-        for stamp, topic, msg in records:
-            writer.write(connections[topic], stamp, store.serialize_cdr(msg, msgtypes[topic]))
+        for stamp, topic, record in records:
+            writer.write(connections[topic], stamp, store.serialize_cdr(record, msgtypes[topic]))
     return path

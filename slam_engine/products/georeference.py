@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -65,7 +66,7 @@ class Georeference:
         return cls(A=np.eye(2), b=np.zeros(2), epsg=None, crs_name=LOCAL_CRS_NAME)
 
     @classmethod
-    def utm(cls, origin: GeoOrigin, start_pose: np.ndarray) -> Georeference:
+    def utm(cls, origin: GeoOrigin, start_pose: np.ndarray | Sequence[float]) -> Georeference:
         """UTM placement given the geo origin of ``start_pose`` = [x_m, y_m, theta_rad] (map frame)."""
         from pyproj import CRS, Geod
 

@@ -107,7 +107,7 @@ class WebMercatorScheme:
     max_zoom: int
 
     @classmethod
-    def for_map(cls, source: MapSource, georef: Georeference) -> WebMercatorScheme:
+    def for_map(cls, source: MapSource, georef: Georeference | None) -> WebMercatorScheme:
         if georef is None or georef.is_local:
             raise ConfigError("Web Mercator tiles need a geo origin (latitude, longitude, heading)")
         h, w = _shape(source)
@@ -257,7 +257,8 @@ def _window(source: MapSource, r0: int, r1: int, c0: int, c1: int) -> tuple[np.n
 
 def _pool(source: MapSource, window: tuple[np.ndarray, ...], factor: int) -> tuple[np.ndarray, ...]:
     if isinstance(source, OccupancyGrid):
-        return pool_occupancy(*window, factor)
+        values, known, inside = window
+        return pool_occupancy(values, known, inside, factor)
     colors, seen, inside = window
     pooled_colors, pooled_seen = pool_texture(colors, seen, factor)
     _, _, pooled_inside = pool_occupancy(np.zeros(seen.shape), seen, inside, factor)
@@ -290,6 +291,7 @@ def _simple_tile(source: MapSource, z: int, x: int, y: int) -> np.ndarray:
 
 def _web_mercator_tile(source: MapSource, georef: Georeference | None, z: int, x: int, y: int) -> np.ndarray:
     scheme = WebMercatorScheme.for_map(source, georef)
+    assert georef is not None  # for_map raises ConfigError without a geo origin
     scheme.check(z, x, y)
     pixel_m = scheme.tile_m(z) / TILE_SIZE
     offsets = (np.arange(TILE_SIZE) + 0.5) * pixel_m

@@ -16,6 +16,7 @@ from slam_engine.drive_log import (
     OdometryStream,
     ScanStream,
 )
+from slam_engine.errors import ConfigError
 from slam_engine.poses import wrap_angle
 from slam_engine.simulation.motion import Motion
 from slam_engine.simulation.rigs import Rig
@@ -55,7 +56,10 @@ def measured_wheel_distances(true_m: np.ndarray, rig: Rig, rng: np.random.Genera
 def encoder_stream(motion: Motion, t_s: np.ndarray, rig: Rig, rng: np.random.Generator) -> EncoderStream:
     """Cumulative integer ticks (N, n_wheels) at ``t_s`` (absolute stamps)."""
     distances = measured_wheel_distances(true_wheel_distances(motion, t_s - rig.t0_s, rig), rig, rng)
-    per_tick = np.pi * np.asarray(rig.vehicle.wheel_diameters_m) / rig.vehicle.ticks_per_revolution
+    ticks_per_revolution = rig.vehicle.ticks_per_revolution
+    if ticks_per_revolution is None:
+        raise ConfigError(f"vehicle {rig.vehicle.name!r}: simulated encoders need ticks_per_revolution")
+    per_tick = np.pi * np.asarray(rig.vehicle.wheel_diameters_m) / ticks_per_revolution
     ticks = np.floor(distances / per_tick[None, :]).astype(np.int64)
     return EncoderStream(t_s=t_s, ticks=ticks)
 

@@ -25,9 +25,10 @@ def read_frame(source: str | Path | np.ndarray, what: str) -> np.ndarray:
         path = Path(source)
         if not path.is_file():
             raise LogFormatError("image file missing", path, what)
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if image is None:
+        loaded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if loaded is None:
             raise LogFormatError("not a readable image", path, what)
+        image = loaded
         if image.ndim == 3 and image.shape[2] == 4:
             image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB)
         elif image.ndim == 3:

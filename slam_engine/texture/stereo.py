@@ -65,7 +65,7 @@ def compute_disparity(left_rect: np.ndarray, right_rect: np.ndarray, config: Tex
     left_gray = _gray(left_rect)
     right_gray = _gray(right_rect)
     block = config.sgbm_block_size
-    matcher = cv2.StereoSGBM_create(
+    matcher = cv2.StereoSGBM.create(  # the same binding as the legacy cv2.StereoSGBM_create
         minDisparity=0,
         numDisparities=config.sgbm_num_disparities,
         blockSize=block,
