@@ -38,7 +38,6 @@ FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
 MAX_ENTRIES = 64
 MAX_MANIFEST_BYTES = 1 << 20
-_Stream = TypeVar("_Stream", ScanStream, EncoderStream, GyroStream, OdometryStream)
 MAX_TOTAL_BYTES = 8 << 30  # uncompressed
 # stream kind -> {column: (dtype kind, trailing shape or None for "any", required)}
 STREAM_COLUMNS: dict[str, dict[str, tuple[str, tuple[int, ...] | None]]] = {
@@ -242,6 +241,9 @@ def load(path: Path, max_total_bytes: int = MAX_TOTAL_BYTES) -> DriveLog:
                     encoders=_built(built, "encoders", EncoderStream), gyro=_built(built, "gyro", GyroStream),
                     odometry=_built(built, "odometry", OdometryStream), source_format="drivelog",
                     source_path=str(path), warnings=warnings)
+
+
+_Stream = TypeVar("_Stream", ScanStream, EncoderStream, GyroStream, OdometryStream)
 
 
 def _built(built: dict[str, ScanStream | EncoderStream | GyroStream | OdometryStream], kind: str,
