@@ -153,6 +153,7 @@ class _Lane:
         self.memory_limit_mb = memory_limit_mb
         self._process: Any = None
         self._conn: Any = None
+        self._stopping = threading.Lock()  # the service's shutdown may stop a lane that is in use
 
     def call(self, name: str, args: tuple, timeout_s: float) -> dict[str, Any]:
         """Run ``name(*args)`` in the child; ``{"error": "timeout" | "crashed" | "memory"}`` when it failed.
@@ -196,13 +197,16 @@ class _Lane:
         return False
 
     def stop(self) -> None:
-        if self._process is None:
+        """Kill the child (if any) and forget it; safe to call from two threads at once."""
+        with self._stopping:
+            process, conn = self._process, self._conn
+            self._process = self._conn = None
+        if process is None:
             return
-        if self._process.is_alive():
-            self._process.kill()
-        self._process.join(timeout=5.0)
-        self._conn.close()
-        self._process = self._conn = None
+        if process.is_alive():
+            process.kill()
+        process.join(timeout=5.0)
+        conn.close()
 
 
 class LogInspector:
