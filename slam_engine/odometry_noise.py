@@ -28,6 +28,8 @@ MIN_KEY_FRAMES = 3 * LAGS[-1]
 # floors [m, rad]: no source is trusted beyond these
 MATCH_SD_FLOOR = (1e-3, 1e-4)
 ODOMETRY_SD_FLOOR = (2e-4, 2e-5)
+# the front end trusts the odometry only where it is this fraction of the model's noise or less
+MAX_TRUSTED_SCALE = 0.25
 
 
 @dataclass(frozen=True)
@@ -133,13 +135,14 @@ class OdometryPrecision:
         if estimate is None:
             return
         self.estimate = estimate
-        trusted = estimate.odometry_helps
-        if trusted:
-            model = np.median(np.array(self._model_sd), axis=0)
-            self.trans_scale = float(np.clip(estimate.odometry_sd_m / max(model[0], 1e-9), self.min_scale, 1.0))
-            self.rot_scale = float(np.clip(estimate.odometry_sd_rad / max(model[1], 1e-12), self.min_scale, 1.0))
-        else:
-            self.trans_scale = self.rot_scale = 1.0
+        model = np.median(np.array(self._model_sd), axis=0)
+        trans_scale = float(np.clip(estimate.odometry_sd_m / max(model[0], 1e-9), self.min_scale, 1.0))
+        rot_scale = float(np.clip(estimate.odometry_sd_rad / max(model[1], 1e-12), self.min_scale, 1.0))
+        # trusted only when clearly so: more precise than the matches, several times more precise than
+        # the model says, over a full window (a rover's first 50 scans looked 2x better than the model)
+        trusted = (estimate.odometry_helps and min(trans_scale, rot_scale) <= MAX_TRUSTED_SCALE
+                   and len(self._fitted) >= self.window_steps // 2)
+        self.trans_scale, self.rot_scale = (trans_scale, rot_scale) if trusted else (1.0, 1.0)
         self.changes += int(trusted != self.trusted)
         self.trusted = trusted
 
