@@ -138,10 +138,9 @@ class OdometryPrecision:
         model = np.median(np.array(self._model_sd), axis=0)
         trans_scale = float(np.clip(estimate.odometry_sd_m / max(model[0], 1e-9), self.min_scale, 1.0))
         rot_scale = float(np.clip(estimate.odometry_sd_rad / max(model[1], 1e-12), self.min_scale, 1.0))
-        # trusted only when clearly so: more precise than the matches, several times more precise than
-        # the model says, over a full window (a rover's first 50 scans looked 2x better than the model)
-        trusted = (estimate.odometry_helps and min(trans_scale, rot_scale) <= MAX_TRUSTED_SCALE
-                   and len(self._fitted) >= self.window_steps // 2)
+        # trusted only when clearly so: more precise than the matches and several times more precise
+        # than the model says (a rover's first scans looked 2x better than the model: not enough)
+        trusted = estimate.odometry_helps and min(trans_scale, rot_scale) <= MAX_TRUSTED_SCALE
         self.trans_scale, self.rot_scale = (trans_scale, rot_scale) if trusted else (1.0, 1.0)
         self.changes += int(trusted != self.trusted)
         self.trusted = trusted
