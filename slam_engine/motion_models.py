@@ -109,6 +109,23 @@ def apply_odometry_increments(poses: np.ndarray, rot1: np.ndarray, trans: np.nda
     )
 
 
+def _increment_sds(rot1: float, trans: float, rot2: float,
+                   alphas: tuple[float, float, float, float]) -> tuple[float, float, float]:
+    """Standard deviations of rot1 [rad], trans [m] and rot2 [rad] in the rot1-trans-rot2 model."""
+    a1, a2, a3, a4 = alphas
+    abs_trans = abs(trans)
+    return (a1 * abs(rot1) + a2 * abs_trans, a3 * abs_trans + a4 * (abs(rot1) + abs(rot2)),
+            a1 * abs(rot2) + a2 * abs_trans)
+
+
+def odometry_motion_sds(odom_from: np.ndarray, odom_to: np.ndarray,
+                        alphas: tuple[float, float, float, float]) -> tuple[float, float, float]:
+    """Standard deviations ``(rot1 [rad], trans [m], rot2 [rad])`` of the motion ``odom_from -> odom_to``
+    in the model of :func:`sample_odometry_motion`."""
+    rot1, trans, rot2 = (float(v) for v in odometry_increments(odom_from, odom_to))
+    return _increment_sds(rot1, trans, rot2, alphas)
+
+
 def sample_odometry_motion(
     particles: np.ndarray,
     odom_from: np.ndarray,
@@ -124,12 +141,8 @@ def sample_odometry_motion(
     rot1, trans, rot2 = odometry_increments(odom_from, odom_to)
     if abs(trans) < STATIONARY_TRANS_M and abs(rot1) + abs(rot2) < STATIONARY_ROT_RAD:
         return particles.copy()
-    a1, a2, a3, a4 = alphas
     n = particles.shape[0]
-    abs_trans = abs(trans)
-    sd_rot1 = a1 * abs(rot1) + a2 * abs_trans
-    sd_trans = a3 * abs_trans + a4 * (abs(rot1) + abs(rot2))
-    sd_rot2 = a1 * abs(rot2) + a2 * abs_trans
+    sd_rot1, sd_trans, sd_rot2 = _increment_sds(rot1, trans, rot2, alphas)
     noise = rng.standard_normal((n, 3))
     return apply_odometry_increments(
         particles, rot1 + sd_rot1 * noise[:, 0], trans + sd_trans * noise[:, 1], rot2 + sd_rot2 * noise[:, 2]
@@ -141,9 +154,7 @@ def odometry_motion_covariance(odom_from: np.ndarray, odom_to: np.ndarray,
     """(3, 3) covariance of the motion ``odom_from -> odom_to`` as the rot1-trans-rot2 model of
     :func:`sample_odometry_motion` spreads it, in the frame of the start pose [m^2, m rad, rad^2]."""
     rot1, trans, rot2 = (float(v) for v in odometry_increments(odom_from, odom_to))
-    a1, a2, a3, a4 = alphas
-    sd = np.array([a1 * abs(rot1) + a2 * abs(trans), a3 * abs(trans) + a4 * (abs(rot1) + abs(rot2)),
-                   a1 * abs(rot2) + a2 * abs(trans)])
+    sd = np.array(_increment_sds(rot1, trans, rot2, alphas))
     c, s = math.cos(rot1), math.sin(rot1)
     J = np.array([[-trans * s, c, 0.0], [trans * c, s, 0.0], [1.0, 0.0, 1.0]])  # d(dx, dy, dtheta)/d(rot1, trans, rot2)
     return J @ np.diag(sd**2) @ J.T

@@ -13,6 +13,7 @@ motion model (:class:`OdometryPrecision`), the back end to keep precise odometry
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -107,9 +108,9 @@ class OdometryPrecision:
         self.every_steps = int(every_steps)
         self.window_steps = int(window_steps)
         self.min_scale = float(min_scale)
-        self._fitted: list[np.ndarray] = []
-        self._odometry: list[np.ndarray] = []
-        self._model_sd: list[tuple[float, float]] = []
+        self._fitted: deque[np.ndarray] = deque(maxlen=self.window_steps)
+        self._odometry: deque[np.ndarray] = deque(maxlen=self.window_steps)
+        self._model_sd: deque[tuple[float, float]] = deque(maxlen=self.window_steps)
         self.estimate: NoiseEstimate | None = None
         self.trusted = False
         self.rot_scale = 1.0
@@ -124,8 +125,6 @@ class OdometryPrecision:
         self._fitted.append(np.asarray(fitted_pose, np.float64).copy())
         self._odometry.append(np.asarray(odometry_pose, np.float64).copy())
         self._model_sd.append((float(model_sd_m), float(model_sd_rad)))
-        if len(self._fitted) > self.window_steps:
-            del self._fitted[0], self._odometry[0], self._model_sd[0]
         self._steps += 1
         if self._steps % self.every_steps == 0:
             self._update()

@@ -18,6 +18,7 @@ Per-particle trajectories are kept as parent pointers per processed scan (no cop
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections import deque
@@ -35,7 +36,12 @@ from slam_engine.grid import ParticleGrids
 from slam_engine.heading_calibration import HeadingCalibration
 from slam_engine.lidar_points import ProjectedScan, ScanProjector
 from slam_engine.messages import EncoderMessage, GyroMessage, Message, OdometryMessage, ScanMessage
-from slam_engine.motion_models import odometry_increments, odometry_motion_covariance, sample_odometry_motion
+from slam_engine.motion_models import (
+    odometry_increments,
+    odometry_motion_covariance,
+    odometry_motion_sds,
+    sample_odometry_motion,
+)
 from slam_engine.odometry import OdometryIntegrator, make_integrator
 from slam_engine.odometry_noise import OdometryPrecision
 from slam_engine.poses import compose, relative, wrap_angle
@@ -309,12 +315,10 @@ class SlamFilter:
             motion_cov = odometry_motion_covariance(self._last_odom, target, alphas)
             fused = precision.trusted or self.config.matcher.proposal == "fused"
             poses, log_lik, score, accepted, jtj, fitted = self._propose(sampled, motion_cov, hits, fused)
-            model_cov = odometry_motion_covariance(self._last_odom, target, self.alphas)
-            a3, a4 = self.alphas[2], self.alphas[3]
-            rot1, trans, rot2 = odometry_increments(self._last_odom, target)
+            # the configured model's spread of this motion, against which the precision is measured
+            sd_rot1, sd_trans, sd_rot2 = odometry_motion_sds(self._last_odom, target, self.alphas)
             leader = int(np.argmax(self.log_weights + log_lik))
-            precision.observe(fitted[leader], odom, a3 * abs(trans) + a4 * (abs(rot1) + abs(rot2)),
-                              float(np.sqrt(model_cov[2, 2])))
+            precision.observe(fitted[leader], odom, sd_trans, math.hypot(sd_rot1, sd_rot2))
             self.heading_calibration.observe(self._last_odom, odom, self.particles, poses, accepted)
             self.heading_calibration.observe_distance(self._last_odom, odom, self.particles, poses, accepted, jtj)
             hc = self.heading_calibration

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from slam_engine.backend.pose_graph import poses_of
 from slam_engine.odometry_noise import NoiseEstimate
 from slam_engine.poses import relative
 
@@ -36,9 +37,5 @@ def smooth_with_odometry(poses: np.ndarray, odometry: np.ndarray, noise: NoiseEs
         graph.add(gtsam.PriorFactorPose2(k, gtsam.Pose2(*p), hold))
     for k, s in enumerate(steps):
         graph.add(gtsam.BetweenFactorPose2(k, k + 1, gtsam.Pose2(*s), tie))
-    result = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
-    out = np.empty_like(poses)
-    for k in range(len(poses)):
-        p = result.atPose2(k)
-        out[k] = (p.x(), p.y(), p.theta())
-    return out
+    return poses_of(gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize(),
+                    len(poses))

@@ -67,9 +67,13 @@ class PoseGraph:
             graph.add(gtsam.BetweenFactorPose2(e.i, e.j, gtsam.Pose2(*e.T_i_from_j), noise))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
-        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        out = np.empty((n, 3))
-        for k in range(n):
-            p = result.atPose2(k)
-            out[k] = (p.x(), p.y(), p.theta())
-        return out
+        return poses_of(gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize(), n)
+
+
+def poses_of(values: Any, n: int) -> np.ndarray:
+    """(n, 3) ``[x_m, y_m, theta_rad]`` of the Pose2 values 0..n-1 of a GTSAM result."""
+    out = np.empty((n, 3))
+    for k in range(n):
+        p = values.atPose2(k)
+        out[k] = (p.x(), p.y(), p.theta())
+    return out
