@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from slam_engine.backend.correlative import MatchGrid, branch_and_bound, refine_pose, search
-from slam_engine.backend.loop_closer import close_loops
+from slam_engine.backend.loop_closer import OUTSCORED, LoopCloser, close_loops
 from slam_engine.backend.pose_graph import PoseGraph
 from slam_engine.backend.submaps import match_grid_from_points
 from slam_engine.config import LoopClosingConfig, SlamConfig
@@ -150,6 +150,21 @@ def test_back_end_closes_the_loop_the_front_end_drifted(drifting_office) -> None
     # deterministic: the same input gives the same poses
     again = close_loops(path, points, SlamConfig().loop_closing, 0.05)
     np.testing.assert_array_equal(again.poses, result.poses)
+
+
+def test_closures_reported_accepted_are_the_graphs_closure_edges(drifting_office) -> None:
+    """run.json's accepted closures are exactly those in the pose graph: a key frame matched to two
+    submaps uses the better one, and the other is reported as not used (it once said "accepted")."""
+    _, path, points = drifting_office
+    closer = LoopCloser(path, points, SlamConfig().loop_closing, 0.05)
+    result = closer.run()
+    accepted = sorted((c.anchor, c.node) for c in result.closures if c.accepted)
+    edges = sorted((e.i, e.j) for e in closer.graph.edges if e.robust)
+    assert accepted == edges and len(edges) >= 3
+    outscored = [c for c in result.closures if c.reason == OUTSCORED]
+    assert outscored  # the office's key frames often see two old submaps
+    for c in outscored:
+        assert any(o.node == c.node and o.score >= c.score and o.reason != OUTSCORED for o in result.closures)
 
 
 def test_back_end_off_returns_the_front_end_path(drifting_office) -> None:

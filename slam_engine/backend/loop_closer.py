@@ -41,6 +41,8 @@ if TYPE_CHECKING:  # scipy.sparse (~25 MB) is imported by the back end itself, a
 CLOSURE_TRAVEL_M = 1.0
 # a key frame needs this many end points over a submap to be matched against it
 MIN_OVERLAP_POINTS = 30
+# a verified closure not used because another submap matched the same key frame better
+OUTSCORED = "another submap matched better"
 
 
 @dataclass(frozen=True)
@@ -242,7 +244,11 @@ class LoopCloser:
             closures.append(Closure(k, s_index, s.anchor, match.score, match.runner_up_score, window_m, window_rad,
                                     ok, reason, float(np.hypot(delta[0], delta[1])), float(abs(delta[2]))))
             if ok and (best is None or match.score > best[0]):
+                if best is not None:
+                    closures[best[4]] = replace(closures[best[4]], accepted=False, reason=OUTSCORED)
                 best = (match.score, s.anchor, pose, window_m, len(closures) - 1)
+            elif ok:
+                closures[-1] = replace(closures[-1], accepted=False, reason=OUTSCORED)
         if best is None:
             return None
         return best[1], best[2], best[3], best[4]
