@@ -456,6 +456,13 @@ class SlamFilter:
             idx = int(self._parents[k][idx])
         return path
 
+    def key_frame_times(self) -> np.ndarray:
+        """(steps,) time [s] of the scan processed at every step (key frame)."""
+        times = np.full(len(self._history), np.nan)
+        for record in reversed(self._records):  # a step's first record is its own scan's
+            times[record.step] = record.t_s
+        return times
+
     def trajectory(self, key_frame_poses: np.ndarray | None = None) -> Trajectory:
         """Best particle's trajectory, one pose per scan handled so far; with ``key_frame_poses``
         (steps, 3), e.g. the back end's optimised key frames, the scans between them follow those."""

@@ -101,21 +101,32 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
         raise ConfigError(f"the LiDAR model has {log.lidar.num_beams} beams but the scans have "
                           f"{log.scans.ranges_m.shape[1]} ranges")
 
-    slam = SlamFilter.from_log(log, config, rng)
-    odometry_only = DriveLog(vehicle=log.vehicle, encoders=log.encoders, gyro=log.gyro, odometry=log.odometry,
-                             scans=log.scans)
-    for message in odometry_only.messages():
-        slam.step(message)
-        if progress is not None and isinstance(message, ScanMessage):
-            progress(RunProgress(slam.scans_seen, scans_total, time.perf_counter() - start,
-                                 slam.snapshots[-1] if slam.snapshots else None))
-    slam.finish()
+    slam = run_filter(log, config, rng, progress, start)
     if progress is not None:
         progress(RunProgress(scans_total, scans_total, time.perf_counter() - start))
     result = filter_result(slam, log, config, start)
     del slam
     _return_freed_memory()
     return result
+
+
+def run_filter(log: DriveLog, config: SlamConfig, rng: np.random.Generator, progress: ProgressCallback | None = None,
+               started_s: float | None = None) -> SlamFilter:
+    """The front end alone: a :class:`SlamFilter` stepped through every odometry and scan message of
+    ``log`` (which has scans and a LiDAR model) and finished, before the back end
+    (:func:`filter_result`). ``progress`` as in :func:`run_slam`, timed from ``started_s``."""
+    started_s = time.perf_counter() if started_s is None else started_s
+    scans_total = 0 if log.scans is None else len(log.scans)
+    slam = SlamFilter.from_log(log, config, rng)
+    odometry_only = DriveLog(vehicle=log.vehicle, encoders=log.encoders, gyro=log.gyro, odometry=log.odometry,
+                             scans=log.scans)
+    for message in odometry_only.messages():
+        slam.step(message)
+        if progress is not None and isinstance(message, ScanMessage):
+            progress(RunProgress(slam.scans_seen, scans_total, time.perf_counter() - started_s,
+                                 slam.snapshots[-1] if slam.snapshots else None))
+    slam.finish()
+    return slam
 
 
 def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s: float) -> SlamResult:
