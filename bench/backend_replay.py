@@ -11,6 +11,9 @@ frames; on the sparse logs that is every scan).
 ``python -m bench.backend_replay record --log corridor --seeds 0-4 --out /tmp/fe``
 ``python -m bench.backend_replay replay /tmp/fe [--set loop_closing.cauchy_scale=3]``
 
+Where the log has ground truth (``NAME.gt.txt``), each row also lists the accepted closures whose
+matched relation is off the truth's (false closures: the corridor's aliases).
+
 Logs: the benchmark names of :mod:`bench.engine_profile` (``intel``, ``freiburg``, ``aces``,
 ``corridor``) or a path to a log with ``NAME.relations`` beside it.
 """
@@ -28,6 +31,10 @@ import numpy as np
 
 from bench.cases import datasets_root
 from bench.engine_profile import BENCHMARK, _overrides, _parse_seeds
+
+# an accepted closure this far from the ground truth's relation is counted as false [m, rad]
+FALSE_CLOSURE_M = 0.4
+FALSE_CLOSURE_RAD = 0.04
 
 
 def _log_path(name: str) -> Path:
@@ -71,12 +78,35 @@ def replay(recording: Path, overrides: dict) -> dict:
     summary = result.summary()
     summary.pop("closures")
     row.update({k: v for k, v in summary.items() if k != "closures_rejected"})
-    relations = Path(str(data["log"])).with_suffix(".relations")
+    log_path = Path(str(data["log"]))
+    relations = log_path.with_suffix(".relations")
     if relations.exists():
         errors = relation_errors(Trajectory(t_s=data["t_s"], poses=result.poses), read_relations(relations))
         row.update(trans_m=round(errors.all.trans_mean_m, 4), local_m=round(errors.local.trans_mean_m, 4),
                    loop_m=round(errors.loop.trans_mean_m, 4))
+    truth = log_path.with_suffix(".gt.txt")
+    if truth.exists():
+        row["false_closures"] = false_closures(result.closures, data["t_s"], np.loadtxt(truth))
     return row
+
+
+def false_closures(closures: list, key_frame_t_s: np.ndarray, truth: np.ndarray, max_m: float = FALSE_CLOSURE_M,
+                   max_rad: float = FALSE_CLOSURE_RAD) -> list[dict]:
+    """Accepted closures whose matched pose of the key frame in its anchor's frame is more than
+    ``max_m`` / ``max_rad`` off the ground truth's (``truth``: rows t x y theta, one per scan)."""
+    from slam_engine.poses import relative, wrap_angle
+
+    index = np.clip(np.searchsorted(truth[:, 0], key_frame_t_s - 1e-6), 0, len(truth) - 1)
+    poses = truth[index, 1:4]
+    out = []
+    for c in closures:
+        if not c.accepted:
+            continue
+        error = np.asarray(c.T_anchor_from_node) - relative(poses[c.anchor], poses[c.node])
+        off_m, off_rad = float(np.hypot(error[0], error[1])), abs(float(wrap_angle(error[2])))
+        if off_m > max_m or off_rad > max_rad:
+            out.append({"node": c.node, "anchor": c.anchor, "off_m": round(off_m, 3), "off_rad": round(off_rad, 4)})
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -33,3 +33,21 @@ def test_replay_reproduces_the_full_runs_back_end(tmp_path, capsys) -> None:
     assert main(["replay", str(tmp_path / "fe"), "--set", "loop_closing.min_score=0.99"]) == 0
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
     assert len(rows) == 1 and rows[0]["closures_accepted"] <= expected["closures_accepted"]
+
+
+def test_false_closures_are_those_off_the_ground_truth() -> None:
+    from bench.backend_replay import false_closures
+    from slam_engine.backend.loop_closer import Closure
+
+    # truth: a straight drive along x, one scan per second, 1 m apart
+    truth = np.column_stack([np.arange(20.0), np.arange(20.0), np.zeros(20), np.zeros(20)])
+    key_frame_t_s = np.arange(20.0)
+
+    def closure(node: int, anchor: int, x_m: float, accepted: bool = True) -> Closure:
+        return Closure(node, 0, anchor, 0.8, 0.0, 1.0, 0.1, accepted, "accepted", 0.0, 0.0, (x_m, 0.0, 0.0))
+
+    right = closure(15, 2, 13.05)  # 13 m apart in truth
+    aliased = closure(16, 2, 14.0 + 14.0)  # the next bay, 14 m on
+    ignored = closure(17, 2, 0.0, accepted=False)  # rejected closures are not counted
+    found = false_closures([right, aliased, ignored], key_frame_t_s, truth)
+    assert [(f["node"], f["off_m"]) for f in found] == [(16, 14.0)]

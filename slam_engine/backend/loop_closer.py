@@ -49,7 +49,8 @@ OUTSCORED = "another submap matched better"
 class Closure:
     """One loop candidate that was matched: key frame ``node`` against ``submap`` (anchor key frame
     ``anchor``), its score and runner-up score, the search window [m, rad], whether it was accepted
-    (and why not), and the correction it implied for the key frame's predicted pose [m, rad]."""
+    (and why not), the correction it implied for the key frame's predicted pose [m, rad], and the
+    matched pose ``T_anchor_from_node`` (x [m], y [m], theta [rad])."""
 
     node: int
     submap: int
@@ -62,6 +63,7 @@ class Closure:
     reason: str
     correction_m: float
     correction_rad: float
+    T_anchor_from_node: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def as_dict(self) -> dict:
         return {"node": self.node, "submap": self.submap, "anchor": self.anchor, "score": round(self.score, 4),
@@ -242,7 +244,8 @@ class LoopCloser:
                 reason = "ambiguous"
             ok = reason == "accepted"
             closures.append(Closure(k, s_index, s.anchor, match.score, match.runner_up_score, window_m, window_rad,
-                                    ok, reason, float(np.hypot(delta[0], delta[1])), float(abs(delta[2]))))
+                                    ok, reason, float(np.hypot(delta[0], delta[1])), float(abs(delta[2])),
+                                    (float(pose[0]), float(pose[1]), float(pose[2]))))
             if ok and (best is None or match.score > best[0]):
                 if best is not None:
                     closures[best[4]] = replace(closures[best[4]], accepted=False, reason=OUTSCORED)
