@@ -26,11 +26,16 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from bench.cases import datasets_root
-from bench.engine_profile import BENCHMARK, _overrides, _parse_seeds
+from bench.cli import parse_seeds
+from bench.engine_profile import BENCHMARK, overrides_from_pairs
+
+if TYPE_CHECKING:
+    from slam_engine.result import Trajectory
 
 # an accepted closure this far from the ground truth's relation is counted as false [m, rad]
 FALSE_CLOSURE_M = 0.4
@@ -65,7 +70,7 @@ def replay(recording: Path, overrides: dict) -> dict:
     and, where the log has relations, the key frames' relation errors."""
     from slam_engine.backend.loop_closer import close_loops
     from slam_engine.config import SlamConfig, merge_settings
-    from slam_engine.evaluation import read_relations, relation_errors
+    from slam_engine.evaluation import files_beside_log, read_ground_truth, read_relations, relation_errors
     from slam_engine.result import Trajectory
 
     data = np.load(recording)
@@ -78,31 +83,30 @@ def replay(recording: Path, overrides: dict) -> dict:
     summary = result.summary()
     summary.pop("closures")
     row.update({k: v for k, v in summary.items() if k != "closures_rejected"})
-    log_path = Path(str(data["log"]))
-    relations = log_path.with_suffix(".relations")
-    if relations.exists():
+    relations, truth = files_beside_log(str(data["log"]))
+    if relations is not None:
         errors = relation_errors(Trajectory(t_s=data["t_s"], poses=result.poses), read_relations(relations))
         row.update(trans_m=round(errors.all.trans_mean_m, 4), local_m=round(errors.local.trans_mean_m, 4),
                    loop_m=round(errors.loop.trans_mean_m, 4))
-    truth = log_path.with_suffix(".gt.txt")
-    if truth.exists():
-        row["false_closures"] = false_closures(result.closures, data["t_s"], np.loadtxt(truth))
+    if truth is not None:
+        row["false_closures"] = false_closures(result.closures, data["t_s"], read_ground_truth(truth))
     return row
 
 
-def false_closures(closures: list, key_frame_t_s: np.ndarray, truth: np.ndarray, max_m: float = FALSE_CLOSURE_M,
+def false_closures(closures: list, key_frame_t_s: np.ndarray, truth: Trajectory, max_m: float = FALSE_CLOSURE_M,
                    max_rad: float = FALSE_CLOSURE_RAD) -> list[dict]:
     """Accepted closures whose matched pose of the key frame in its anchor's frame is more than
-    ``max_m`` / ``max_rad`` off the ground truth's (``truth``: rows t x y theta, one per scan)."""
+    ``max_m`` / ``max_rad`` off the ground truth's (key frames without a true pose are skipped)."""
+    from slam_engine.evaluation import match_times
     from slam_engine.poses import relative, wrap_angle
 
-    index = np.clip(np.searchsorted(truth[:, 0], key_frame_t_s - 1e-6), 0, len(truth) - 1)
-    poses = truth[index, 1:4]
+    index = match_times(truth.t_s, key_frame_t_s)
     out = []
     for c in closures:
-        if not c.accepted:
+        if not c.accepted or index[c.anchor] < 0 or index[c.node] < 0:
             continue
-        error = np.asarray(c.T_anchor_from_node) - relative(poses[c.anchor], poses[c.node])
+        true_relation = relative(truth.poses[index[c.anchor]], truth.poses[index[c.node]])
+        error = np.asarray(c.T_anchor_from_node) - true_relation
         off_m, off_rad = float(np.hypot(error[0], error[1])), abs(float(wrap_angle(error[2])))
         if off_m > max_m or off_rad > max_rad:
             out.append({"node": c.node, "anchor": c.anchor, "off_m": round(off_m, 3), "off_rad": round(off_rad, 4)})
@@ -121,9 +125,9 @@ def main(argv: list[str] | None = None) -> int:
     rep.add_argument("recordings", type=Path, help="a recording (.npz) or a folder of them")
     rep.add_argument("--set", action="append", default=[], metavar="a.b=value", help="SlamConfig override")
     args = parser.parse_args(argv)
-    overrides = _overrides(args.set)
+    overrides = overrides_from_pairs(args.set)
     if args.command == "record":
-        for seed in _parse_seeds(args.seeds):
+        for seed in parse_seeds(args.seeds):
             started = time.perf_counter()
             target = record(args.log, seed, args.out, overrides)
             print(f"{target} ({time.perf_counter() - started:.1f} s)")

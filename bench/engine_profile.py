@@ -23,20 +23,14 @@ import time
 from pathlib import Path
 
 from bench.cases import datasets_root
+from bench.cli import parse_seeds
 
 BENCHMARK = {"intel": "benchmark/intel.clf", "freiburg": "benchmark/freiburg-079.clf",
              "aces": "benchmark/aces-rough.clf", "corridor": "benchmark/infinite-corridor-rough.clf"}
 MAPS_ONLY = {"exp2": "breezyslam/exp2.dat", "malaga": "malaga/malaga-telecom-one-loop.clf"}
 
 
-def _parse_seeds(text: str) -> list[int]:
-    if "-" in text:
-        lo, hi = text.split("-")
-        return list(range(int(lo), int(hi) + 1))
-    return [int(s) for s in text.split(",")]
-
-
-def _overrides(pairs: list[str]) -> dict:
+def overrides_from_pairs(pairs: list[str]) -> dict:
     """``a.b=value`` pairs -> nested dict (values parsed as JSON when possible)."""
     out: dict = {}
     for pair in pairs:
@@ -121,8 +115,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.heading_error:
         parts = [float(v) for v in args.heading_error.split(",")]
         heading_error = (parts[0], parts[1] if len(parts) > 1 else 0.0)
-    overrides = _overrides(args.set)
-    seeds = _parse_seeds(args.seeds)
+    overrides = overrides_from_pairs(args.set)
+    seeds = parse_seeds(args.seeds)
     if args.child:
         print(json.dumps(run_one(args.log[0], seeds[0], args.particles, overrides, heading_error)))
         return 0

@@ -11,6 +11,7 @@ from bench.backend_replay import main, record, replay
 from slam_engine.config import SlamConfig
 from slam_engine.formats import load_log
 from slam_engine.pipeline import run_slam
+from slam_engine.result import Trajectory
 from slam_engine.simulation import simulate, write_simulated
 
 
@@ -40,7 +41,7 @@ def test_false_closures_are_those_off_the_ground_truth() -> None:
     from slam_engine.backend.loop_closer import Closure
 
     # truth: a straight drive along x, one scan per second, 1 m apart
-    truth = np.column_stack([np.arange(20.0), np.arange(20.0), np.zeros(20), np.zeros(20)])
+    truth = Trajectory(t_s=np.arange(20.0), poses=np.column_stack([np.arange(20.0), np.zeros(20), np.zeros(20)]))
     key_frame_t_s = np.arange(20.0)
 
     def closure(node: int, anchor: int, x_m: float, accepted: bool = True) -> Closure:

@@ -63,7 +63,7 @@ class Closure:
     reason: str
     correction_m: float
     correction_rad: float
-    T_anchor_from_node: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    T_anchor_from_node: tuple[float, float, float]
 
     def as_dict(self) -> dict:
         return {"node": self.node, "submap": self.submap, "anchor": self.anchor, "score": round(self.score, 4),
@@ -211,6 +211,7 @@ class LoopCloser:
         the best verified one, or None."""
         c = self.config
         best: tuple[float, int, np.ndarray, float, int] | None = None
+        first_record = len(closures)
         for s_index in self._candidates(k, est, c.max_window_m):
             s = self.submaps[s_index]
             travel = float(np.min(travel_to[s.first: s.last + 1]))
@@ -247,11 +248,10 @@ class LoopCloser:
                                     ok, reason, float(np.hypot(delta[0], delta[1])), float(abs(delta[2])),
                                     (float(pose[0]), float(pose[1]), float(pose[2]))))
             if ok and (best is None or match.score > best[0]):
-                if best is not None:
-                    closures[best[4]] = replace(closures[best[4]], accepted=False, reason=OUTSCORED)
                 best = (match.score, s.anchor, pose, window_m, len(closures) - 1)
-            elif ok:
-                closures[-1] = replace(closures[-1], accepted=False, reason=OUTSCORED)
+        for i in range(first_record, len(closures)):  # only the best verified candidate is used
+            if closures[i].accepted and (best is None or i != best[4]):
+                closures[i] = replace(closures[i], accepted=False, reason=OUTSCORED)
         if best is None:
             return None
         return best[1], best[2], best[3], best[4]
