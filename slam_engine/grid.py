@@ -11,6 +11,13 @@ making it private (copy when shared). Unchanged parts of the map are shared by e
 Coarser copies of each tile (``levels[k]``, cells ``2**k`` times larger, max of the finer
 log-odds) give the scan matcher a smooth, wide basin of attraction.
 
+Local maps: every tile position carries the travel [m] at which a scan last touched it
+(``touched_at``, on the ``clock_m`` the filter advances). :meth:`ParticleGrids.forget_stale` takes the
+tiles no scan touched for a while out of every particle's table, so that a particle matches only
+what it mapped recently: back in a place mapped long ago, the scan meets a fresh map instead of
+the old pass where the drift put it (the loops are the back end's to close). The forgotten tiles
+of the leading particle are kept in ``archive`` (level 0 only), which previews still show.
+
 Cell ``(gx, gy)`` (global indices) covers ``[gx * res, (gx + 1) * res)`` in the map frame, so the
 map frame's origin is a cell corner; tiles and levels follow the same rule.
 """
@@ -147,6 +154,10 @@ class ParticleGrids:
         self.tile_y0 = 0
         self._touched = np.zeros((1024, 3), np.int32)
         self._mark = np.zeros((self.n_particles, 1, 1), np.uint8)
+        self.clock_m = 0.0  # travel so far [m], advanced by the filter
+        self.touched_at = np.full((1, 1), -np.inf)  # clock_m when a scan last touched each tile position
+        # forgotten level-0 tiles of the leading particle, by global (tile y, tile x): previews show them
+        self.archive: dict[tuple[int, int], np.ndarray] = {}
 
     # --- geometry -------------------------------------------------------------------------
     @property
@@ -181,7 +192,9 @@ class ParticleGrids:
         tables = np.full((self.n_particles, new_h, new_w), -1, np.int32)
         ox, oy = self.tile_x0 - new_x0, self.tile_y0 - new_y0
         tables[:, oy:oy + h, ox:ox + w] = self.tables
-        self.tables, self.tile_x0, self.tile_y0 = tables, new_x0, new_y0
+        touched_at = np.full((new_h, new_w), -np.inf)
+        touched_at[oy:oy + h, ox:ox + w] = self.touched_at
+        self.tables, self.touched_at, self.tile_x0, self.tile_y0 = tables, touched_at, new_x0, new_y0
         self._mark = np.zeros(tables.shape, np.uint8)
 
     def ensure_free(self, n_tiles: int) -> None:
@@ -224,12 +237,37 @@ class ParticleGrids:
     def resample(self, ancestors: np.ndarray) -> None:
         """Particle i takes the map of particle ``ancestors[i]`` (tables copied, tiles shared)."""
         self.tables = self.tables[np.asarray(ancestors)]
+        self._recount()
+
+    def _recount(self) -> None:
+        """Reference counts and free tiles from the tables."""
         used = self.tables[self.tables >= 0]
         self.refcount = np.bincount(used, minlength=self.capacity).astype(np.int32)
         free = np.flatnonzero(self.refcount == 0).astype(np.int32)
         self.free_stack = np.empty(self.capacity, np.int32)
         self.free_stack[: len(free)] = free[::-1]
         self.n_free = len(free)
+
+    def forget_stale(self, cutoff_m: float, keep: int, log_odds_min: int, log_odds_max: int) -> int:
+        """Take out of every particle's table the tiles no scan touched since travel ``cutoff_m``;
+        particle ``keep``'s are added (log-odds, clamped to the stored ``log_odds_min``/``max``) to
+        :attr:`archive`. Returns the number of tile positions forgotten."""
+        stale = (self.touched_at < cutoff_m) & (self.tables >= 0).any(axis=0)
+        if not stale.any():
+            return 0
+        for ty, tx in zip(*np.nonzero(stale), strict=True):
+            t = self.tables[keep, ty, tx]
+            if t < 0:
+                continue
+            key = (int(self.tile_y0 + ty), int(self.tile_x0 + tx))
+            kept = self.archive.get(key)
+            tile = self.levels[0][t]
+            self.archive[key] = tile.copy() if kept is None else np.clip(
+                kept.astype(np.int32) + tile, log_odds_min, log_odds_max).astype(POOL_DTYPE)
+        self.tables[:, stale] = -1
+        self.touched_at[stale] = -np.inf
+        self._recount()
+        return int(stale.sum())
 
     def keep_only(self, particle: int | None) -> None:
         """Drop every map but particle ``particle``'s (None: every map): the other tables are emptied
@@ -247,6 +285,8 @@ class ParticleGrids:
         self.refcount = np.ones(len(tiles), np.int32)
         self.free_stack = np.zeros(0, np.int32)
         self.n_free = 0
+        if particle is None:
+            self.archive = {}
 
     # --- reporting ------------------------------------------------------------------------
     def tiles_in_use(self) -> int:
@@ -255,21 +295,32 @@ class ParticleGrids:
     def memory_bytes(self) -> int:
         """Bytes held by the pool, the tables and the scratch buffers."""
         return int(sum(lv.nbytes for lv in self.levels) + self.refcount.nbytes + self.free_stack.nbytes
-                   + self.tables.nbytes + self._mark.nbytes + self._touched.nbytes)
+                   + self.tables.nbytes + self._mark.nbytes + self._touched.nbytes + self.touched_at.nbytes
+                   + sum(tile.nbytes for tile in self.archive.values()))
+
+    def _observed_tiles(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and columns (of the tables) of the tiles of ``particle``'s map and of the archive."""
+        rows, cols = np.nonzero(self.tables[particle] >= 0)
+        if self.archive:
+            keys = np.array(list(self.archive), np.int64)
+            rows = np.concatenate([rows, keys[:, 0] - self.tile_y0])
+            cols = np.concatenate([cols, keys[:, 1] - self.tile_x0])
+        return rows, cols
 
     def observed_shape(self, particle: int) -> tuple[int, int]:
         """(rows, cols) of :meth:`occupancy_grid` of ``particle`` at full resolution (without making it)."""
-        rows, cols = np.nonzero(self.tables[particle] >= 0)
+        rows, cols = self._observed_tiles(particle)
         if len(rows) == 0:
             return 1, 1
         return int(rows.max() - rows.min() + 1) * TILE, int(cols.max() - cols.min() + 1) * TILE
 
     def occupancy_grid(self, particle: int, pool: int = 1) -> OccupancyGrid:
-        """Particle ``particle``'s level-0 map as a dense float32 grid cropped to its observed tiles;
-        with ``pool`` > 1, that grid pooled by ``pool`` (:meth:`OccupancyGrid.pooled`), built a few
-        tile rows at a time so that the full-resolution grid never exists."""
+        """Particle ``particle``'s level-0 map (with the archive's forgotten tiles added) as a dense
+        float32 grid cropped to its observed tiles; with ``pool`` > 1, that grid pooled by ``pool``
+        (:meth:`OccupancyGrid.pooled`), built a few tile rows at a time so that the full-resolution
+        grid never exists."""
         table = self.tables[particle]
-        rows, cols = np.nonzero(table >= 0)
+        rows, cols = self._observed_tiles(particle)
         if len(rows) == 0:
             return OccupancyGrid(np.zeros((1, 1), np.float32), self.resolution_m, 0.0, 0.0)
         r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
@@ -279,13 +330,23 @@ class ParticleGrids:
         # a band of `pool` tile rows pools to whole blocks (TILE rows): bands pool independently
         band_tiles = r1 - r0 if pool == 1 else pool
         scale = np.float32(1.0 / LOG_ODDS_UNIT)
+        archive_cols: dict[int, list[int]] = {}  # table row -> table columns of its archived tiles
+        for ty, tx in self.archive:
+            archive_cols.setdefault(ty - self.tile_y0, []).append(tx - self.tile_x0)
         bands = []
         for b0 in range(r0, r1, band_tiles):
             b1 = min(r1, b0 + band_tiles)
             band = np.zeros(((b1 - b0) * TILE, (c1 - c0) * TILE), np.float32)
             for r in range(b0, b1):
-                for c in np.flatnonzero(table[r, c0:c1] >= 0):
-                    tile = self.levels[0][table[r, c0 + c]]
+                archived = archive_cols.get(int(r), ())
+                for c in sorted(set(np.flatnonzero(table[r, c0:c1] >= 0).tolist()) | {a - c0 for a in archived}):
+                    t = table[r, c0 + c]
+                    kept = self.archive.get((int(self.tile_y0 + r), int(self.tile_x0 + c0 + c)))
+                    if t < 0:
+                        assert kept is not None  # the column is in the table or in the archive
+                        tile = kept
+                    else:
+                        tile = self.levels[0][t] if kept is None else self.levels[0][t].astype(np.int32) + kept
                     # the same float32 values as converting the whole int16 grid, then dividing
                     np.divide(tile, scale, out=band[(r - b0) * TILE:(r - b0 + 1) * TILE, c * TILE:(c + 1) * TILE],
                               dtype=np.float32)

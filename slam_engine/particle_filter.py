@@ -32,7 +32,7 @@ import numpy as np
 from slam_engine.config import SlamConfig
 from slam_engine.drive_log import DriveLog, LidarModel
 from slam_engine.errors import ConfigError
-from slam_engine.grid import ParticleGrids
+from slam_engine.grid import ParticleGrids, quantize_log_odds
 from slam_engine.heading_calibration import HeadingCalibration
 from slam_engine.lidar_points import ProjectedScan, ScanProjector
 from slam_engine.messages import EncoderMessage, GyroMessage, Message, OdometryMessage, ScanMessage
@@ -57,6 +57,8 @@ MOTION_COV_FLOOR = np.array([1e-6, 1e-6, 1e-7])
 # a correlative search precedes the fit when the window is this many times the smallest one (1.5 saved
 # intel 4-5 s but lost aces-rough on one seed of five: 2.05 m)
 PRESEARCH_BEYOND = 1.0
+# how often the particles' maps forget their stale tiles (matcher.local_map_m), in metres of travel
+FORGET_EVERY_M = 1.0
 
 
 def engine_threads() -> int:
@@ -175,6 +177,7 @@ class SlamFilter:
         self._pending: deque[ScanMessage] = deque()  # scans waiting for odometry past their stamp
         self._stats: list[tuple[float, float, bool, float, bool, float]] = []
         self.snapshots: list[MapSnapshot] = []
+        self._last_forget_m = 0.0  # the maps' travel clock [m] when stale tiles were last forgotten
 
     @classmethod
     def from_log(cls, log: DriveLog, config: SlamConfig, rng: np.random.Generator | None = None) -> SlamFilter:
@@ -310,6 +313,7 @@ class SlamFilter:
         precision = self.odometry_precision
         alphas = precision.scaled(self.alphas)
         sampled = sample_odometry_motion(self.particles, self._last_odom, target, alphas, self.rng)
+        self._forget_stale_map(odom)
         hits = self._match_points(projected)
         if len(hits) >= 3:
             motion_cov = odometry_motion_covariance(self._last_odom, target, alphas)
@@ -347,6 +351,20 @@ class SlamFilter:
             clones_of = ancestors
         self._insert(projected, clones_of)
         self._stats.append((scan.t_s, neff, bool(resampled), float(score[best]), bool(accepted[best]), 0.0))
+
+    def _forget_stale_map(self, odom: np.ndarray) -> None:
+        """Advance the maps' travel clock by the odometry's translation since the last step and, every
+        ``FORGET_EVERY_M``, forget the tiles untouched for ``matcher.local_map_m`` (0: never)."""
+        assert self._last_odom is not None  # set by the first scan's step
+        horizon = self.config.matcher.local_map_m
+        grids = self.grids
+        grids.clock_m += float(np.hypot(odom[0] - self._last_odom[0], odom[1] - self._last_odom[1]))
+        if horizon <= 0 or grids.clock_m - self._last_forget_m < FORGET_EVERY_M:
+            return
+        g = self.config.grid
+        grids.forget_stale(grids.clock_m - horizon, self.best_particle(), quantize_log_odds(g.log_odds_min),
+                           quantize_log_odds(g.log_odds_max))
+        self._last_forget_m = grids.clock_m
 
     def _search_window(self, motion_cov: np.ndarray) -> tuple[float, float]:
         """Half widths [m, rad] of the matcher's window: ``search_sigmas`` standard deviations of the

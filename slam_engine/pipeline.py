@@ -151,7 +151,9 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     if len(resampled) > 1 and resampled.mean() > 0.9:
         warnings.append("the particle set was resampled after almost every scan: the map may be unreliable "
                         "(odometry much worse than the motion noise assumes?)")
-    if any(c.accepted for c in backend.closures) or config.grid.no_return_bounded or smoothing.get("applied"):
+    # the particles' maps hold only their recent tiles when local_map_m is set: re-rendered then too
+    if (any(c.accepted for c in backend.closures) or config.grid.no_return_bounded or smoothing.get("applied")
+            or config.matcher.local_map_m > 0):
         slam.grids.keep_only(None)  # the product map is re-rendered: no particle's map is read any more
         _return_freed_memory()
         grid = render_occupancy(slam.product_scans(), key_frames, slam.projector.origin_v, config.grid)

@@ -328,6 +328,7 @@ def insert_scan(
         n = collect_touched_tiles(particles, poses, origin_v, ends_v, grids.resolution_m, grids.tile_x0, grids.tile_y0,
                                   grids._mark, buffer)
     grids.privatize(buffer, n)
+    grids.touched_at[buffer[:n, 1], buffer[:n, 2]] = grids.clock_m
     free_from = np.zeros(len(ends_v)) if free_from_m is None else np.ascontiguousarray(free_from_m, np.float64)
     lv = grids.levels
     integrate_rays(lv[0], lv[1], lv[2], lv[3], grids.tables, grids.refcount, grids.tile_x0, grids.tile_y0, particles,

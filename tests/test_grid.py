@@ -67,3 +67,31 @@ def test_coarse_levels_hold_the_maximum_of_their_cells() -> None:
         f = 1 << k
         expected = level0.reshape(TILE // f, f, TILE // f, f).max(axis=(1, 3))
         np.testing.assert_array_equal(grids.levels[k][t], expected)
+
+
+def test_stale_tiles_leave_the_particles_maps_but_stay_in_the_preview() -> None:
+    grids = ParticleGrids(2, 0.05)
+    start = np.tile([0.5, 0.5, 0.0], (2, 1))
+    _one_beam(grids, start, (1.0, 0.0))  # a wall at (1.5, 0.5), clock 0 m
+    grids.clock_m = 40.0
+    far = np.tile([60.5, 0.5, 0.0], (2, 1))
+    _one_beam(grids, far, (1.0, 0.0))  # a wall at (61.5, 0.5), clock 40 m
+    in_use = grids.tiles_in_use()
+    # forget what no scan touched in the last 30 m: the first tile, not the second
+    assert grids.forget_stale(grids.clock_m - 30.0, 0, -500, 500) == 1
+    assert grids.tiles_in_use() < in_use
+    ty, tx = int(np.floor(0.5 / grids.tile_size_m)) - grids.tile_y0, int(np.floor(1.5 / grids.tile_size_m)) - grids.tile_x0
+    assert np.all(grids.tables[:, ty, tx] < 0)  # no particle matches against the old wall any more
+    preview = grids.occupancy_grid(0)
+    for x in (1.52, 61.52):
+        ix, iy = preview.world_to_cell(x, 0.52)
+        assert preview.log_odds[iy, ix] == np.float32(0.9)
+    # back at the start: the particles' map starts afresh there, the preview adds both passes
+    _one_beam(grids, start, (1.0, 0.0))
+    live_tile = grids.levels[0][grids.tables[0, ty, tx]]
+    gx, gy = grids.world_to_cell(1.52, 0.52)
+    assert live_tile[gy % TILE, gx % TILE] == 90  # one hit (0.9 in units of 0.01), not two
+    preview = grids.occupancy_grid(0, pool=1)
+    ix, iy = preview.world_to_cell(1.52, 0.52)
+    assert preview.log_odds[iy, ix] == np.float32(1.8)
+    assert grids.occupancy_grid(0, pool=2).shape == preview.pooled(2).shape
