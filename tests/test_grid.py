@@ -80,7 +80,8 @@ def test_stale_tiles_leave_the_particles_maps_but_stay_in_the_preview() -> None:
     # forget what no scan touched in the last 30 m: the first tile, not the second
     assert grids.forget_stale(grids.clock_m - 30.0, 0, -500, 500) == 1
     assert grids.tiles_in_use() < in_use
-    ty, tx = int(np.floor(0.5 / grids.tile_size_m)) - grids.tile_y0, int(np.floor(1.5 / grids.tile_size_m)) - grids.tile_x0
+    ty = int(np.floor(0.5 / grids.tile_size_m)) - grids.tile_y0
+    tx = int(np.floor(1.5 / grids.tile_size_m)) - grids.tile_x0
     assert np.all(grids.tables[:, ty, tx] < 0)  # no particle matches against the old wall any more
     preview = grids.occupancy_grid(0)
     for x in (1.52, 61.52):

@@ -22,3 +22,33 @@ def test_slam_beats_slipping_odometry_by_far(rig: str) -> None:
     # measured: robot 0.008 m vs 0.17 m, mines-rover 0.009 m vs 0.78 m (100 s: 0.006 vs 0.80, 0.007 vs 1.67)
     assert slam_ate < 0.05
     assert slam_ate * 5 < dead_ate
+
+
+@pytest.mark.slow
+def test_particles_match_a_local_map_while_the_preview_keeps_the_whole_drive() -> None:
+    """With ``matcher.local_map_m`` the particles' maps hold only what scans touched in that much
+    recent travel (the office loop is 56 m, the local map 15 m); the live preview still shows the
+    whole drive, and the back end closes the loop that the particles no longer see."""
+    import numpy as np
+
+    from slam_engine.particle_filter import FORGET_EVERY_M
+    from slam_engine.pipeline import filter_result, run_filter
+
+    drive = simulate("office", seed=0, cameras=False)
+    config = SlamConfig(particles=8, seed=0, matcher={"local_map_m": 15.0})
+    slam = run_filter(drive.log, config, np.random.default_rng(0))
+    grids = slam.grids
+    assert grids.clock_m > 50.0
+    held = (grids.tables >= 0).any(axis=0)
+    # every tile a particle still holds was touched within the horizon (forgetting runs every metre)
+    assert held.any() and grids.touched_at[held].min() >= grids.clock_m - 15.0 - FORGET_EVERY_M - 1.5
+    assert grids.archive  # the forgotten tiles of the leading particle
+    preview = slam.grids.occupancy_grid(slam.best_particle())
+    whole = SlamConfig(particles=8, seed=0, matcher={"local_map_m": 0.0})
+    full = run_filter(drive.log, whole, np.random.default_rng(0)).best_grid()
+    # the preview covers the drive's whole map (same extent within a tile), not only the local part
+    assert abs(preview.shape[0] - full.shape[0]) <= 64 and abs(preview.shape[1] - full.shape[1]) <= 64
+    assert (preview.log_odds > 0).sum() > 0.8 * (full.log_odds > 0).sum()
+    result = filter_result(slam, drive.log, config, 0.0)
+    assert result.input_summary["loop_closing"]["closures_accepted"] >= 1
+    assert absolute_trajectory_error(result.trajectory, drive.ground_truth) < 0.05
