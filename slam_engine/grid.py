@@ -252,7 +252,9 @@ class ParticleGrids:
         """Take out of every particle's table the tiles no scan touched since travel ``cutoff_m``;
         particle ``keep``'s are added (log-odds, clamped to the stored ``log_odds_min``/``max``) to
         :attr:`archive`. Returns the number of tile positions forgotten."""
-        stale = (self.touched_at < cutoff_m) & (self.tables >= 0).any(axis=0)
+        # a position holds tiles only once a scan touched it (forgetting resets it to -inf): the stamps
+        # alone say which, without reading every particle's table
+        stale = np.isfinite(self.touched_at) & (self.touched_at < cutoff_m)
         if not stale.any():
             return 0
         for ty, tx in zip(*np.nonzero(stale), strict=True):
@@ -330,18 +332,18 @@ class ParticleGrids:
         # a band of `pool` tile rows pools to whole blocks (TILE rows): bands pool independently
         band_tiles = r1 - r0 if pool == 1 else pool
         scale = np.float32(1.0 / LOG_ODDS_UNIT)
-        archive_cols: dict[int, list[int]] = {}  # table row -> table columns of its archived tiles
-        for ty, tx in self.archive:
-            archive_cols.setdefault(ty - self.tile_y0, []).append(tx - self.tile_x0)
+        archived_by_row: dict[int, dict[int, np.ndarray]] = {}  # table row -> {table column: archived tile}
+        for (ty, tx), kept_tile in self.archive.items():
+            archived_by_row.setdefault(ty - self.tile_y0, {})[tx - self.tile_x0] = kept_tile
         bands = []
         for b0 in range(r0, r1, band_tiles):
             b1 = min(r1, b0 + band_tiles)
             band = np.zeros(((b1 - b0) * TILE, (c1 - c0) * TILE), np.float32)
             for r in range(b0, b1):
-                archived = archive_cols.get(int(r), ())
+                archived = archived_by_row.get(int(r), {})
                 for c in sorted(set(np.flatnonzero(table[r, c0:c1] >= 0).tolist()) | {a - c0 for a in archived}):
                     t = table[r, c0 + c]
-                    kept = self.archive.get((int(self.tile_y0 + r), int(self.tile_x0 + c0 + c)))
+                    kept = archived.get(c0 + c)
                     if t < 0:
                         assert kept is not None  # the column is in the table or in the archive
                         tile = kept
