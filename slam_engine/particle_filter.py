@@ -58,10 +58,6 @@ MOTION_COV_FLOOR = np.array([1e-6, 1e-6, 1e-7])
 # a correlative search precedes the fit when the window is this many times the smallest one (1.5 saved
 # intel 4-5 s but lost aces-rough on one seed of five: 2.05 m)
 PRESEARCH_BEYOND = 1.0
-# the motion's density in a particle's weight is Gaussian out to this many standard deviations and
-# flat beyond: odometry slips (aces-rough reads one 39 deg turn as 16 deg; weighed by the full
-# Gaussian, the particles that followed the odometry there won and 4 of 5 seeds lost the map)
-MOTION_WEIGHT_CAP_SD = 3.0
 # how often the particles' maps forget their stale tiles (matcher.local_map_m), in metres of travel
 FORGET_EVERY_M = 1.0
 
@@ -389,14 +385,14 @@ class SlamFilter:
         frame), searched correlatively first where that window is wider than the Gauss-Newton basin.
         A sample drawn far out in the motion's tail can leave the truth outside its window: where its
         match is rejected, the fit is tried again from the motion's mean ``predicted`` (N, 3) before
-        the particle falls back to its sample (a particle that kept a sample 15 deg off at a corridor
-        corner, and its map built on it, could otherwise win the resampling lottery later).
+        the particle falls back to its sample (on infinite-corridor-rough, particles that kept samples
+        15-19 deg off at corners, with maps built on them, later won the resampling: the best path
+        turned that much in one step).
         With ``fused`` (``matcher.proposal = "fused"``, or odometry measured to be more precise than
         the matches: :class:`OdometryPrecision`) the fit is then combined with the sample by their
         information (the fit's Gauss-Newton matrix, the inverse motion covariance; Grisetti et al.
         2007), so that precise odometry is kept along directions the scan leaves open. A rejected
-        match keeps the motion sample. Weights: the likelihood of the scan at the pose taken times the
-        motion's density there.
+        match keeps the motion sample. Weights: the likelihood of the scan at the fitted pose.
         Returns (poses, log weight increments, mean scores, accepted, the fits' J^T J (N, 3, 3), the
         fitted poses before any fusion)."""
         m = self.config.matcher
@@ -404,17 +400,20 @@ class SlamFilter:
         gain = self.likelihood_gain / len(hits)
         window_xy, window_theta = self._search_window(motion_cov)
         presearch = None
+        info_o = None
         # the fit's own basin covers the smallest window and a good deal more: search first only
         # where the window is well beyond it
         wide = window_xy > PRESEARCH_BEYOND * m.search_xy_m or window_theta > PRESEARCH_BEYOND * m.search_theta_rad
-        # motion covariance in the world frame of each particle's start, with a floor (standing still)
-        c, s = np.cos(self.particles[:, 2]), np.sin(self.particles[:, 2])
-        R = np.zeros((n, 3, 3))
-        R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
-        info_o = np.linalg.inv(R @ motion_cov @ R.transpose(0, 2, 1) + np.diag(MOTION_COV_FLOOR))
+        if wide or fused:
+            # motion covariance in the world frame of each particle's start, with a floor (standing still)
+            c, s = np.cos(self.particles[:, 2]), np.sin(self.particles[:, 2])
+            R = np.zeros((n, 3, 3))
+            R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+            info_o = np.linalg.inv(R @ motion_cov @ R.transpose(0, 2, 1) + np.diag(MOTION_COV_FLOOR))
         if wide:
             # translations only where their window exceeds the fit's basin (a turn on the spot needs
             # headings alone); headings always: a wrong heading is what loses a map
+            assert info_o is not None  # computed above whenever the window is wide
             mean_info = info_o.mean(axis=0)
             presearch = np.array([window_xy if window_xy > PRESEARCH_BEYOND * m.search_xy_m else 0.0, window_theta,
                                   self.likelihood_gain, mean_info[0, 0], mean_info[1, 1], mean_info[2, 2]])
@@ -430,20 +429,14 @@ class SlamFilter:
                 mine[took] = theirs[again.accepted]
         poses = fit.poses.copy()
         if fused:
+            assert info_o is not None  # computed above for the fused proposal
             info_m = m.proposal_information * 2.0 * gain * fit.jtj
             to_match = fit.poses - sampled
             to_match[:, 2] = wrap_angle(to_match[:, 2])
             combined = sampled + np.einsum("nij,njk,nk->ni", np.linalg.inv(info_m + info_o), info_m, to_match)
             combined[:, 2] = wrap_angle(combined[:, 2])
             poses = np.where(fit.accepted[:, None], combined, poses)
-        # the motion's density at the pose taken (the improved proposal's weight, Grisetti et al.
-        # 2007): a particle that matched far out in the motion's tail, where the scan alone barely
-        # tells headings apart (a corridor), is weighed down instead of living on as a bent map;
-        # flat beyond MOTION_WEIGHT_CAP_SD, since odometry slips
-        off = poses - predicted
-        off[:, 2] = wrap_angle(off[:, 2])
-        log_motion = -0.5 * np.minimum(np.einsum("ni,nij,nj->n", off, info_o, off), MOTION_WEIGHT_CAP_SD**2)
-        return poses, -gain * fit.sq_residual + log_motion, fit.mean_score, fit.accepted, fit.jtj, fit.poses
+        return poses, -gain * fit.sq_residual, fit.mean_score, fit.accepted, fit.jtj, fit.poses
 
     def _insert(self, projected, clones_of: np.ndarray | None) -> None:
         """Insert the scan into every particle's map. Particles with the same ``clones_of`` entry
