@@ -96,7 +96,8 @@ def replay(recording: Path, overrides: dict) -> dict:
 def false_closures(closures: list, key_frame_t_s: np.ndarray, truth: Trajectory, max_m: float = FALSE_CLOSURE_M,
                    max_rad: float = FALSE_CLOSURE_RAD) -> list[dict]:
     """Accepted closures whose matched pose of the key frame in its anchor's frame is more than
-    ``max_m`` / ``max_rad`` off the ground truth's (key frames without a true pose are skipped)."""
+    ``max_m`` / ``max_rad`` off the ground truth's (a heading closure: in heading alone; key frames
+    without a true pose are skipped)."""
     from slam_engine.evaluation import match_times
     from slam_engine.poses import relative, wrap_angle
 
@@ -108,8 +109,11 @@ def false_closures(closures: list, key_frame_t_s: np.ndarray, truth: Trajectory,
         true_relation = relative(truth.poses[index[c.anchor]], truth.poses[index[c.node]])
         error = np.asarray(c.T_anchor_from_node) - true_relation
         off_m, off_rad = float(np.hypot(error[0], error[1])), abs(float(wrap_angle(error[2])))
+        if c.line_direction is not None:  # a heading closure fixes only the heading
+            off_m = 0.0
         if off_m > max_m or off_rad > max_rad:
-            out.append({"node": c.node, "anchor": c.anchor, "off_m": round(off_m, 3), "off_rad": round(off_rad, 4)})
+            out.append({"node": c.node, "anchor": c.anchor, "kind": c.kind, "off_m": round(off_m, 3),
+                        "off_rad": round(off_rad, 4)})
     return out
 
 

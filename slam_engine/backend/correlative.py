@@ -70,11 +70,14 @@ class MatchGrid:
 @dataclass(frozen=True)
 class CorrelativeMatch:
     """Best pose found (submap frame), its score (mean value in [0, 1]) and the best score found
-    farther than the ambiguity distance from it (0 when none came close: a unique match)."""
+    farther than the ambiguity distance from it (0 when none came close: a unique match), with that
+    runner-up's pose (None when there is none)."""
 
     pose: np.ndarray
     score: float
     runner_up_score: float
+    runner_up_pose: np.ndarray | None = None
+    line_direction: np.ndarray | None = None  # (2,) unit, submap frame: ambiguous only along this line
 
 
 @nb.njit(cache=True, nogil=True)
@@ -109,21 +112,30 @@ def _score(pyramid, level, cells, a, dx, dy):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _inside_exclusion(a, dx, dy, size, ex_a, ex_x, ex_y, ex_angles, ex_cells):
+def _inside_exclusion(a, dx, dy, size, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy):
     """Whether every translation of the node (a, [dx, dx+size) x [dy, dy+size)) lies within the
-    exclusion box around (ex_a, ex_x, ex_y)."""
-    if ex_angles < 0:
+    exclusion zone around (ex_a, ex_x, ex_y): a box of half width ``ex_cells``, or where the unit
+    direction (ex_ux, ex_uy) is not zero, the strip of that half width along it (a line of poses)."""
+    if ex_angles < 0 or abs(a - ex_a) > ex_angles:
         return False
-    return (abs(a - ex_a) <= ex_angles and dx >= ex_x - ex_cells and dx + size - 1 <= ex_x + ex_cells
-            and dy >= ex_y - ex_cells and dy + size - 1 <= ex_y + ex_cells)
+    if ex_ux == 0.0 and ex_uy == 0.0:
+        return (dx >= ex_x - ex_cells and dx + size - 1 <= ex_x + ex_cells
+                and dy >= ex_y - ex_cells and dy + size - 1 <= ex_y + ex_cells)
+    # the strip is convex: the node lies in it when its four corners do
+    for cx in (dx - ex_x, dx + size - 1 - ex_x):
+        for cy in (dy - ex_y, dy + size - 1 - ex_y):
+            if abs(ex_ux * cy - ex_uy * cx) > ex_cells:
+                return False
+    return True
 
 
 @nb.njit(cache=True, nogil=True)
-def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angles, ex_cells):
+def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux=0.0,
+                     ex_uy=0.0):
     """Best (a, dx, dy, total) over headings a and integer translations |dx|, |dy| <= window_cells,
     whose total exceeds ``min_total``; (-1, 0, 0, min_total) when none does. Nodes entirely inside the
-    exclusion box (``ex_angles`` >= 0) are skipped: a second search with it finds the best match
-    that is *not* the first one."""
+    exclusion zone (``ex_angles`` >= 0; a box, or a strip along the unit direction ``(ex_ux, ex_uy)``)
+    are skipped: a second search with it finds the best match that is *not* the first one."""
     top = pyramid.shape[0] - 1
     while top > 0 and (1 << top) > 2 * window_cells + 1:
         top -= 1
@@ -143,7 +155,7 @@ def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, 
             for iy in range(per_axis):
                 dx = -window_cells + ix * size_top
                 dy = -window_cells + iy * size_top
-                if _inside_exclusion(a, dx, dy, size_top, ex_a, ex_x, ex_y, ex_angles, ex_cells):
+                if _inside_exclusion(a, dx, dy, size_top, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy):
                     continue
                 st_a[m] = a
                 st_x[m] = dx
@@ -181,7 +193,7 @@ def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, 
                 y = dy + j * half
                 if x > window_cells or y > window_cells:
                     continue
-                if _inside_exclusion(a, x, y, half, ex_a, ex_x, ex_y, ex_angles, ex_cells):
+                if _inside_exclusion(a, x, y, half, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy):
                     continue
                 sc = _score(pyramid, h - 1, cells, a, x, y)
                 if sc <= best_total:
@@ -209,11 +221,19 @@ def angular_step_rad(points_v: np.ndarray, resolution_m: float, reach_cap_m: flo
 
 def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, window_m: float, window_rad: float,
            min_score: float, ambiguity_m: float = 0.0, ambiguity_rad: float = 0.0,
-           runner_up_share: float = 0.0) -> CorrelativeMatch | None:
+           runner_up_share: float = 0.0, line_half_width_m: float = 0.0, line_half_width_rad: float = 0.0,
+           ) -> CorrelativeMatch | None:
     """Best pose of ``points_v`` within ``window_m`` / ``window_rad`` of ``initial_pose`` scoring
     above ``min_score``, or None. With ``ambiguity_m`` > 0 a second search reports the best score
     of a pose more than ``ambiguity_m`` / ``ambiguity_rad`` from the best one (at least
-    ``runner_up_share`` of the best score to count; else 0)."""
+    ``runner_up_share`` of the best score to count; else 0), and its pose.
+
+    With ``line_half_width_m`` > 0, an ambiguous match whose runner-up has the best's heading
+    (within ``line_half_width_rad``) is tested for a *line* of equally good poses, as a corridor
+    gives: a third search over every pose farther than ``line_half_width_m`` from the line through
+    the two, or turned more than ``ambiguity_rad`` from the best. When nothing there reaches the
+    runner-up share, the match is ambiguous only along that line, and ``line_direction`` holds the
+    line's unit direction (submap frame): the heading is still found."""
     points_v = np.ascontiguousarray(points_v, np.float64)
     n = len(points_v)
     if n == 0:
@@ -231,15 +251,26 @@ def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, wind
         return None
     pose = np.array([x0 + dx * res, y0 + dy * res, th0 + (a - n_half) * step])
     score = total / (MAX_VALUE * n)
-    runner_up = 0.0
-    if ambiguity_m > 0:
-        floor = int(max(min_total, runner_up_share * total))
-        ex_cells = int(math.ceil(ambiguity_m / res))
-        ex_angles = int(math.ceil(ambiguity_rad / step))
-        a2, _, _, total2 = branch_and_bound(grid.pyramid, cells, window_cells, floor, a, dx, dy, ex_angles, ex_cells)
-        if a2 >= 0:
-            runner_up = total2 / (MAX_VALUE * n)
-    return CorrelativeMatch(pose=pose, score=float(score), runner_up_score=float(runner_up))
+    if ambiguity_m <= 0:
+        return CorrelativeMatch(pose=pose, score=float(score), runner_up_score=0.0)
+    floor = int(max(min_total, runner_up_share * total))
+    ex_cells = int(math.ceil(ambiguity_m / res))
+    ex_angles = int(math.ceil(ambiguity_rad / step))
+    a2, dx2, dy2, total2 = branch_and_bound(grid.pyramid, cells, window_cells, floor, a, dx, dy, ex_angles, ex_cells)
+    if a2 < 0:
+        return CorrelativeMatch(pose=pose, score=float(score), runner_up_score=0.0)
+    runner_up_pose = np.array([x0 + dx2 * res, y0 + dy2 * res, th0 + (a2 - n_half) * step])
+    line = None
+    line_angles = int(math.floor(line_half_width_rad / step))
+    if line_half_width_m > 0 and abs(a2 - a) <= line_angles and (dx2, dy2) != (dx, dy):
+        u = np.array([dx2 - dx, dy2 - dy], np.float64)
+        u /= np.hypot(u[0], u[1])
+        a3, _, _, _ = branch_and_bound(grid.pyramid, cells, window_cells, floor, a, dx, dy, ex_angles,
+                                       int(math.ceil(line_half_width_m / res)), float(u[0]), float(u[1]))
+        if a3 < 0:
+            line = u
+    return CorrelativeMatch(pose=pose, score=float(score), runner_up_score=float(total2 / (MAX_VALUE * n)),
+                            runner_up_pose=runner_up_pose, line_direction=line)
 
 
 @nb.njit(cache=True, nogil=True)

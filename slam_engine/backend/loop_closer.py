@@ -11,13 +11,19 @@ window (:mod:`slam_engine.backend.correlative`); it is accepted only when
 
 - its score (mean blurred hit value under the scan's end points) reaches ``min_score``,
 - it is unique: no other pose farther than ``ambiguity_m`` / ``ambiguity_rad`` scores within
-  ``runner_up_ratio`` of it (symmetric corridors, repeated rooms), and
+  ``runner_up_ratio`` of it (symmetric corridors, repeated rooms), or the poses that do all lie on
+  one line through it at its heading (a corridor seen from inside): then it is a *heading closure*,
+  which fixes only the heading (a parallel corridor, which the window may hold instead of the
+  true one, fits as well, but at the same heading), and
 - when the window was wider than ``confirm_window_m``, the next searching key frame finds a closure
   that implies the same correction (one lucky match never bends the map).
 
 An accepted closure becomes a robust (Cauchy) edge from the submap's anchor to the key frame in the
-pose graph (:mod:`slam_engine.backend.pose_graph`), which is optimised when the correction is
-noticeable, and once more at the end.
+pose graph (:mod:`slam_engine.backend.pose_graph`), a heading closure one whose position is left
+loose (``HEADING_CLOSURE_SD_M``); the graph is optimised when the correction is noticeable, and once
+more at the end. Heading closures do not shorten the search windows: the position stays as
+uncertain as it was. Drift on long drives is mostly heading drift, so corridors, where most of a
+building's loops close, keep it in check even where no pose closure is found.
 """
 
 from __future__ import annotations
@@ -43,6 +49,8 @@ CLOSURE_TRAVEL_M = 1.0
 MIN_OVERLAP_POINTS = 30
 # a verified closure not used because another submap matched the same key frame better
 OUTSCORED = "another submap matched better"
+# standard deviation of a heading closure's position [m]: the match does not fix it
+HEADING_CLOSURE_SD_M = 30.0
 
 
 @dataclass(frozen=True)
@@ -64,12 +72,19 @@ class Closure:
     correction_m: float
     correction_rad: float
     T_anchor_from_node: tuple[float, float, float]
+    line_direction: tuple[float, float] | None = None  # unit, anchor frame: a heading closure's line
+
+    @property
+    def kind(self) -> str:
+        """"pose" (fixes the whole pose) or "heading" (ambiguous along a line: fixes the heading)."""
+        return "pose" if self.line_direction is None else "heading"
 
     def as_dict(self) -> dict:
-        return {"node": self.node, "submap": self.submap, "anchor": self.anchor, "score": round(self.score, 4),
-                "runner_up_score": round(self.runner_up_score, 4), "window_m": round(self.window_m, 3),
-                "window_rad": round(self.window_rad, 4), "accepted": self.accepted, "reason": self.reason,
-                "correction_m": round(self.correction_m, 4), "correction_rad": round(self.correction_rad, 5)}
+        return {"node": self.node, "submap": self.submap, "anchor": self.anchor, "kind": self.kind,
+                "score": round(self.score, 4), "runner_up_score": round(self.runner_up_score, 4),
+                "window_m": round(self.window_m, 3), "window_rad": round(self.window_rad, 4),
+                "accepted": self.accepted, "reason": self.reason, "correction_m": round(self.correction_m, 4),
+                "correction_rad": round(self.correction_rad, 5)}
 
 
 @dataclass
@@ -88,10 +103,37 @@ class LoopClosingResult:
             if not c.accepted:
                 reasons[c.reason] = reasons.get(c.reason, 0) + 1
         return {"submaps": self.submaps, "candidates_matched": len(self.closures),
-                "closures_accepted": len(accepted), "closures_rejected": reasons,
+                "closures_accepted": len(accepted),
+                "heading_closures_accepted": sum(1 for c in accepted if c.line_direction is not None),
+                "closures_rejected": reasons,
                 "optimizations": self.optimizations,
                 "largest_correction_m": round(max((c.correction_m for c in accepted), default=0.0), 4),
                 "closures": [c.as_dict() for c in self.closures if c.accepted or c.reason != "no match"]}
+
+
+@dataclass(frozen=True)
+class _Found:
+    """A verified closure of key frame ``node`` against the submap anchored at ``anchor``: the matched
+    ``T_anchor_from_node``, the search half width [m], its index in the closure records and, for a
+    heading closure, the unit direction of the line it is ambiguous along (anchor frame)."""
+
+    node: int
+    anchor: int
+    T_anchor_from_node: np.ndarray
+    window_m: float
+    record: int
+    line: np.ndarray | None = None
+
+    @property
+    def kind(self) -> str:
+        return "pose" if self.line is None else "heading"
+
+    def world_line(self, est: np.ndarray) -> np.ndarray:
+        """The line's unit direction in the world frame, for the anchor at ``est[anchor]``."""
+        assert self.line is not None
+        theta = float(est[self.anchor, 2])
+        cos, sin = math.cos(theta), math.sin(theta)
+        return np.array([cos * self.line[0] - sin * self.line[1], sin * self.line[0] + cos * self.line[1]])
 
 
 def _thin(points: np.ndarray, budget: int) -> np.ndarray:
@@ -138,8 +180,9 @@ class LoopCloser:
         closures: list[Closure] = []
         optimizations = 0
         last_search_m = -np.inf
-        # (node, anchor, T_anchor_from_node, record index) of a closure awaiting an agreeing second one
-        pending: tuple[int, int, np.ndarray, int] | None = None
+        # per kind ("pose", "heading"), a closure awaiting an agreeing second one of the same kind (a
+        # heading closure cannot vouch for a pose closure)
+        pending: dict[str, _Found] = {}
         for k in range(1, n):
             est[k] = compose(est[k - 1], relative(self.path[k - 1], self.path[k]))
             if self.travel_m[k] - last_search_m < c.search_every_m or not len(self.points_v[k]):
@@ -148,23 +191,30 @@ class LoopCloser:
             found = self._search_node(k, est, self._uncertain_travel(k), closures)
             if found is None:
                 continue
-            anchor, T_anchor_from_node, window_m, record = found
-            if window_m > c.confirm_window_m:
-                if pending is None or not self._agrees(pending, (k, anchor, T_anchor_from_node), est):
-                    if pending is not None:
-                        closures[pending[3]] = replace(closures[pending[3]], reason="not confirmed")
-                    pending = (k, anchor, T_anchor_from_node, record)
-                    closures[record] = replace(closures[record], accepted=False, reason="awaiting confirmation")
+            kind = found.kind
+            if found.window_m > c.confirm_window_m:
+                waiting = pending.pop(kind, None)
+                if waiting is None or not self._agrees(waiting, found, est):
+                    if waiting is not None:
+                        closures[waiting.record] = replace(closures[waiting.record], reason="not confirmed")
+                    pending[kind] = found
+                    closures[found.record] = replace(closures[found.record], accepted=False,
+                                                     reason="awaiting confirmation")
                     continue
-                self._add_closure(*pending[:3])
-                closures[pending[3]] = replace(closures[pending[3]], accepted=True, reason="accepted (confirmed)")
-            pending = None
-            self._add_closure(k, anchor, T_anchor_from_node)
-            target = compose(est[anchor], T_anchor_from_node)
-            if (np.hypot(*(target[:2] - est[k, :2])) > c.reoptimize_m
-                    or abs(float(wrap_angle(target[2] - est[k, 2]))) > c.reoptimize_rad):
+                self._add_closure(waiting)
+                closures[waiting.record] = replace(closures[waiting.record], accepted=True,
+                                                   reason="accepted (confirmed)")
+            else:
+                superseded = pending.pop(kind, None)  # the window has narrowed since
+                if superseded is not None:
+                    closures[superseded.record] = replace(closures[superseded.record], reason="not confirmed")
+            self._add_closure(found)
+            offset_m, offset_rad = self._offset(found, est)
+            if offset_m > c.reoptimize_m or offset_rad > c.reoptimize_rad:
                 est[: k + 1] = self.graph.optimize(est, nodes=k + 1, robust=False)
                 optimizations += 1
+        for waiting in pending.values():
+            closures[waiting.record] = replace(closures[waiting.record], reason="not confirmed")
         if any(cl.accepted for cl in closures):
             # least squares first (every verified closure pulls), then the robust losses from there:
             # a closure that disagrees with the rest is then an outlier and lets go
@@ -206,11 +256,11 @@ class LoopCloser:
         return dijkstra(self._links_matrix[1], directed=False, indices=k, limit=limit)
 
     def _search_node(self, k: int, est: np.ndarray, travel_to: np.ndarray, closures: list[Closure]
-                     ) -> tuple[int, np.ndarray, float, int] | None:
+                     ) -> _Found | None:
         """Match key frame k against its candidate submaps (``travel_to``: :meth:`_uncertain_travel`);
-        the best verified one, or None."""
+        the best verified one (a pose closure before a heading closure), or None."""
         c = self.config
-        best: tuple[float, int, np.ndarray, float, int] | None = None
+        best: tuple[tuple[bool, float], _Found] | None = None
         first_record = len(closures)
         for s_index in self._candidates(k, est, c.max_window_m):
             s = self.submaps[s_index]
@@ -229,32 +279,41 @@ class LoopCloser:
                 continue
             match = search(grid, points, initial, window_m, window_rad, c.min_score,
                            ambiguity_m=c.ambiguity_m, ambiguity_rad=c.ambiguity_rad,
-                           runner_up_share=c.runner_up_ratio)
+                           runner_up_share=c.runner_up_ratio,
+                           line_half_width_m=c.line_half_width_m if c.heading_closures else 0.0,
+                           line_half_width_rad=c.line_half_width_rad)
             if match is None:
                 continue
             pose = refine_pose(grid, points, match.pose)
+            ambiguous = match.runner_up_score >= c.runner_up_ratio * match.score
+            line = match.line_direction if ambiguous else None
             delta = relative(initial, pose)
-            shift = np.abs(match.pose - initial)
-            reason = "accepted"
+            shift = match.pose - initial
+            if line is not None:  # only the offset across the line is found (and only the heading is used)
+                shift_m = abs(float(line[0] * shift[1] - line[1] * shift[0]))
+                correction_m = 0.0
+            else:
+                shift_m = float(max(abs(shift[0]), abs(shift[1])))
+                correction_m = float(np.hypot(delta[0], delta[1]))
+            reason = "accepted" if line is None else "accepted (heading)"
             if window_m > c.confirm_window_m and match.score < c.min_score_wide:
                 reason = "low score for a wide window"
-            elif (max(shift[0], shift[1]) > c.edge_share * window_m
-                  or abs(float(wrap_angle(shift[2]))) > c.edge_share * window_rad):
+            elif shift_m > c.edge_share * window_m or abs(float(wrap_angle(shift[2]))) > c.edge_share * window_rad:
                 reason = "at the window's edge"
-            elif match.runner_up_score >= c.runner_up_ratio * match.score:
+            elif ambiguous and line is None:
                 reason = "ambiguous"
-            ok = reason == "accepted"
+            ok = reason.startswith("accepted")
             closures.append(Closure(k, s_index, s.anchor, match.score, match.runner_up_score, window_m, window_rad,
-                                    ok, reason, float(np.hypot(delta[0], delta[1])), float(abs(delta[2])),
-                                    (float(pose[0]), float(pose[1]), float(pose[2]))))
-            if ok and (best is None or match.score > best[0]):
-                best = (match.score, s.anchor, pose, window_m, len(closures) - 1)
+                                    ok, reason, correction_m, float(abs(delta[2])),
+                                    (float(pose[0]), float(pose[1]), float(pose[2])),
+                                    None if line is None else (float(line[0]), float(line[1]))))
+            rank = (line is None, match.score)
+            if ok and (best is None or rank > best[0]):
+                best = (rank, _Found(k, s.anchor, pose, window_m, len(closures) - 1, line))
         for i in range(first_record, len(closures)):  # only the best verified candidate is used
-            if closures[i].accepted and (best is None or i != best[4]):
+            if closures[i].accepted and (best is None or i != best[1].record):
                 closures[i] = replace(closures[i], accepted=False, reason=OUTSCORED)
-        if best is None:
-            return None
-        return best[1], best[2], best[3], best[4]
+        return None if best is None else best[1]
 
     @staticmethod
     def _overlapping(grid: MatchGrid, points_v: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -269,24 +328,44 @@ class LoopCloser:
         b = grid.bounds_m
         return points_v[(x >= b[0]) & (x <= b[2]) & (y >= b[1]) & (y <= b[3])]
 
-    def _agrees(self, first: tuple, second: tuple, est: np.ndarray) -> bool:
-        """Whether two closures ``(node, anchor, T_anchor_from_node, ...)`` imply the same correction:
-        the second key frame's pose from the first closure and the front end's motion agrees with its
-        pose from the second closure (which came within ``confirm_travel_m``)."""
+    def _agrees(self, first: _Found, second: _Found, est: np.ndarray) -> bool:
+        """Whether two closures imply the same correction: the second key frame's pose from the first
+        closure and the front end's motion agrees with its pose from the second closure (which came
+        within ``confirm_travel_m``). Two heading closures agree when their lines are parallel (within
+        10 deg) and the heading and the offset across them agree."""
         c = self.config
-        k1, a1, T1 = first[:3]
-        k2, a2, T2 = second[:3]
-        if self.travel_m[k2] - self.travel_m[k1] > c.confirm_travel_m:
+        if self.travel_m[second.node] - self.travel_m[first.node] > c.confirm_travel_m:
             return False
-        via_first = compose(compose(est[a1], T1), relative(self.path[k1], self.path[k2]))
-        via_second = compose(est[a2], T2)
-        return bool(np.hypot(*(via_first[:2] - via_second[:2])) <= c.confirm_m
-                    and abs(float(wrap_angle(via_first[2] - via_second[2]))) <= c.confirm_rad)
+        via_first = compose(compose(est[first.anchor], first.T_anchor_from_node),
+                            relative(self.path[first.node], self.path[second.node]))
+        via_second = compose(est[second.anchor], second.T_anchor_from_node)
+        if abs(float(wrap_angle(via_first[2] - via_second[2]))) > c.confirm_rad:
+            return False
+        gap = via_first[:2] - via_second[:2]
+        if first.line is None or second.line is None:
+            return bool(np.hypot(gap[0], gap[1]) <= c.confirm_m)
+        u, v = first.world_line(est), second.world_line(est)
+        return bool(abs(float(u @ v)) >= math.cos(math.radians(10.0))
+                    and abs(float(u[0] * gap[1] - u[1] * gap[0])) <= c.confirm_m)
 
-    def _add_closure(self, node: int, anchor: int, T_anchor_from_node: np.ndarray) -> None:
+    @staticmethod
+    def _offset(found: _Found, est: np.ndarray) -> tuple[float, float]:
+        """How far the closure moves its key frame from the estimate ``est`` [m] (0 for a heading
+        closure) and turns it [rad]."""
+        target = compose(est[found.anchor], found.T_anchor_from_node)
+        turn = abs(float(wrap_angle(target[2] - est[found.node, 2])))
+        if found.line is not None:
+            return 0.0, turn
+        return float(np.hypot(*(target[:2] - est[found.node, :2]))), turn
+
+    def _add_closure(self, found: _Found) -> None:
         c = self.config
-        self._closure_links.append((anchor, node))
-        self.graph.add_edge(anchor, node, T_anchor_from_node,
+        if found.line is not None:
+            self.graph.add_edge(found.anchor, found.node, found.T_anchor_from_node,
+                                np.array([HEADING_CLOSURE_SD_M, HEADING_CLOSURE_SD_M, c.closure_sd_rad]), robust=True)
+            return
+        self._closure_links.append((found.anchor, found.node))
+        self.graph.add_edge(found.anchor, found.node, found.T_anchor_from_node,
                             np.array([c.closure_sd_m, c.closure_sd_m, c.closure_sd_rad]), robust=True)
 
 
