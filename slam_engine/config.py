@@ -184,14 +184,16 @@ class LoopClosingConfig(_Section):
     ambiguity_m: float = Field(1.0, ge=0.0, le=100.0, description="A second pose this far from the best [m] ...")
     ambiguity_rad: float = Field(0.15, ge=0.0, le=3.2, description="... or this far in heading [rad] ...")
     runner_up_ratio: float = Field(0.9, gt=0.0, le=1.0, description="... scoring at least this share of the "
-                                   "best makes the match ambiguous: rejected.")
+                                   "best makes the match ambiguous: rejected, or a heading closure.")
     heading_closures: bool = Field(True, description="A match that is ambiguous only along a line (a corridor: "
                                    "every pose along it fits as well, and a parallel corridor may be in the "
                                    "window instead of the true one) still fixes the heading.")
-    line_half_width_m: float = Field(0.3, gt=0.0, le=10.0, description="Poses within this distance of that "
-                                     "line [m] ...")
-    line_half_width_rad: float = Field(0.03, gt=0.0, le=1.0, description="... and this heading of the best "
-                                       "[rad] are on it; nothing off it may score within runner_up_ratio.")
+    line_half_width_m: float = Field(0.3, gt=0.0, le=10.0, description="The line runs through the best pose "
+                                     "and the runner-up (which must lie within line_half_width_rad of the best's "
+                                     "heading); no pose farther than this from it [m] may score within "
+                                     "runner_up_ratio.")
+    line_half_width_rad: float = Field(0.03, gt=0.0, le=1.0, description="Largest heading difference between "
+                                       "the best pose and the runner-up on a line [rad].")
     confirm_window_m: float = Field(1.5, ge=0.0, le=100.0, description="Closures found with a wider window "
                                     "than this [m] wait for a second, agreeing one.")
     confirm_m: float = Field(0.3, gt=0.0, le=10.0, description="Two closures agree within this distance [m] ...")
