@@ -174,6 +174,9 @@ class LoopClosingConfig(_Section):
     match_range_m: float = Field(20.0, gt=0.5, le=200.0, description="End points farther than this from the "
                                  "LiDAR are not used for loop closing [m].")
     max_points: int = Field(250, ge=10, le=100000, description="A key frame matches with at most this many points.")
+    unobserved_score: float = Field(0.3, ge=0.0, le=1.0, description="What an end point scores where no scan "
+                                    "of the submap looked (neither a hit nor a miss: the submap cannot contradict "
+                                    "it); seen free space scores 0, a hit 1.")
     min_score: float = Field(0.6, ge=0.0, le=1.0, description="Lowest mean blurred hit value under the scan's end "
                              "points for a closure.")
     min_score_wide: float = Field(0.7, ge=0.0, le=1.0, description="Lowest score of a closure found with a "

@@ -9,7 +9,7 @@ import pytest
 from slam_engine.backend.correlative import MatchGrid, branch_and_bound, refine_pose, search
 from slam_engine.backend.loop_closer import OUTSCORED, LoopCloser, close_loops
 from slam_engine.backend.pose_graph import PoseGraph
-from slam_engine.backend.submaps import match_grid_from_points
+from slam_engine.backend.submaps import match_grid_from_points, observed_mask
 from slam_engine.config import LoopClosingConfig, SlamConfig
 from slam_engine.evaluation import absolute_trajectory_error
 from slam_engine.lidar_points import ScanProjector
@@ -71,6 +71,30 @@ def test_search_recovers_a_pose_metres_and_degrees_away() -> None:
     refined = refine_pose(grid, scan, match.pose)
     assert np.hypot(*(refined[:2] - truth[:2])) < 0.02
     assert abs(refined[2] - truth[2]) < 0.004
+
+
+def test_unobserved_cells_are_neutral() -> None:
+    """A scan from the middle of a 4 m round room sees its inside: those cells are seen (free space
+    0, the walls hits); outside the room, where the scan never looked, the grid holds the neutral
+    value, so a point there is neither a hit nor a miss."""
+    bearings = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    wall = np.column_stack([2.0 * np.cos(bearings), 2.0 * np.sin(bearings)])
+    scans = [(np.zeros(2), wall[np.random.default_rng(1).permutation(len(wall))])]  # any order of points
+    lo = np.array([-3.0, -3.0])
+    seen = observed_mask(scans, lo, (120, 120), 0.05)
+    cell = ((np.array([[0.0, 0.0], [1.0, -1.2], [2.6, 0.0], [-2.5, 2.5]]) - lo) / 0.05).astype(int)
+    assert seen[cell[:, 1], cell[:, 0]].tolist() == [True, True, False, False]
+    assert 0.2 < seen.mean() * (6.0 * 6.0) / (np.pi * 4.0) < 1.1  # about the room's area
+    grid = match_grid_from_points(wall, 0.05, margin_m=1.0, scans=scans, unobserved=0.3)
+    plain = match_grid_from_points(wall, 0.05, margin_m=1.0)
+
+    def value(g, xy: tuple[float, float]) -> int:
+        i, j = ((np.asarray(xy) - g.origin_m) / g.resolution_m).astype(int)
+        return int(g.values[j, i])
+
+    assert value(grid, (0.0, 0.0)) == 0 and value(plain, (2.7, 0.0)) == 0
+    assert value(grid, (2.7, 0.0)) == round(0.3 * 255)  # beyond the wall: never looked at
+    assert value(grid, (2.0, 0.0)) == value(plain, (2.0, 0.0)) > 150  # the wall itself: a hit in both
 
 
 def _corridor_points(x_from: float, x_to: float) -> np.ndarray:

@@ -158,7 +158,8 @@ class LoopCloser:
         self.submap_of = np.empty(len(self.path), np.int64)
         for s in self.submaps:
             self.submap_of[s.first: s.last + 1] = s.index
-        self.grids = SubmapGrids(self.submaps, self.path, in_reach, resolution_m, margin_m=1.0)
+        self.grids = SubmapGrids(self.submaps, self.path, in_reach, resolution_m, margin_m=1.0,
+                                 unobserved=c.unobserved_score)
         self.graph = PoseGraph(self.path, cauchy_scale=c.cauchy_scale)
         self._closure_links: list[tuple[int, int]] = []
         self._links_matrix: tuple[int, csr_matrix] | None = None

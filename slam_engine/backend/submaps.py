@@ -5,8 +5,12 @@ key frame (its *anchor*) come from the front end; those relative poses are trust
 graph moves each submap as a rigid whole through its anchor. For matching, a submap is a grid of
 its scans' end points in the anchor's frame (``T_anchor_from_vehicle`` applied to each key frame's
 points), blurred by about a cell and stored as uint8 with its max pyramid
-(:class:`~slam_engine.backend.correlative.MatchGrid`). Grids are built on demand and a few are kept
-(:class:`SubmapGrids`), so memory does not grow with the drive.
+(:class:`~slam_engine.backend.correlative.MatchGrid`). Cells that none of its scans looked at hold
+a neutral value (``loop_closing.unobserved_score``) instead of 0: a scan that sees more than the
+submap did is not held against its true pose (a crossing corridor seen from the junction scored
+0.41 there against 0.74 one bay on, where more of it happened to land on the submap's walls).
+Grids are built on demand and a few are kept (:class:`SubmapGrids`), so memory does not grow with
+the drive.
 """
 
 from __future__ import annotations
@@ -53,23 +57,54 @@ def split_into_submaps(path_length_m: np.ndarray, length_m: float, max_nodes: in
     return submaps
 
 
-def submap_points(submap: Submap, poses: np.ndarray, points_v: list[np.ndarray]) -> np.ndarray:
-    """(N, 2) end points of the submap's key frames in its anchor frame [m], placed by ``poses``."""
+def submap_scans(submap: Submap, poses: np.ndarray, points_v: list[np.ndarray]
+                 ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each key frame of the submap as (its position (2,), its end points (B, 2)), in the anchor frame
+    [m], placed by ``poses``."""
     anchor = poses[submap.anchor]
-    parts = []
+    out = []
     for k in submap.nodes():
         T = relative(anchor, poses[k])
         pts = points_v[k]
         c, s = np.cos(T[2]), np.sin(T[2])
-        parts.append(np.stack([T[0] + c * pts[:, 0] - s * pts[:, 1], T[1] + s * pts[:, 0] + c * pts[:, 1]], axis=1))
+        out.append((T[:2].copy(), np.stack([T[0] + c * pts[:, 0] - s * pts[:, 1],
+                                              T[1] + s * pts[:, 0] + c * pts[:, 1]], axis=1)))
+    return out
+
+
+def submap_points(submap: Submap, poses: np.ndarray, points_v: list[np.ndarray]) -> np.ndarray:
+    """(N, 2) end points of the submap's key frames in its anchor frame [m], placed by ``poses``."""
+    parts = [pts for _, pts in submap_scans(submap, poses, points_v)]
     return np.concatenate(parts) if parts else np.zeros((0, 2))
 
 
-def match_grid_from_points(points_m: np.ndarray, resolution_m: float, margin_m: float, n_levels: int = 9
+def observed_mask(scans: list[tuple[np.ndarray, np.ndarray]], lo_m: np.ndarray, shape: tuple[int, int],
+                  resolution_m: float) -> np.ndarray:
+    """(H, W) bool: cells that a scan of ``scans`` (position, end points; grid frame [m]) saw, i.e.
+    lie inside the polygon from its position through its end points in bearing order (the free space
+    it looked across, up to and including what it hit). Cell (0, 0)'s lower corner is at ``lo_m``."""
+    import cv2  # imported when used: OpenCV only for the back end's polygons
+
+    mask = np.zeros(shape, np.uint8)
+    shift = 4  # sub-cell vertex precision for fillPoly: 1/16 cell
+    for origin, pts in scans:
+        if len(pts) < 2:
+            continue
+        bearing = np.arctan2(pts[:, 1] - origin[1], pts[:, 0] - origin[0])
+        ring = np.vstack([origin[None, :], pts[np.argsort(bearing)]])
+        cells = np.round(((ring - lo_m) / resolution_m - 0.5) * (1 << shift)).astype(np.int32)
+        cv2.fillPoly(mask, [cells], 1, lineType=cv2.LINE_8, shift=shift)
+    return mask.astype(bool)
+
+
+def match_grid_from_points(points_m: np.ndarray, resolution_m: float, margin_m: float, n_levels: int = 9,
+                           scans: list[tuple[np.ndarray, np.ndarray]] | None = None, unobserved: float = 0.0
                            ) -> MatchGrid:
     """A blurred hit grid of ``points_m`` (N, 2) [m] with ``margin_m`` of empty border. Each point
     marks the four cells around it with its bilinear weights (the largest weight a cell gets is kept),
-    so a wall between two cell centres stays there when the grid is interpolated."""
+    so a wall between two cell centres stays there when the grid is interpolated. With ``scans``
+    (:func:`submap_scans`), cells none of them saw hold at least ``unobserved`` (in [0, 1]): a point
+    there is neither a hit nor a miss (what the submap never looked at cannot contradict a scan)."""
     lo = points_m.min(axis=0) - margin_m
     hi = points_m.max(axis=0) + margin_m
     shape = (int(np.ceil((hi[1] - lo[1]) / resolution_m)) + 2, int(np.ceil((hi[0] - lo[0]) / resolution_m)) + 2)
@@ -93,6 +128,9 @@ def match_grid_from_points(points_m: np.ndarray, resolution_m: float, margin_m: 
             src = hit[max(0, -dy): h - max(0, dy), max(0, -dx): w - max(0, dx)]
             dst = values[max(0, dy): h - max(0, -dy), max(0, dx): w - max(0, -dx)]
             np.maximum(dst, weight * src, out=dst)
+    if scans is not None and unobserved > 0:
+        seen = observed_mask(scans, lo, shape, resolution_m)
+        values = np.where(seen, values, np.maximum(values, np.float32(unobserved)))
     grid = MatchGrid.from_values(np.round(values * 255).astype(np.uint8), lo, resolution_m, n_levels)
     grid.bounds_m = np.concatenate([points_m.min(axis=0), points_m.max(axis=0)])
     return grid
@@ -105,7 +143,7 @@ class SubmapGrids:
     poses within a submap matter)."""
 
     def __init__(self, submaps: list[Submap], poses: np.ndarray, points_v: list[np.ndarray], resolution_m: float,
-                 margin_m: float, keep: int = 8, keep_bytes: int = 16 * 1024**2):
+                 margin_m: float, keep: int = 8, keep_bytes: int = 16 * 1024**2, unobserved: float = 0.0):
         self.submaps = submaps
         self.poses = poses
         self.points_v = points_v
@@ -113,6 +151,7 @@ class SubmapGrids:
         self.margin_m = margin_m
         self.keep = keep
         self.keep_bytes = keep_bytes
+        self.unobserved = unobserved
         self._cache: OrderedDict[int, MatchGrid | None] = OrderedDict()
 
     def grid(self, index: int) -> MatchGrid | None:
@@ -120,8 +159,10 @@ class SubmapGrids:
         if index in self._cache:
             self._cache.move_to_end(index)
             return self._cache[index]
-        pts = submap_points(self.submaps[index], self.poses, self.points_v)
-        grid = match_grid_from_points(pts, self.resolution_m, self.margin_m) if len(pts) else None
+        scans = submap_scans(self.submaps[index], self.poses, self.points_v)
+        pts = np.concatenate([p for _, p in scans]) if scans else np.zeros((0, 2))
+        grid = (match_grid_from_points(pts, self.resolution_m, self.margin_m, scans=scans, unobserved=self.unobserved)
+                if len(pts) else None)
         self._cache[index] = grid
         while len(self._cache) > 1 and (len(self._cache) > self.keep or self.cached_bytes() > self.keep_bytes):
             self._cache.popitem(last=False)
