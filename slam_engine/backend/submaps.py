@@ -6,9 +6,9 @@ graph moves each submap as a rigid whole through its anchor. For matching, a sub
 its scans' end points in the anchor's frame (``T_anchor_from_vehicle`` applied to each key frame's
 points), blurred by about a cell and stored as uint8 with its max pyramid
 (:class:`~slam_engine.backend.correlative.MatchGrid`). Cells that none of its scans looked at hold
-a neutral value (``loop_closing.unobserved_score``) instead of 0: a scan that sees more than the
-submap did is not held against its true pose (a crossing corridor seen from the junction scored
-0.41 there against 0.74 one bay on, where more of it happened to land on the submap's walls).
+a neutral value (``loop_closing.unobserved_score``) instead of 0: an end point there is neither a
+hit nor a miss, so a scan that sees more than the submap did is not held against its true pose.
+What a scan looked across is the polygon from its position through its end points in bearing order.
 Grids are built on demand and a few are kept (:class:`SubmapGrids`), so memory does not grow with
 the drive.
 """
