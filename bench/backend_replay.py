@@ -12,7 +12,8 @@ frames; on the sparse logs that is every scan).
 ``python -m bench.backend_replay replay /tmp/fe [--set loop_closing.cauchy_scale=3]``
 
 Where the log has ground truth (``NAME.gt.txt``), each row also lists the accepted closures whose
-matched relation is off the truth's (false closures: the corridor's aliases).
+matched relation is off the truth's (false closures: the corridor's aliases; a heading closure by its
+heading alone).
 
 Logs: the benchmark names of :mod:`bench.engine_profile` (``intel``, ``freiburg``, ``aces``,
 ``corridor``) or a path to a log with ``NAME.relations`` beside it.
