@@ -110,7 +110,7 @@ def false_closures(closures: list, key_frame_t_s: np.ndarray, truth: Trajectory,
         true_relation = relative(truth.poses[index[c.anchor]], truth.poses[index[c.node]])
         error = np.asarray(c.T_anchor_from_node) - true_relation
         off_m, off_rad = float(np.hypot(error[0], error[1])), abs(float(wrap_angle(error[2])))
-        if c.line_direction is not None:  # a heading closure fixes only the heading
+        if c.kind == "heading":  # a heading closure fixes only the heading
             off_m = 0.0
         if off_m > max_m or off_rad > max_rad:
             out.append({"node": c.node, "anchor": c.anchor, "kind": c.kind, "off_m": round(off_m, 3),

@@ -104,7 +104,7 @@ class LoopClosingResult:
                 reasons[c.reason] = reasons.get(c.reason, 0) + 1
         return {"submaps": self.submaps, "candidates_matched": len(self.closures),
                 "closures_accepted": len(accepted),
-                "heading_closures_accepted": sum(1 for c in accepted if c.line_direction is not None),
+                "heading_closures_accepted": sum(1 for c in accepted if c.kind == "heading"),
                 "closures_rejected": reasons,
                 "optimizations": self.optimizations,
                 "largest_correction_m": round(max((c.correction_m for c in accepted), default=0.0), 4),
@@ -122,18 +122,19 @@ class _Found:
     T_anchor_from_node: np.ndarray
     window_m: float
     record: int
-    line: np.ndarray | None = None
+    line_direction: np.ndarray | None = None
 
     @property
     def kind(self) -> str:
-        return "pose" if self.line is None else "heading"
+        return "pose" if self.line_direction is None else "heading"
 
     def world_line(self, est: np.ndarray) -> np.ndarray:
         """The line's unit direction in the world frame, for the anchor at ``est[anchor]``."""
-        assert self.line is not None
+        assert self.line_direction is not None
         theta = float(est[self.anchor, 2])
         cos, sin = math.cos(theta), math.sin(theta)
-        return np.array([cos * self.line[0] - sin * self.line[1], sin * self.line[0] + cos * self.line[1]])
+        u = self.line_direction
+        return np.array([cos * u[0] - sin * u[1], sin * u[0] + cos * u[1]])
 
 
 def _thin(points: np.ndarray, budget: int) -> np.ndarray:
@@ -343,7 +344,7 @@ class LoopCloser:
         if abs(float(wrap_angle(via_first[2] - via_second[2]))) > c.confirm_rad:
             return False
         gap = via_first[:2] - via_second[:2]
-        if first.line is None or second.line is None:
+        if first.line_direction is None or second.line_direction is None:
             return bool(np.hypot(gap[0], gap[1]) <= c.confirm_m)
         u, v = first.world_line(est), second.world_line(est)
         return bool(abs(float(u @ v)) >= math.cos(math.radians(10.0))
@@ -355,13 +356,13 @@ class LoopCloser:
         closure) and turns it [rad]."""
         target = compose(est[found.anchor], found.T_anchor_from_node)
         turn = abs(float(wrap_angle(target[2] - est[found.node, 2])))
-        if found.line is not None:
+        if found.line_direction is not None:
             return 0.0, turn
         return float(np.hypot(*(target[:2] - est[found.node, :2]))), turn
 
     def _add_closure(self, found: _Found) -> None:
         c = self.config
-        if found.line is not None:
+        if found.line_direction is not None:
             self.graph.add_edge(found.anchor, found.node, found.T_anchor_from_node,
                                 np.array([HEADING_CLOSURE_SD_M, HEADING_CLOSURE_SD_M, c.closure_sd_rad]), robust=True)
             return

@@ -72,12 +72,6 @@ def submap_scans(submap: Submap, poses: np.ndarray, points_v: list[np.ndarray]
     return out
 
 
-def submap_points(submap: Submap, poses: np.ndarray, points_v: list[np.ndarray]) -> np.ndarray:
-    """(N, 2) end points of the submap's key frames in its anchor frame [m], placed by ``poses``."""
-    parts = [pts for _, pts in submap_scans(submap, poses, points_v)]
-    return np.concatenate(parts) if parts else np.zeros((0, 2))
-
-
 def observed_mask(scans: list[tuple[np.ndarray, np.ndarray]], lo_m: np.ndarray, shape: tuple[int, int],
                   resolution_m: float) -> np.ndarray:
     """(H, W) bool: cells that a scan of ``scans`` (position, end points; grid frame [m]) saw, i.e.
