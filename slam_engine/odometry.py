@@ -75,6 +75,7 @@ class OdometryIntegrator:
         self._gyro_yaw = 0.0
         self._gyro_rate = 0.0
         self._yaw_at_last_ticks = 0.0
+        self._sides_m = np.zeros(2)  # cumulative (left, right) side distances [m] since the first ticks
         self._gyro_sign = 1.0 if float(np.asarray(vehicle.T_vehicle_from_gyro)[2, 2]) >= 0 else -1.0
         if source == "encoders":
             self._check_encoder_calibration()
@@ -140,14 +141,26 @@ class OdometryIntegrator:
                 else None
             if self.vehicle.kind == MotionModelKind.SKID_STEER:
                 inc = skid_steer_increments(meters, self.vehicle.track_width_m or 0.0, delta_yaw)
+                left, right = skid_steer_sides(meters[0])
             else:
                 inc = differential_drive_increments(meters[:, 0], meters[:, 1], self.vehicle.track_width_m or 0.0,
                                                     delta_yaw)
+                left, right = meters[0, 0], meters[0, 1]
+            self._sides_m += (float(left), float(right))
             self._ticks = ticks
             self._yaw_at_last_ticks = yaw
             self._advance(message.t_s, compose(self.pose, inc[0]))
             return True
         return False
+
+    def wheel_check(self) -> np.ndarray | None:
+        """``[left_m, right_m, yaw_rad]`` at the last encoder message: the cumulative side distances
+        since the first ticks and the gyro's (unwrapped) yaw, for cross-checking the wheels against the
+        gyro (:func:`slam_engine.odometry_noise.wheel_distance_sd_m`); None unless the heading comes
+        from a gyro and the distance from encoders."""
+        if self.source != "encoders" or not self.use_gyro or self._ticks is None or self._gyro_t is None:
+            return None
+        return np.array([self._sides_m[0], self._sides_m[1], self._yaw_at_last_ticks])
 
     def pose_at(self, t_s: float) -> np.ndarray:
         """Odometry pose at ``t_s``: interpolated between the last two updates, the last pose

@@ -9,6 +9,14 @@ distance between the two key frames (which a heading error barely changes), so
 fitted over L = 1..16 separately for heading and translation. The front end uses it to size its
 motion model (:class:`OdometryPrecision`), the back end to keep precise odometry's local precision
 (:mod:`slam_engine.backend.odometry_smoothing`).
+
+That difference cannot tell which source drifts: a front end whose matches each carry the last
+step's error (scan-to-map matching along a street, where the scans constrain the travel direction
+weakly) grows like noisy odometry and is counted as such. Where a log has wheel encoders *and* a
+gyro, the wheels are checked against the gyro instead (:func:`wheel_distance_sd_m`): their heading
+change ``(right - left) / track`` disagrees with the gyro's by the difference of the two sides'
+errors, whose spread bounds the travelled distance's (the mean of the sides) independently of the
+scans. The odometry's translation noise is then the smaller of the two figures.
 """
 
 from __future__ import annotations
@@ -29,8 +37,14 @@ MIN_KEY_FRAMES = 3 * LAGS[-1]
 # floors [m, rad]: no source is trusted beyond these
 MATCH_SD_FLOOR = (1e-3, 1e-4)
 ODOMETRY_SD_FLOOR = (2e-4, 2e-5)
-# the front end trusts the odometry only where it is this fraction of the model's noise or less
+# the front end trusts the odometry only where it is this fraction of the model's noise or less ...
 MAX_TRUSTED_SCALE = 0.25
+# ... and this many times more precise per step than a match (in translation or heading) [ratio]
+MIN_TRUSTED_ADVANTAGE = 2.0
+# a step counts for the wheel check when the wheels moved at least this much [m]
+MIN_WHEEL_STEP_M = 1e-3
+# median absolute deviation -> sd of a normal distribution
+MAD_TO_SD = 1.4826
 
 
 @dataclass(frozen=True)
@@ -42,17 +56,22 @@ class NoiseEstimate:
     match_sd_rad: float
     odometry_sd_m: float
     odometry_sd_rad: float
+    wheel_sd_m: float | None = None  # the wheels' distance noise per step, checked against the gyro [m]
 
     @property
     def odometry_helps(self) -> bool:
         """Odometry is locally more precise than the matches in translation or heading."""
-        return (self.odometry_sd_m * MIN_ADVANTAGE < self.match_sd_m
-                or self.odometry_sd_rad * MIN_ADVANTAGE < self.match_sd_rad)
+        return self.more_precise_by(MIN_ADVANTAGE)
+
+    def more_precise_by(self, ratio: float) -> bool:
+        """Odometry is ``ratio`` times more precise per step than the matches in translation or heading."""
+        return self.odometry_sd_m * ratio < self.match_sd_m or self.odometry_sd_rad * ratio < self.match_sd_rad
 
     def summary(self) -> dict[str, float]:
         return {"match_sd_m": round(self.match_sd_m, 5), "match_sd_rad": round(self.match_sd_rad, 6),
                 "odometry_sd_m_per_step": round(self.odometry_sd_m, 5),
-                "odometry_sd_rad_per_step": round(self.odometry_sd_rad, 6)}
+                "odometry_sd_rad_per_step": round(self.odometry_sd_rad, 6),
+                **({} if self.wheel_sd_m is None else {"wheel_sd_m_per_step": round(self.wheel_sd_m, 5)})}
 
 
 def _fit_growth(lags: np.ndarray, variances: np.ndarray) -> tuple[float, float]:
@@ -66,10 +85,35 @@ def _fit_growth(lags: np.ndarray, variances: np.ndarray) -> tuple[float, float]:
     return float(a), float(b)
 
 
-def estimate_noise(path: np.ndarray, odometry: np.ndarray) -> NoiseEstimate | None:
+def wheel_distance_sd_m(wheels: np.ndarray) -> float | None:
+    """The wheels' travelled-distance noise per step [m], from ``wheels`` (K, 3): cumulative left and
+    right side distances [m] and the gyro's yaw [rad] at each key frame (:meth:`OdometryIntegrator.
+    wheel_check`); None for too few moving steps.
+
+    Per step, the sides' difference ``dr - dl`` is fitted as ``track * dyaw`` (the effective track,
+    least squares: a skid steer's is wider than its wheels'); what is left is ``e_r - e_l``, the
+    difference of the two sides' errors (the gyro's own error adds to it: a bound, never less). With
+    independent sides of equal noise, the distance ``(dl + dr) / 2`` carries half that spread. A
+    slip that both sides share (a common scale error) is not seen here: the heading calibration's
+    distance scale and the matches correct it."""
+    wheels = np.asarray(wheels, np.float64)
+    steps = np.diff(wheels, axis=0)
+    moving = np.abs(0.5 * (steps[:, 0] + steps[:, 1])) >= MIN_WHEEL_STEP_M
+    if np.count_nonzero(moving) < MIN_KEY_FRAMES:
+        return None
+    sides, yaw = steps[moving, 1] - steps[moving, 0], steps[moving, 2]
+    track = float(np.dot(sides, yaw) / np.dot(yaw, yaw)) if np.dot(yaw, yaw) > 0 else 0.0
+    residual = sides - track * yaw
+    spread = MAD_TO_SD * float(np.median(np.abs(residual - np.median(residual))))
+    return 0.5 * spread
+
+
+def estimate_noise(path: np.ndarray, odometry: np.ndarray, wheels: np.ndarray | None = None
+                   ) -> NoiseEstimate | None:
     """Match and odometry noise from the front end's key-frame ``path`` (K, 3) and the odometry poses
     at the same key frames ``odometry`` (K, 3); None for a drive too short to tell. Medians, so that
-    a few bad matches or wheel slips do not decide it."""
+    a few bad matches or wheel slips do not decide it. ``wheels`` (K, 3), where the log has encoders
+    and a gyro: their cross-check (:func:`wheel_distance_sd_m`), which caps the translation noise."""
     path = np.asarray(path, np.float64)
     odometry = np.asarray(odometry, np.float64)
     if len(path) < MIN_KEY_FRAMES:
@@ -88,10 +132,15 @@ def estimate_noise(path: np.ndarray, odometry: np.ndarray) -> NoiseEstimate | No
         var_th[n] = (np.median(d_th) / HALF_NORMAL_MEDIAN) ** 2
     a_xy, b_xy = _fit_growth(lags, np.maximum(var_xy, 1e-12))
     a_th, b_th = _fit_growth(lags, np.maximum(var_th, 1e-16))
+    odometry_sd_m = float(np.sqrt(b_xy))
+    wheel_sd_m = None if wheels is None else wheel_distance_sd_m(wheels)
+    if wheel_sd_m is not None:
+        odometry_sd_m = min(odometry_sd_m, wheel_sd_m)
     return NoiseEstimate(match_sd_m=max(float(np.sqrt(a_xy / 2.0)), MATCH_SD_FLOOR[0]),
                          match_sd_rad=max(float(np.sqrt(a_th / 2.0)), MATCH_SD_FLOOR[1]),
-                         odometry_sd_m=max(float(np.sqrt(b_xy)), ODOMETRY_SD_FLOOR[0]),
-                         odometry_sd_rad=max(float(np.sqrt(b_th)), ODOMETRY_SD_FLOOR[1]))
+                         odometry_sd_m=max(odometry_sd_m, ODOMETRY_SD_FLOOR[0]),
+                         odometry_sd_rad=max(float(np.sqrt(b_th)), ODOMETRY_SD_FLOOR[1]),
+                         wheel_sd_m=wheel_sd_m)
 
 
 class OdometryPrecision:
@@ -111,6 +160,7 @@ class OdometryPrecision:
         self._fitted: deque[np.ndarray] = deque(maxlen=self.window_steps)
         self._odometry: deque[np.ndarray] = deque(maxlen=self.window_steps)
         self._model_sd: deque[tuple[float, float]] = deque(maxlen=self.window_steps)
+        self._wheels: deque[np.ndarray | None] = deque(maxlen=self.window_steps)
         self.estimate: NoiseEstimate | None = None
         self.trusted = False
         self.rot_scale = 1.0
@@ -119,9 +169,11 @@ class OdometryPrecision:
         self._steps = 0
 
     def observe(self, fitted_pose: np.ndarray, odometry_pose: np.ndarray, model_sd_m: float,
-                model_sd_rad: float) -> None:
-        """One processed step: the best particle's fitted pose, the odometry pose and the configured
-        model's standard deviations of that step's motion [m, rad]."""
+                model_sd_rad: float, wheels: np.ndarray | None = None) -> None:
+        """One processed step: the best particle's fitted pose, the odometry pose, the configured
+        model's standard deviations of that step's motion [m, rad] and, where the log has encoders and
+        a gyro, their cumulative readings (:meth:`OdometryIntegrator.wheel_check`)."""
+        self._wheels.append(None if wheels is None else np.asarray(wheels, np.float64).copy())
         self._fitted.append(np.asarray(fitted_pose, np.float64).copy())
         self._odometry.append(np.asarray(odometry_pose, np.float64).copy())
         self._model_sd.append((float(model_sd_m), float(model_sd_rad)))
@@ -130,7 +182,8 @@ class OdometryPrecision:
             self._update()
 
     def _update(self) -> None:
-        estimate = estimate_noise(np.array(self._fitted), np.array(self._odometry))
+        wheels = None if any(w is None for w in self._wheels) else np.array(self._wheels)
+        estimate = estimate_noise(np.array(self._fitted), np.array(self._odometry), wheels)
         if estimate is None:
             return
         self.estimate = estimate
@@ -139,7 +192,7 @@ class OdometryPrecision:
         rot_scale = float(np.clip(estimate.odometry_sd_rad / max(model[1], 1e-12), self.min_scale, 1.0))
         # trusted only when clearly so: more precise than the matches and several times more precise
         # than the model says (a rover's first scans looked 2x better than the model: not enough)
-        trusted = estimate.odometry_helps and min(trans_scale, rot_scale) <= MAX_TRUSTED_SCALE
+        trusted = estimate.more_precise_by(MIN_TRUSTED_ADVANTAGE) and min(trans_scale, rot_scale) <= MAX_TRUSTED_SCALE
         self.trans_scale, self.rot_scale = (trans_scale, rot_scale) if trusted else (1.0, 1.0)
         self.changes += int(trusted != self.trusted)
         self.trusted = trusted

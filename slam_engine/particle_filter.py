@@ -172,6 +172,8 @@ class SlamFilter:
         # its projected scan (for the back end), projected again when read
         self.key_frame_scans = ProjectedScans(self.projector, self.key_frame_ranges, self.key_frame_sweeps)
         self.key_frame_odometry: list[np.ndarray] = []  # the odometry pose at it (uncorrected)
+        # the wheels' and gyro's cumulative readings at it (None without both: OdometryIntegrator.wheel_check)
+        self.key_frame_wheels: list[np.ndarray | None] = []
         self._last_odom: np.ndarray | None = None
         self._last_odom_offset_s = 0.0  # the time offset _last_odom was taken with
         self._last_t_s: float | None = None
@@ -288,6 +290,7 @@ class SlamFilter:
     def _record_step(self, t_s: float, odom: np.ndarray, projected: ProjectedScan) -> None:
         self._history.append(self.particles.copy())
         self.key_frame_odometry.append(np.asarray(odom, np.float64).copy())
+        self.key_frame_wheels.append(self.integrator.wheel_check())
         self.key_frame_ranges.append(self._ranges_m)
         self.key_frame_sweeps.append(self._beam_poses)
         self._parents.append(self._next_parents)
@@ -324,7 +327,8 @@ class SlamFilter:
             # the configured model's spread of this motion, against which the precision is measured
             sd_rot1, sd_trans, sd_rot2 = odometry_motion_sds(self._last_odom, target, self.alphas)
             leader = int(np.argmax(self.log_weights + log_lik))
-            precision.observe(fitted[leader], odom, sd_trans, math.hypot(sd_rot1, sd_rot2))
+            precision.observe(fitted[leader], odom, sd_trans, math.hypot(sd_rot1, sd_rot2),
+                              self.integrator.wheel_check())
             self.heading_calibration.observe(self._last_odom, odom, self.particles, poses, accepted)
             self.heading_calibration.observe_distance(self._last_odom, odom, self.particles, poses, accepted, jtj)
             hc = self.heading_calibration

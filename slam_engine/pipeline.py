@@ -145,7 +145,7 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
                           config.grid.resolution_m)
     _return_freed_memory()
     key_frames, smoothing = _keep_odometry_precision(front_end_path, backend.poses, slam.key_frame_odometry,
-                                                     config)
+                                                     slam.key_frame_wheels, config)
     trajectory = slam.trajectory(key_frames)
     resampled = slam.scan_stats().resampled
     if len(resampled) > 1 and resampled.mean() > 0.9:
@@ -181,13 +181,14 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
 
 
 def _keep_odometry_precision(front_end_path: np.ndarray, poses: np.ndarray, odometry: list[np.ndarray],
-                             config: SlamConfig) -> tuple[np.ndarray, dict]:
+                             wheels: list[np.ndarray | None], config: SlamConfig) -> tuple[np.ndarray, dict]:
     """The key-frame poses smoothed with the odometry where the log shows that its odometry is locally
     more precise than the scan matches (:mod:`slam_engine.backend.odometry_smoothing`), and a
-    summary for run.json."""
+    summary for run.json. ``wheels``: each key frame's wheel and gyro readings (None without both)."""
     if not config.loop_closing.odometry_smoothing:
         return poses, {"applied": False, "reason": "disabled in the configuration"}
-    noise = estimate_noise(front_end_path, np.asarray(odometry))
+    checked = None if not wheels or any(w is None for w in wheels) else np.array(wheels)
+    noise = estimate_noise(front_end_path, np.asarray(odometry), checked)
     if noise is None:
         return poses, {"applied": False, "reason": "too few key frames to measure the noise"}
     if not noise.odometry_helps:

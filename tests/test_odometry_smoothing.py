@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from slam_engine.backend.odometry_smoothing import smooth_with_odometry
-from slam_engine.odometry_noise import OdometryPrecision, estimate_noise
+from slam_engine.odometry_noise import OdometryPrecision, estimate_noise, wheel_distance_sd_m
 from slam_engine.poses import compose, relative, wrap_angle
 
 
@@ -91,3 +91,55 @@ def test_front_end_keeps_its_motion_model_for_rough_odometry() -> None:
         precision.observe(fitted[k], odo[k], model_sd_m=0.05, model_sd_rad=0.05)
     assert precision.estimate is not None and not precision.trusted
     assert precision.scaled((0.1, 0.05, 0.05, 0.02)) == (0.1, 0.05, 0.05, 0.02)
+
+
+def _wheels_and_gyro(truth: np.ndarray, sd_side_m: float, track_m: float, rng: np.random.Generator) -> np.ndarray:
+    """(K, 3) cumulative left, right side distances [m] (independent noise sd_side_m per step) and
+    the gyro's yaw [rad] (exact) along ``truth``, the sides turning about an effective ``track_m``."""
+    steps = relative(truth[:-1], truth[1:])
+    distance, turn = np.hypot(steps[:, 0], steps[:, 1]), steps[:, 2]
+    left = distance - 0.5 * track_m * turn + rng.normal(0.0, sd_side_m, len(steps))
+    right = distance + 0.5 * track_m * turn + rng.normal(0.0, sd_side_m, len(steps))
+    cumulative = np.column_stack([np.cumsum(left), np.cumsum(right), np.cumsum(turn)])
+    return np.vstack([np.zeros(3), cumulative])
+
+
+def test_wheels_checked_against_the_gyro_give_their_distance_noise() -> None:
+    rng = np.random.default_rng(5)
+    truth = _drive()
+    # 1.4 mm per side and step: the travelled distance (the sides' mean) carries 1 mm
+    for track_m in (1.5, 2.2):  # a skid steer turns about a wider effective track: it is fitted
+        sd = wheel_distance_sd_m(_wheels_and_gyro(truth, 0.0014, track_m, rng))
+        assert sd is not None and 0.0008 < sd < 0.0012
+    assert wheel_distance_sd_m(_wheels_and_gyro(truth[:20], 0.0014, 1.5, rng)) is None  # too short to tell
+
+
+def test_wheel_check_caps_the_odometry_noise_where_the_front_end_drifts() -> None:
+    """Matches that each carry the last step's error (a street: the scans constrain the travel
+    direction weakly) drift like odometry; the differences alone blame the odometry for it."""
+    rng = np.random.default_rng(6)
+    truth = _drive()
+    odo = _odometry(truth, 0.001, 0.0002, rng)
+    drift = np.cumsum(rng.normal(0.0, 0.006, len(truth)))  # 6 mm per step along the travel direction
+    matched = truth.copy()
+    matched[:, 0] += drift * np.cos(truth[:, 2])
+    matched[:, 1] += drift * np.sin(truth[:, 2])
+    blind = estimate_noise(matched, odo)
+    assert blind is not None and blind.odometry_sd_m > 0.004 and blind.wheel_sd_m is None
+    checked = estimate_noise(matched, odo, _wheels_and_gyro(truth, 0.0014, 1.5, rng))
+    assert checked is not None and checked.wheel_sd_m is not None
+    assert 0.0008 < checked.odometry_sd_m < 0.0012 and checked.odometry_sd_m == checked.wheel_sd_m
+    assert checked.summary()["wheel_sd_m_per_step"] == round(checked.wheel_sd_m, 5)
+
+
+def test_front_end_does_not_trust_odometry_only_marginally_more_precise() -> None:
+    """Matches of 1.2 mm against odometry of 1 mm per step: smoothing may use it, the proposal not."""
+    rng = np.random.default_rng(7)
+    truth = _drive(150)
+    odo = _odometry(truth, 0.001, 0.0002, rng)
+    fitted = truth + rng.normal(0.0, 1.0, truth.shape) * np.array([0.0012, 0.0012, 0.0003])
+    precision = OdometryPrecision()
+    for k in range(len(truth)):
+        precision.observe(fitted[k], odo[k], model_sd_m=0.05, model_sd_rad=0.05)
+    assert precision.estimate is not None and precision.estimate.odometry_helps
+    assert not precision.estimate.more_precise_by(2.0) and not precision.trusted
