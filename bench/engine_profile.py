@@ -6,9 +6,10 @@ belong to that run alone.
 
 Logs: ``intel``, ``freiburg`` (relation errors against the benchmark ground truth), ``exp2``,
 ``malaga`` (maps only: half agreement, :mod:`bench.map_quality`), ``sim:<rig>`` (simulated drive, ATE
-against its exact ground truth, dead-reckoning ATE beside it); every run with its estimated LiDAR
-time offset. Prints one line per run and a summary per log: median / worst accuracy, median CPU s
-(``time.process_time`` of the SLAM run), median wall s, peak RSS MB.
+against its exact ground truth, and the local relation error between consecutive scans, dead
+reckoning's beside both); every run with its estimated LiDAR time offset. Prints one line per run
+and a summary per log: median / worst accuracy, median CPU s (``time.process_time`` of the SLAM
+run), median wall s, peak RSS MB.
 """
 
 from __future__ import annotations
@@ -93,8 +94,15 @@ def run_one(name: str, seed: int, particles: int, overrides: dict, heading_error
                                                                        config.grid.max_range_m))["half_agreement"]
     record["time_offset_s"] = result.input_summary.get("time_offset", {}).get("estimated_s")
     if truth is not None:
+        from slam_engine.evaluation import Relations
+        from slam_engine.simulation import relations
+
         record["ate_m"] = absolute_trajectory_error(result.trajectory, truth)
         record["dr_ate_m"] = absolute_trajectory_error(result.dead_reckoning, truth)
+        true_rel = relations(truth, np.random.default_rng(0))
+        rel = Relations(t1_s=true_rel[:, 0], t2_s=true_rel[:, 1], motion=true_rel[:, 2:])
+        record["local_m"] = relation_errors(result.trajectory, rel).local.trans_mean_m
+        record["dr_local_m"] = relation_errors(result.dead_reckoning, rel).local.trans_mean_m
     from slam_engine.memory_estimate import peak_resident_bytes
 
     record["peak_mb"] = peak_resident_bytes() / 2**20
@@ -138,7 +146,8 @@ def main(argv: list[str] | None = None) -> int:
                 acc = (f"trans {rec['trans_m']:.4f} m rot {rec['rot_deg']:.3f} deg "
                        f"local {rec['local_m']:.4f} m loop {rec['loop_m']:.4f} m")
             if "ate_m" in rec:
-                acc += f" ATE {rec['ate_m']:.3f} m (odometry {rec['dr_ate_m']:.3f})"
+                acc += (f" ATE {rec['ate_m']:.3f} m (odometry {rec['dr_ate_m']:.3f}) local {rec['local_m']:.4f} m "
+                        f"(odometry {rec['dr_local_m']:.4f})")
             if rec.get("half_agreement") is not None:
                 acc += f" half agreement {rec['half_agreement']:.3f}"
             if rec.get("time_offset_s") is not None:
@@ -148,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         if not records:
             continue
         line = f"== {name}: "
-        for key in ("trans_m", "rot_deg", "ate_m", "half_agreement"):
+        for key in ("trans_m", "rot_deg", "ate_m", "local_m", "half_agreement"):
             vals = [r[key] for r in records if r.get(key) is not None]
             if vals:
                 worst = min(vals) if key == "half_agreement" else max(vals)  # agreement: higher is better
