@@ -77,11 +77,22 @@ class NoiseEstimate:
 def _fit_growth(lags: np.ndarray, variances: np.ndarray) -> tuple[float, float]:
     """Fixed part a and growth per step b (both >= 0) of variance = a + b L: non-negative least
     squares on relative errors. Systematic drift (the front end's map bending, the odometry's bias)
-    also grows and is counted as odometry noise: the odometry is trusted less, never more."""
-    from scipy.optimize import nnls  # imported on first use, like GTSAM: after the front end's peak
+    also grows and is counted as odometry noise: the odometry is trusted less, never more.
 
+    Two unknowns: the optimum is the unconstrained fit or lies on an axis, so the candidates are
+    compared directly (scipy.optimize.nnls gives the same, but importing it costs the front end
+    37 MB, an eighth of a whole intel run)."""
     A = np.stack([np.ones_like(lags), lags], axis=1) / variances[:, None]
-    (a, b), _ = nnls(A, np.ones_like(lags))
+    y = np.ones_like(lags)
+    candidates = [np.zeros(2)]
+    for column in range(2):  # one unknown, the other 0
+        x = np.zeros(2)
+        x[column] = max(0.0, float(A[:, column] @ y) / float(A[:, column] @ A[:, column]))
+        candidates.append(x)
+    both = np.linalg.lstsq(A, y, rcond=None)[0]
+    if (both >= 0).all():
+        candidates.append(both)
+    a, b = min(candidates, key=lambda x: float(np.sum((A @ x - y) ** 2)))
     return float(a), float(b)
 
 
