@@ -39,7 +39,8 @@ MATCH_SD_FLOOR = (1e-3, 1e-4)
 ODOMETRY_SD_FLOOR = (2e-4, 2e-5)
 # the front end trusts the odometry only where it is this fraction of the model's noise or less ...
 MAX_TRUSTED_SCALE = 0.25
-# ... and this many times more precise per step than a match (in translation or heading) [ratio]
+# ... and this many times more precise per step than a match (in translation or heading) [ratio];
+# once trusted, MIN_ADVANTAGE keeps it so
 MIN_TRUSTED_ADVANTAGE = 2.0
 # a step counts for the wheel check when the wheels moved at least this much [m]
 MIN_WHEEL_STEP_M = 1e-3
@@ -202,8 +203,11 @@ class OdometryPrecision:
         trans_scale = float(np.clip(estimate.odometry_sd_m / max(model[0], 1e-9), self.min_scale, 1.0))
         rot_scale = float(np.clip(estimate.odometry_sd_rad / max(model[1], 1e-12), self.min_scale, 1.0))
         # trusted only when clearly so: more precise than the matches and several times more precise
-        # than the model says (a rover's first scans looked 2x better than the model: not enough)
-        trusted = estimate.more_precise_by(MIN_TRUSTED_ADVANTAGE) and min(trans_scale, rot_scale) <= MAX_TRUSTED_SCALE
+        # than the model says (a rover's first scans looked 2x better than the model: not enough).
+        # Once trusted, kept while the odometry stays the more precise source at all: a front end that
+        # drifts has no white part, and its match noise falls to the floor in some windows
+        advantage = MIN_ADVANTAGE if self.trusted else MIN_TRUSTED_ADVANTAGE
+        trusted = estimate.more_precise_by(advantage) and min(trans_scale, rot_scale) <= MAX_TRUSTED_SCALE
         self.trans_scale, self.rot_scale = (trans_scale, rot_scale) if trusted else (1.0, 1.0)
         self.changes += int(trusted != self.trusted)
         self.trusted = trusted

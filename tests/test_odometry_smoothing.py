@@ -143,3 +143,30 @@ def test_front_end_does_not_trust_odometry_only_marginally_more_precise() -> Non
         precision.observe(fitted[k], odo[k], model_sd_m=0.05, model_sd_rad=0.05)
     assert precision.estimate is not None and precision.estimate.odometry_helps
     assert not precision.estimate.more_precise_by(2.0) and not precision.trusted
+
+
+def test_front_end_keeps_trusting_odometry_while_it_stays_the_more_precise_source() -> None:
+    """Trust starts at twice the matches' precision and ends only where the odometry is no longer the
+    more precise source: windows where the match noise dips close to the odometry's (a drifting front
+    end's white part falls to the floor) do not switch the proposal back and forth."""
+    rng = np.random.default_rng(8)
+    truth = _drive(900)
+    steps = relative(truth[:-1], truth[1:])
+    sd = np.where(np.arange(len(steps))[:, None] < 600, [0.001, 0.001, 0.0002], [0.05, 0.05, 0.03])
+    odo = np.zeros_like(truth)  # 1 mm / 0.0002 rad per step, rough (5 cm, 0.03 rad) from step 600
+    for k, step in enumerate(steps + rng.normal(0.0, 1.0, steps.shape) * sd):
+        odo[k + 1] = compose(odo[k], step)
+    precision = OdometryPrecision()
+    for k in range(300):  # matches of 2 cm: trusted
+        fitted = truth[k] + rng.normal(0.0, 1.0, 3) * np.array([0.02, 0.02, 0.002])
+        precision.observe(fitted, odo[k], model_sd_m=0.05, model_sd_rad=0.05)
+    assert precision.trusted and precision.changes == 1
+    for k in range(300, 600):  # matches of 1.2 mm against odometry of 1 mm: kept
+        fitted = truth[k] + rng.normal(0.0, 1.0, 3) * np.array([0.0012, 0.0012, 0.0003])
+        precision.observe(fitted, odo[k], model_sd_m=0.05, model_sd_rad=0.05)
+    assert precision.estimate is not None and not precision.estimate.more_precise_by(2.0)
+    assert precision.trusted and precision.changes == 1
+    for k in range(600, 900):  # rough odometry: no longer trusted
+        fitted = truth[k] + rng.normal(0.0, 1.0, 3) * np.array([0.0012, 0.0012, 0.0003])
+        precision.observe(fitted, odo[k], model_sd_m=0.05, model_sd_rad=0.05)
+    assert not precision.trusted and precision.changes == 2
