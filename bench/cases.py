@@ -15,6 +15,10 @@ SOURCE_CHECKOUT = (REPO_ROOT / "pyproject.toml").exists()
 # Logs without ground truth whose maps a person should look at (paths inside the datasets folder).
 MAP_ONLY_LOGS = ("breezyslam/exp2.dat", "malaga/*.clf")
 
+# Simulated drives mapped beside the shared logs, written afresh by the project's simulator (simulation
+# seed 0, the rig's own scenario) in a log format with its exact ground truth: (rig, format).
+SIMULATED_LOGS = (("car", "ece276a-car"),)
+
 # Files beside a log that are never logs themselves.
 _COMPANION_SUFFIXES = (".relations", ".txt", ".md", ".json", ".yaml", ".yml", ".png", ".csv", ".log")
 
@@ -85,4 +89,20 @@ def default_cases(root: Path | None = None, map_only: bool = True) -> list[Bench
     if map_only:
         for pattern in MAP_ONLY_LOGS:
             cases.extend(case_for_log(p) for p in sorted(root.glob(pattern)))
+    return cases
+
+
+def simulated_cases(folder: Path) -> list[BenchCase]:
+    """The drives of :data:`SIMULATED_LOGS`, written under ``folder`` as ``sim-<rig>-<scenario>/``
+    the way ``lidarmap simulate --format FORMAT`` writes them (without camera frames: the bench
+    scores trajectories), each with its ground truth and relations."""
+    from slam_engine.simulation import simulate, write_simulated
+
+    cases = []
+    for rig, log_format in SIMULATED_LOGS:
+        drive = simulate(None, seed=0, rig=rig, cameras=False)
+        out = Path(folder) / f"sim-{rig}-{drive.scenario}"
+        out.mkdir(parents=True, exist_ok=True)
+        write_simulated(drive, log_format, out)
+        cases.append(case_for_log(out))
     return cases

@@ -48,11 +48,14 @@ def accuracy(
     seeds: str = typer.Option("0-4", help=SEEDS_HELP),
     particles: int | None = typer.Option(None, min=1, max=1000,
                                          help="Particles per run (default: the SlamConfig default)."),
-    quick: bool = typer.Option(False, help="One seed (the first), benchmark logs only (no maps-only logs)."),
+    quick: bool = typer.Option(False, help="One seed (the first), benchmark logs only (no maps-only logs, "
+                               "no simulated drives)."),
     datasets: bool = typer.Option(True, help="Include the shared datasets' logs (LIDARMAP_DATASETS or "
                                   "../shared/datasets)."),
     config: Path | None = typer.Option(None, exists=True, dir_okay=False,
                                        help="YAML or JSON file with SlamConfig overrides."),
+    simulated: bool = typer.Option(True, help="Also map the simulated car (written into the output folder "
+                                   "with its exact ground truth)."),
     out: Path | None = typer.Option(None, help="Output folder (default bench/results/<date-time>)."),
     timeout_s: float = typer.Option(3600.0, min=1.0, help="Time limit per run, seconds."),
     busy: int = typer.Option(0, min=0, max=64, help="CPU-bound processes to run beside every run "
@@ -65,8 +68,8 @@ def accuracy(
     several seeds, plus maps of logs without ground truth. Writes JSON and map PNGs."""
     from rich.console import Console
 
-    from bench.cases import cases_for_path, datasets_root, default_cases
-    from bench.harness import BenchOptions, run_benchmark
+    from bench.cases import cases_for_path, datasets_root, default_cases, simulated_cases
+    from bench.harness import BenchOptions, default_out_dir, run_benchmark
     from bench.report import fmt, print_report
     from bench.worker import resolve
     from slam_engine.config import read_settings
@@ -79,6 +82,9 @@ def accuracy(
             cases.extend(cases_for_path(path))
     except FileNotFoundError as exc:
         raise typer.BadParameter(str(exc)) from None
+    out = out if out is not None else default_out_dir()
+    if simulated and not quick:
+        cases.extend(simulated_cases(out / "simulated"))
     if not cases:
         raise typer.BadParameter(f"nothing to run: no logs under {datasets_root()} and none given")
     try:

@@ -12,13 +12,13 @@ import pytest
 from PIL import Image
 from rich.console import Console
 
-from bench.cases import cases_for_path
+from bench.cases import cases_for_path, simulated_cases
 from bench.cli import parse_seeds
 from bench.harness import BUSY_LOOP, BenchOptions, busy_processes, run_benchmark
 from bench.map_quality import half_agreement, occupied_with_neighbour, wall_thickness_m
 from bench.report import print_report
 from slam_engine.drive_log import DriveLog, LidarModel, MotionModelKind, OdometryStream, ScanStream, VehicleModel
-from slam_engine.evaluation import Relations, read_relations, relation_errors
+from slam_engine.evaluation import Relations, read_ground_truth, read_relations, relation_errors
 from slam_engine.formats import load_log, write_log
 from slam_engine.poses import relative
 from slam_engine.result import OccupancyGrid, Trajectory
@@ -223,3 +223,13 @@ def test_relations_round_trip_through_the_test_files(tmp_path):
     relations: Relations = read_relations(folder / "log.relations")
     truth = ground_truth()
     assert relation_errors(truth, relations).trans_mean_m == pytest.approx(0, abs=1e-8)
+
+
+def test_simulated_car_is_written_as_its_format_with_ground_truth(tmp_path):
+    (case,) = simulated_cases(tmp_path)
+    assert case.name == "sim-car-campus" and case.scored and case.ground_truth_path is not None
+    log = load_log(case.log_path)
+    assert log.source_format == "ece276a-car" and log.encoders is not None and log.gyro is not None
+    truth = read_ground_truth(case.ground_truth_path)
+    assert len(truth) == len(log.scans) == 703
+    assert len(read_relations(case.relations_path)) > len(log.scans)  # consecutive scans and loop closures
