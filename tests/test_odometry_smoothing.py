@@ -28,6 +28,15 @@ def _odometry(truth: np.ndarray, sd_m: float, sd_rad: float, rng: np.random.Gene
     return odo
 
 
+def _observed(fitted: np.ndarray, odo: np.ndarray) -> OdometryPrecision:
+    """An OdometryPrecision that has seen every step of ``fitted`` poses against ``odo`` (a model of
+    5 cm and 0.05 rad per step)."""
+    precision = OdometryPrecision()
+    for k in range(len(fitted)):
+        precision.observe(fitted[k], odo[k], model_sd_m=0.05, model_sd_rad=0.05)
+    return precision
+
+
 def _local_error_m(poses: np.ndarray, truth: np.ndarray) -> float:
     e, t = relative(poses[:-1], poses[1:]), relative(truth[:-1], truth[1:])
     return float(np.mean(np.hypot(e[:, 0] - t[:, 0], e[:, 1] - t[:, 1])))
@@ -85,10 +94,7 @@ def test_front_end_keeps_its_motion_model_for_rough_odometry() -> None:
     rng = np.random.default_rng(4)
     truth = _drive(150)
     odo = _odometry(truth, 0.05, 0.03, rng)
-    fitted = truth + rng.normal(0.0, 1.0, truth.shape) * np.array([0.01, 0.01, 0.002])
-    precision = OdometryPrecision()
-    for k in range(len(truth)):
-        precision.observe(fitted[k], odo[k], model_sd_m=0.05, model_sd_rad=0.05)
+    precision = _observed(truth + rng.normal(0.0, 1.0, truth.shape) * np.array([0.01, 0.01, 0.002]), odo)
     assert precision.estimate is not None and not precision.trusted
     assert precision.scaled((0.1, 0.05, 0.05, 0.02)) == (0.1, 0.05, 0.05, 0.02)
 
@@ -137,10 +143,7 @@ def test_front_end_does_not_trust_odometry_only_marginally_more_precise() -> Non
     rng = np.random.default_rng(7)
     truth = _drive(150)
     odo = _odometry(truth, 0.001, 0.0002, rng)
-    fitted = truth + rng.normal(0.0, 1.0, truth.shape) * np.array([0.0012, 0.0012, 0.0003])
-    precision = OdometryPrecision()
-    for k in range(len(truth)):
-        precision.observe(fitted[k], odo[k], model_sd_m=0.05, model_sd_rad=0.05)
+    precision = _observed(truth + rng.normal(0.0, 1.0, truth.shape) * np.array([0.0012, 0.0012, 0.0003]), odo)
     assert precision.estimate is not None and precision.estimate.odometry_helps
     assert not precision.estimate.more_precise_by(2.0) and not precision.trusted
 
