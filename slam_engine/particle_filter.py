@@ -48,7 +48,14 @@ from slam_engine.odometry_noise import OdometryPrecision
 from slam_engine.poses import compose, relative, wrap_angle
 from slam_engine.raycast import insert_scan
 from slam_engine.resampling import low_variance_resample, n_eff, normalize_log_weights
-from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, Trajectory, preview_pool_factor
+from slam_engine.result import (
+    SNAPSHOT_MAX_SIDE_CELLS,
+    MapSnapshot,
+    OccupancyGrid,
+    ScanStats,
+    Trajectory,
+    preview_pool_factor,
+)
 from slam_engine.scan_matcher import ScanMatcher
 from slam_engine.time_offset import OdometryHistory, TimeOffsetEstimator, beam_time_offsets_s, matched_turn, sweep_poses
 
@@ -180,6 +187,9 @@ class SlamFilter:
         self._pending: deque[ScanMessage] = deque()  # scans waiting for odometry past their stamp
         self._stats: list[tuple[float, float, bool, float, bool, float]] = []
         self.snapshots: list[MapSnapshot] = []
+        # the newest snapshot at preview size for live maps; False: every snapshot at an animation
+        # frame's size from the start (the full-resolution preview, tens of MB, is never built)
+        self.live_previews = True
         self._last_forget_m = 0.0  # the maps' travel clock [m] when stale tiles were last forgotten
 
     @classmethod
@@ -265,10 +275,12 @@ class SlamFilter:
         self._stats[-1] = self._stats[-1][:5] + (time.perf_counter() - start,)
         every = self.config.snapshot_every_scans
         if every and self.steps_processed % every == 0:
-            if self.snapshots:  # kept for the animation: a frame's size is enough
+            if self.snapshots and self.live_previews:  # kept for the animation: a frame's size is enough
                 self.snapshots[-1] = self.snapshots[-1].reduced()
-            self.snapshots.append(MapSnapshot(scan_index=len(self._records) - 1, t_s=scan.t_s,
-                                              grid=self.preview_grid(), trajectory=self.trajectory()))
+            grid = self.preview_grid() if self.live_previews else self.frame_grid()
+            snapshot = MapSnapshot(scan_index=len(self._records) - 1, t_s=scan.t_s, grid=grid,
+                                   trajectory=self.trajectory())
+            self.snapshots.append(snapshot if self.live_previews else snapshot.reduced())
 
     def _due(self, t_s: float, odom: np.ndarray) -> bool:
         assert self._last_odom is not None and self._last_t_s is not None  # set by the first scan's step
@@ -521,6 +533,14 @@ class SlamFilter:
 
     def best_grid(self) -> OccupancyGrid:
         return self.grids.occupancy_grid(self.best_particle())
+
+    def frame_grid(self) -> OccupancyGrid:
+        """The best particle's map pooled to an animation frame's size (at most
+        ``SNAPSHOT_MAX_SIDE_CELLS`` a side: what :meth:`MapSnapshot.reduced` makes of the preview),
+        built a few tile rows at a time."""
+        best = self.best_particle()
+        side = max(self.grids.observed_shape(best))
+        return self.grids.occupancy_grid(best, pool=max(1, math.ceil(side / SNAPSHOT_MAX_SIDE_CELLS)))
 
     def preview_grid(self) -> OccupancyGrid:
         """The best particle's map pooled to at most about ``PREVIEW_MAX_SIDE_CELLS`` a side (what a

@@ -77,13 +77,15 @@ def _empty_stats() -> ScanStats:
 
 
 def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Generator | None = None,
-             progress: ProgressCallback | None = None) -> SlamResult:
+             progress: ProgressCallback | None = None, live_previews: bool | None = None) -> SlamResult:
     """Run RBPF SLAM over ``log``.
 
     ``rng`` defaults to ``numpy.random.default_rng(config.seed)`` (same seed, same map).
     ``progress`` is called after every scan with a :class:`RunProgress`; raising
-    :class:`~slam_engine.errors.Cancelled` from it stops the run. A log without odometry raises
-    :class:`ConfigError`; a log without scans gives a dead-reckoning-only result with a warning."""
+    :class:`~slam_engine.errors.Cancelled` from it stops the run. ``live_previews`` (default: when
+    there is a ``progress``): its newest snapshot is at preview size; without, snapshots are kept at
+    an animation frame's size from the start (the same frames, less memory). A log without odometry
+    raises :class:`ConfigError`; a log without scans gives a dead-reckoning-only result with a warning."""
     config = SlamConfig() if config is None else config
     start = time.perf_counter()
     odometry_source(log)  # ConfigError when there is none
@@ -101,7 +103,7 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
         raise ConfigError(f"the LiDAR model has {log.lidar.num_beams} beams but the scans have "
                           f"{log.scans.ranges_m.shape[1]} ranges")
 
-    slam = run_filter(log, config, rng, progress, start)
+    slam = run_filter(log, config, rng, progress, start, live_previews)
     if progress is not None:
         progress(RunProgress(scans_total, scans_total, time.perf_counter() - start))
     result = filter_result(slam, log, config, start)
@@ -111,13 +113,15 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
 
 
 def run_filter(log: DriveLog, config: SlamConfig, rng: np.random.Generator, progress: ProgressCallback | None = None,
-               started_s: float | None = None) -> SlamFilter:
+               started_s: float | None = None, live_previews: bool | None = None) -> SlamFilter:
     """The front end alone: a :class:`SlamFilter` stepped through every odometry and scan message of
     ``log`` (which has scans and a LiDAR model) and finished, before the back end
-    (:func:`filter_result`). ``progress`` as in :func:`run_slam`, timed from ``started_s``."""
+    (:func:`filter_result`). ``progress`` and ``live_previews`` as in :func:`run_slam`, timed from
+    ``started_s``."""
     started_s = time.perf_counter() if started_s is None else started_s
     scans_total = 0 if log.scans is None else len(log.scans)
     slam = SlamFilter.from_log(log, config, rng)
+    slam.live_previews = progress is not None if live_previews is None else live_previews
     odometry_only = DriveLog(vehicle=log.vehicle, encoders=log.encoders, gyro=log.gyro, odometry=log.odometry,
                              scans=log.scans)
     for message in odometry_only.messages():

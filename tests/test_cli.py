@@ -135,8 +135,8 @@ def test_run_wires_log_config_progress_relations_and_products(tmp_path: Path, da
     truth = read_ground_truth(dataset("benchmark/intel.gt.txt"))
     calls = {}
 
-    def run_slam(drive_log, config, rng=None, progress=None):
-        calls.update(config=config, scans=len(drive_log.scans), rng=rng)
+    def run_slam(drive_log, config, rng=None, progress=None, live_previews=None):
+        calls.update(config=config, scans=len(drive_log.scans), rng=rng, live_previews=live_previews)
         for done in range(0, len(drive_log.scans) + 1, 100):
             progress(types.SimpleNamespace(scans_done=done, scans_total=len(drive_log.scans), elapsed_s=0.1))
         log_odds = np.zeros((80, 120))
@@ -154,6 +154,7 @@ def test_run_wires_log_config_progress_relations_and_products(tmp_path: Path, da
     assert (config.particles, config.seed, config.grid.resolution_m) == (12, 5, 0.1)
     assert config.snapshot_every_scans == 910 // 40 and calls["scans"] == 910
     assert calls["rng"].random() == np.random.default_rng(5).random()
+    assert calls["live_previews"] is False  # the progress bar shows counts, no preview maps
     run = json.loads((out / "run.json").read_text())
     assert run["accuracy"]["relations"]["all"]["n_relations"] == 1818
     assert run["accuracy"]["relations"]["all"]["trans_mean_m"] < 1e-5 and run["accuracy"]["ate_m"] < 1e-9

@@ -117,3 +117,24 @@ def test_clones_after_resampling_share_one_insertion_with_identical_results(monk
     unshared = run_slam(log, config)
     np.testing.assert_array_equal(shared.trajectory.poses, unshared.trajectory.poses)
     np.testing.assert_array_equal(shared.grid.log_odds, unshared.grid.log_odds)
+
+
+def test_snapshots_without_live_previews_are_the_same_frames() -> None:
+    """Without live previews every snapshot is built at an animation frame's size (a few tile rows at
+    a time) instead of at preview size and pooled later: the frames are identical."""
+    from slam_engine.result import SNAPSHOT_MAX_SIDE_CELLS
+    from slam_engine.simulation import simulate
+
+    drive = simulate("office", seed=0, rig="carmen-robot", max_duration_s=80.0, cameras=False)
+    config = SlamConfig(particles=4, seed=0, snapshot_every_scans=40, loop_closing={"enabled": False})
+    live = run_slam(drive.log, config, progress=lambda p: None)
+    frames = run_slam(drive.log, config, live_previews=False)
+    assert len(live.snapshots) == len(frames.snapshots) >= 5
+    pooled = 0
+    for a, b in zip(live.snapshots, frames.snapshots, strict=True):
+        assert max(b.grid.shape) <= SNAPSHOT_MAX_SIDE_CELLS
+        assert (a.grid.resolution_m, a.grid.origin_x_m, a.grid.origin_y_m) == \
+            (b.grid.resolution_m, b.grid.origin_x_m, b.grid.origin_y_m)
+        np.testing.assert_array_equal(a.grid.log_odds, b.grid.log_odds)
+        pooled += b.grid.resolution_m > config.grid.resolution_m
+    assert pooled >= 1  # the later maps are larger than a frame: pooled, the same either way

@@ -84,7 +84,8 @@ def run_with_progress(drive_log, config):
         def on_progress(p) -> None:
             bar.update(task, completed=p.scans_done, total=p.scans_total)
 
-        return run_slam(drive_log, config, rng=np.random.default_rng(config.seed), progress=on_progress)
+        return run_slam(drive_log, config, rng=np.random.default_rng(config.seed), progress=on_progress,
+                        live_previews=False)  # the bar shows counts only: no preview maps
 
 
 def texture_figures(result, truth, floor) -> dict | None:
