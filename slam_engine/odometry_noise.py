@@ -22,6 +22,7 @@ scans. The odometry's translation noise is then the smaller of the two figures.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -120,12 +121,13 @@ def wheel_distance_sd_m(wheels: np.ndarray) -> float | None:
     return 0.5 * spread
 
 
-def estimate_noise(path: np.ndarray, odometry: np.ndarray, wheels: np.ndarray | None = None
-                   ) -> NoiseEstimate | None:
+def estimate_noise(path: np.ndarray, odometry: np.ndarray,
+                   wheels: Sequence[np.ndarray | None] | np.ndarray | None = None) -> NoiseEstimate | None:
     """Match and odometry noise from the front end's key-frame ``path`` (K, 3) and the odometry poses
     at the same key frames ``odometry`` (K, 3); None for a drive too short to tell. Medians, so that
-    a few bad matches or wheel slips do not decide it. ``wheels`` (K, 3), where the log has encoders
-    and a gyro: their cross-check (:func:`wheel_distance_sd_m`), which caps the translation noise."""
+    a few bad matches or wheel slips do not decide it. ``wheels``: each key frame's wheel and gyro
+    readings (:meth:`OdometryIntegrator.wheel_check`, None without both); where every key frame has
+    them, their cross-check (:func:`wheel_distance_sd_m`) caps the translation noise."""
     path = np.asarray(path, np.float64)
     odometry = np.asarray(odometry, np.float64)
     if len(path) < MIN_KEY_FRAMES:
@@ -145,7 +147,8 @@ def estimate_noise(path: np.ndarray, odometry: np.ndarray, wheels: np.ndarray | 
     a_xy, b_xy = _fit_growth(lags, np.maximum(var_xy, 1e-12))
     a_th, b_th = _fit_growth(lags, np.maximum(var_th, 1e-16))
     odometry_sd_m = float(np.sqrt(b_xy))
-    wheel_sd_m = None if wheels is None else wheel_distance_sd_m(wheels)
+    checked = wheels is not None and len(wheels) > 0 and all(w is not None for w in wheels)
+    wheel_sd_m = wheel_distance_sd_m(np.array(wheels)) if checked else None
     if wheel_sd_m is not None:
         odometry_sd_m = min(odometry_sd_m, wheel_sd_m)
     return NoiseEstimate(match_sd_m=max(float(np.sqrt(a_xy / 2.0)), MATCH_SD_FLOOR[0]),
@@ -194,8 +197,7 @@ class OdometryPrecision:
             self._update()
 
     def _update(self) -> None:
-        wheels = None if any(w is None for w in self._wheels) else np.array(self._wheels)
-        estimate = estimate_noise(np.array(self._fitted), np.array(self._odometry), wheels)
+        estimate = estimate_noise(np.array(self._fitted), np.array(self._odometry), list(self._wheels))
         if estimate is None:
             return
         self.estimate = estimate

@@ -191,8 +191,7 @@ def _keep_odometry_precision(front_end_path: np.ndarray, poses: np.ndarray, odom
     summary for run.json. ``wheels``: each key frame's wheel and gyro readings (None without both)."""
     if not config.loop_closing.odometry_smoothing:
         return poses, {"applied": False, "reason": "disabled in the configuration"}
-    checked = None if not wheels or any(w is None for w in wheels) else np.array(wheels)
-    noise = estimate_noise(front_end_path, np.asarray(odometry), checked)
+    noise = estimate_noise(front_end_path, np.asarray(odometry), wheels)
     if noise is None:
         return poses, {"applied": False, "reason": "too few key frames to measure the noise"}
     if not noise.odometry_helps:
