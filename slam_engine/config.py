@@ -131,6 +131,12 @@ class MatcherConfig(_Section):
     proposal_information: float = Field(5.0, gt=0.0, le=1000.0, description="With proposal 'fused': the fit's "
                                         "information is its Gauss-Newton matrix times the likelihood gain times "
                                         "this.")
+    motion_prior: float = Field(1.0, ge=0.0, le=10.0, description="Weight of the motion prior in a particle's "
+                                "importance weight: the scan's log likelihood at the fit less this times half the "
+                                "squared Mahalanobis distance of the fit from the predicted pose (covariance: the "
+                                "motion's plus the fit's own). 0: the scan's likelihood alone, which let single "
+                                "particles that snapped 0.45 rad off a 0.09 rad prediction win on "
+                                "infinite-corridor-rough.")
     sigma_m: float = Field(0.05, gt=0.0, le=2.0, description="Std. dev. of the endpoint likelihood [m]; an end "
                            "point's distance to the wall is taken as (1 - M) cells, M = map value in [0, 1].")
     beam_skip: int = Field(1, ge=1, le=50, description="Use every n-th beam for matching.")
@@ -178,6 +184,10 @@ class LoopClosingConfig(_Section):
     match_range_m: float = Field(20.0, gt=0.5, le=200.0, description="End points farther than this from the "
                                  "LiDAR are not used for loop closing [m].")
     max_points: int = Field(250, ge=10, le=100000, description="A key frame matches with at most this many points.")
+    match_span_m: float = Field(4.0, ge=0.0, le=100.0, description="A key frame is matched together with the "
+                                "key frames over this much travel before it [m], placed by the front end's "
+                                "motion: a stretch of corridor is told apart from another where one scan is not "
+                                "(0: the key frame's own scan alone).")
     unobserved_score: float = Field(0.3, ge=0.0, le=1.0, description="What an end point scores where no scan "
                                     "of the submap looked (neither a hit nor a miss: the submap cannot contradict "
                                     "it); seen free space scores 0, a hit 1.")
