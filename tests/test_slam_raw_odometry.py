@@ -38,8 +38,8 @@ def test_malaga_walls_agree_between_the_two_halves_of_the_drive(dataset) -> None
 def test_breezyslam_exp2_walls_are_single_and_agree_better_than_odometry(dataset) -> None:
     """A URG-04LX (5.6 m, 55 % no-return beams) on a fast-turning rover whose scans lag its wheel ticks
     by about 0.15 s: the engine estimates that lag online (and de-skews the 67 ms sweeps), walls stay
-    one cell thick, and the halves agree far better than odometry's (measured 0.503 vs 0.201, seeds
-    0-2 with 10 particles 0.465-0.506; 0.32 before the time offset was estimated)."""
+    one cell thick, and the halves agree far better than odometry's (measured 0.555 vs 0.201; 0.32
+    before the time offset was estimated)."""
     result, slam, dead = _map_with_half_agreements(dataset("breezyslam/exp2.dat"))
     print(f"exp2 half agreement: SLAM {slam['half_agreement']:.3f}, dead reckoning {dead['half_agreement']:.3f}")
     offset = result.input_summary["time_offset"]
@@ -48,5 +48,7 @@ def test_breezyslam_exp2_walls_are_single_and_agree_better_than_odometry(dataset
     assert slam["half_agreement"] > 0.45
     assert slam["half_agreement"] > 2 * dead["half_agreement"]
     assert slam["half_mean_offset_m"] < dead["half_mean_offset_m"]
-    assert wall_thickness_m(result.grid) < 0.065  # measured 0.058 m: single walls, about one 0.05 m cell
+    # single walls, about one 0.05 m cell (a doubled wall is 0.1 m and more): measured 0.058 m, 0.066 m
+    # since the weights carry the motion prior (with half agreement 0.555 instead of 0.513)
+    assert wall_thickness_m(result.grid) < 0.07
     assert occupied_with_neighbour(result.grid) > 0.9
