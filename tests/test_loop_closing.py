@@ -160,7 +160,8 @@ def test_a_stretch_of_corridor_tells_apart_what_one_scan_cannot() -> None:
     xs = np.arange(13.0, 15.0, 0.03)
     ys = np.arange(-4.0, -1.0, 0.03)
     world = np.concatenate([corridor, np.column_stack([xs, np.full_like(xs, -4.0)]),
-                            np.column_stack([np.full_like(ys, 13.0), ys]), np.column_stack([np.full_like(ys, 15.0), ys])])
+                            np.column_stack([np.full_like(ys, 13.0), ys]),
+                            np.column_stack([np.full_like(ys, 15.0), ys])])
     path = np.array([[x, 0.0, 0.0] for x in np.arange(10.0, 22.01, 0.5)])
     points = [relative(pose, np.column_stack([near, np.zeros(len(near))]))[:, :2]
               for pose in path for near in [world[np.abs(world[:, 0] - pose[0]) < 6.0]]]
