@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from slam_engine.backend.correlative import MatchGrid, branch_and_bound, refine_pose, search
-from slam_engine.backend.loop_closer import OUTSCORED, LoopCloser, close_loops
+from slam_engine.backend.loop_closer import OUTSCORED, LoopCloser, close_loops, overlap_score, overlapping_points
 from slam_engine.backend.pose_graph import PoseGraph
 from slam_engine.backend.submaps import match_grid_from_points, observed_mask
 from slam_engine.config import LoopClosingConfig, SlamConfig
@@ -112,6 +112,39 @@ def test_a_symmetric_corridor_match_is_ambiguous() -> None:
                    ambiguity_m=1.0, ambiguity_rad=0.15, runner_up_share=0.9)
     assert match is not None
     assert match.runner_up_score >= 0.9 * match.score  # 4 m on (or back) fits as well
+
+
+def _walls(x_from: float, x_to: float, doors: list[float], half_width_m: float = 1.0) -> np.ndarray:
+    """Two walls ``2 * half_width_m`` apart along x with a 0.8 m doorway centred at each of ``doors`` [m]."""
+    xs = np.arange(x_from, x_to, 0.03)
+    if doors:
+        xs = xs[np.all(np.abs(xs[:, None] - np.asarray(doors)[None, :]) > 0.4, axis=1)]
+    return np.concatenate([np.stack([xs, np.full_like(xs, -half_width_m)], 1),
+                           np.stack([xs, np.full_like(xs, half_width_m)], 1)])
+
+
+def test_a_match_that_fits_only_the_points_picked_at_the_prediction_fails_the_overlap_check() -> None:
+    """The search scores the points that overlap the submap at the predicted pose. Here those 4 m of
+    corridor fit the submap 4 m back, where the rest of the cloud (a narrow passage) lands on the
+    submap too, in its free space: a false closure, told by scoring the points that overlap there."""
+    submap = _walls(0.0, 12.0, [5.0, 7.0, 10.0])
+    grid = match_grid_from_points(submap, 0.05, margin_m=1.0)
+    cloud = np.concatenate([_walls(-6.0, -2.0, [-5.0, -3.0]), _walls(-2.0, 2.0, [], half_width_m=0.5)])
+    predicted = np.array([14.0, 0.0, 0.0])
+    picked = overlapping_points(grid, cloud, predicted)
+    assert picked[:, 0].max() < -1.9  # only the corridor part overlaps the submap at the prediction
+    match = search(grid, picked, predicted, window_m=5.0, window_rad=0.05, min_score=0.6,
+                   ambiguity_m=1.0, ambiguity_rad=0.1, runner_up_share=0.9)
+    assert match is not None and abs(match.pose[0] - 10.0) < 0.06 and match.score > 0.8
+    assert overlap_score(grid, cloud, match.pose) < 0.4 < LoopClosingConfig().min_score
+    # a true fit keeps its score: the submap seen from x = 6 m
+    own = submap - np.array([6.0, 0.0])
+    own = own[np.abs(own[:, 0]) < 5.0]
+    true_match = search(grid, overlapping_points(grid, own, np.array([7.5, 0.0, 0.0])), np.array([7.5, 0.0, 0.0]),
+                        window_m=3.0, window_rad=0.05, min_score=0.6, ambiguity_m=1.0, ambiguity_rad=0.1,
+                        runner_up_share=0.9)
+    assert true_match is not None and abs(true_match.pose[0] - 6.0) < 0.06
+    assert overlap_score(grid, own, true_match.pose) > 0.8 > LoopClosingConfig().min_score
 
 
 def _there_and_back(heading_bias_rad: float) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
