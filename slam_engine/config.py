@@ -196,6 +196,9 @@ class LoopClosingConfig(_Section):
     min_score_wide: float = Field(0.7, ge=0.0, le=1.0, description="Lowest score of a closure found with a "
                                   "window wider than confirm_window_m (more poses tried, more chance of a false "
                                   "match).")
+    overlap_min_score: float = Field(0.55, ge=0.0, le=1.0, description="A pose closure that moves its key frame "
+                                     "over 2 m is rejected when the points that overlap the submap's seen cells at "
+                                     "the pose found score below this (they were picked at the predicted pose).")
     edge_share: float = Field(0.9, gt=0.0, le=1.0, description="A match this far out in its window (share of "
                               "the half width) is rejected: the best pose may lie beyond it.")
     ambiguity_m: float = Field(1.0, ge=0.0, le=100.0, description="A second pose this far from the best [m] ...")

@@ -51,6 +51,19 @@ class MatchGrid:
     resolution_m: float
     pyramid: np.ndarray
     bounds_m: np.ndarray | None = None  # [x_min, y_min, x_max, y_max] of what the map holds [m]
+    observed: np.ndarray | None = None  # (H, W) bool like ``values``: cells a scan of the map saw
+
+    def observed_at(self, xy_m: np.ndarray) -> np.ndarray:
+        """(N,) bool: whether each point ``xy_m`` (N, 2) [m, grid frame] lies in a cell the map saw
+        (everywhere on the grid when ``observed`` is None; nowhere off it)."""
+        ij = np.floor((np.asarray(xy_m, np.float64) - self.origin_m) / self.resolution_m).astype(np.int64)
+        h, w = self.values.shape
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        if self.observed is None:
+            return inside
+        out = np.zeros(len(ij), bool)
+        out[inside] = self.observed[ij[inside, 1], ij[inside, 0]]
+        return out
 
     @classmethod
     def from_values(cls, values: np.ndarray, origin_m: np.ndarray, resolution_m: float, n_levels: int = 7

@@ -122,11 +122,14 @@ def match_grid_from_points(points_m: np.ndarray, resolution_m: float, margin_m: 
             src = hit[max(0, -dy): h - max(0, dy), max(0, -dx): w - max(0, dx)]
             dst = values[max(0, dy): h - max(0, -dy), max(0, dx): w - max(0, -dx)]
             np.maximum(dst, weight * src, out=dst)
+    seen = None
     if scans is not None and unobserved > 0:
         seen = observed_mask(scans, lo, shape, resolution_m)
         values = np.where(seen, values, np.maximum(values, np.float32(unobserved)))
     grid = MatchGrid.from_values(np.round(values * 255).astype(np.uint8), lo, resolution_m, n_levels)
     grid.bounds_m = np.concatenate([points_m.min(axis=0), points_m.max(axis=0)])
+    if seen is not None:  # padded on the low sides as the values were
+        grid.observed = np.pad(seen, ((grid.values.shape[0] - shape[0], 0), (grid.values.shape[1] - shape[1], 0)))
     return grid
 
 
@@ -164,7 +167,8 @@ class SubmapGrids:
 
     def cached_bytes(self) -> int:
         """Bytes of the grids kept (values and pyramids)."""
-        return sum(g.values.nbytes + g.pyramid.nbytes for g in self._cache.values() if g is not None)
+        return sum(g.values.nbytes + g.pyramid.nbytes + (0 if g.observed is None else g.observed.nbytes)
+                   for g in self._cache.values() if g is not None)
 
 
 def node_in_submap_frame(anchor_pose: np.ndarray, node_pose: np.ndarray) -> np.ndarray:
