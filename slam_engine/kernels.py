@@ -24,9 +24,9 @@ from typing import Any
 KERNEL_MODULES = ("slam_engine.grid", "slam_engine.raycast", "slam_engine.scan_matcher",
                   "slam_engine.backend.correlative")
 # Kernels a run calls from Python (the others are compiled into these).
-ENTRY_KERNELS = ("grid._privatize", "raycast.collect_touched_tiles", "raycast.integrate_rays", "raycast.clear_marks",
-                 "scan_matcher.match_particles", "scan_matcher.score_particles", "correlative._rotated_cells",
-                 "correlative.branch_and_bound", "correlative._refine")
+ENTRY_KERNELS = ("grid._privatize", "grid.pool_known_max", "raycast.collect_touched_tiles", "raycast.integrate_rays",
+                 "raycast.clear_marks", "scan_matcher.match_particles", "scan_matcher.score_particles",
+                 "correlative._rotated_cells", "correlative.branch_and_bound", "correlative._refine")
 
 
 def kernels() -> dict[str, Any]:
@@ -64,11 +64,13 @@ def warm_up() -> dict[str, list[str]]:
     from slam_engine.config import SlamConfig
     from slam_engine.grid import ParticleGrids
     from slam_engine.pipeline import run_slam
+    from slam_engine.result import OccupancyGrid
     from slam_engine.scan_matcher import ScanMatcher
     from slam_engine.simulation import simulate
 
     drive = simulate("office", seed=0, rig="robot", max_duration_s=6.0)
     run_slam(drive.log, SlamConfig(particles=3, seed=0))
+    OccupancyGrid(np.zeros((3, 3), np.float32), 0.05, 0.0, 0.0).pooled(2)  # snapshots and products
     # unknown cells score 0.5, below a min_score of 1: the match is rejected and the prediction
     # scored instead (score_particles)
     ScanMatcher(0.3, 0.2, 1.0).match(ParticleGrids(1, 0.05), np.zeros(1, np.int64), np.zeros((1, 3)),

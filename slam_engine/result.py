@@ -20,7 +20,6 @@ if TYPE_CHECKING:
 
 SNAPSHOT_MAX_SIDE_CELLS = 800  # a kept snapshot's map is pooled to at most this (what an animation frame shows)
 PREVIEW_MAX_SIDE_CELLS = 2048  # the newest snapshot's map (live previews) is pooled to at most about this
-_POOL_BAND_ROWS = 256  # pool a grid about this many input rows at a time: temporaries stay small
 
 
 @dataclass
@@ -72,16 +71,9 @@ class OccupancyGrid:
         largest among its known cells (obstacles stay visible), 0 (unknown) where none is known."""
         if factor <= 1:
             return self
-        h, w = self.shape
-        out = np.zeros((math.ceil(h / factor), math.ceil(w / factor)), np.float32)
-        band_rows = max(1, _POOL_BAND_ROWS // factor)  # output rows a band
-        for r0 in range(0, out.shape[0], band_rows):
-            band = self.log_odds[r0 * factor:(r0 + band_rows) * factor]
-            rows = math.ceil(band.shape[0] / factor)
-            padded = np.full((rows * factor, out.shape[1] * factor), -np.inf, np.float32)
-            padded[:band.shape[0], :w] = np.where(band != 0.0, band, -np.inf)
-            block_max = padded.reshape(rows, factor, out.shape[1], factor).max(axis=(1, 3))
-            out[r0:r0 + rows] = np.where(np.isfinite(block_max), block_max, 0.0)
+        from slam_engine.grid import pool_known_max  # numba kernel; imported when used
+
+        out = pool_known_max(np.ascontiguousarray(self.log_odds, np.float32), int(factor))
         return OccupancyGrid(out, self.resolution_m * factor, self.origin_x_m, self.origin_y_m)
 
 
