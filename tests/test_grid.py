@@ -96,3 +96,17 @@ def test_stale_tiles_leave_the_particles_maps_but_stay_in_the_preview() -> None:
     ix, iy = preview.world_to_cell(1.52, 0.52)
     assert preview.log_odds[iy, ix] == np.float32(1.8)
     assert grids.occupancy_grid(0, pool=2).shape == preview.pooled(2).shape
+
+
+def test_pooling_keeps_the_largest_known_value_of_each_block() -> None:
+    """A pooled block holds its largest known (non-zero) log-odds, free space below zero included;
+    0 only where nothing in the block is known; a partial block at the edge pools what it has."""
+    from slam_engine.result import OccupancyGrid
+
+    values = np.zeros((5, 5), np.float32)
+    values[0, 0], values[1, 1] = -2.0, -0.5  # free only: the less certain free value
+    values[0, 2], values[1, 3] = -3.0, 1.5  # a wall beside free space: the wall
+    values[4, 4] = -1.0  # the edge's partial block
+    pooled = OccupancyGrid(values, 0.05, 1.0, -2.0).pooled(2)
+    assert pooled.log_odds.tolist() == [[-0.5, 1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]
+    assert (pooled.resolution_m, pooled.origin_x_m, pooled.origin_y_m) == (0.1, 1.0, -2.0)
