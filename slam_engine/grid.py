@@ -69,25 +69,6 @@ def quantize_log_odds(value: float) -> int:
     return q
 
 
-@nb.njit(cache=True, nogil=True)
-def pool_known_max(log_odds: np.ndarray, factor: int) -> np.ndarray:
-    """(ceil(H / factor), ceil(W / factor)) float32: each block of ``factor`` x ``factor`` cells of
-    ``log_odds`` (H, W) float32 as the largest of its known (non-zero) values, 0 where none is known."""
-    h, w = log_odds.shape
-    out = np.zeros(((h + factor - 1) // factor, (w + factor - 1) // factor), np.float32)
-    known = np.zeros(out.shape, np.bool_)
-    for i in range(h):
-        oi = i // factor
-        for j in range(w):
-            v = log_odds[i, j]
-            if v != 0.0:
-                oj = j // factor
-                if not known[oi, oj] or v > out[oi, oj]:
-                    out[oi, oj] = v
-                    known[oi, oj] = True
-    return out
-
-
 @nb.njit(cache=True, nogil=True, inline="always")
 def cell_value(pool, tables, p, tile_x0, tile_y0, shift, cx, cy):
     """Stored log-odds (units of ``LOG_ODDS_UNIT``) of global cell (cx, cy) of particle p's map at

@@ -71,7 +71,7 @@ class OccupancyGrid:
         largest among its known cells (obstacles stay visible), 0 (unknown) where none is known."""
         if factor <= 1:
             return self
-        from slam_engine.grid import pool_known_max  # numba kernel; imported when used
+        from slam_engine.map_pooling import pool_known_max  # numba kernel; imported when used
 
         out = pool_known_max(np.ascontiguousarray(self.log_odds, np.float32), int(factor))
         return OccupancyGrid(out, self.resolution_m * factor, self.origin_x_m, self.origin_y_m)
