@@ -107,7 +107,8 @@ def accuracy(
         if record.get("status") == "ok":
             console.print(f"  {record['case']} seed {record['seed']}: process {fmt(record.get('process_s'), 1)} s, "
                           f"SLAM {fmt(record.get('wall_s'), 1)} s, products {fmt(record.get('products_s'), 2)} s, "
-                          f"peak {fmt(record.get('peak_memory_mb'), 0)} MB", highlight=False)
+                          f"peak run {fmt(record.get('peak_run_mb'), 0)} MB (process with scoring "
+                          f"{fmt(record.get('peak_memory_mb'), 0)} MB)", highlight=False)
         else:
             console.print(f"  [red]{record['case']} seed {record['seed']} failed[/red]")
 
