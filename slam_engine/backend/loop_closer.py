@@ -146,6 +146,22 @@ def _thin(points: np.ndarray, budget: int) -> np.ndarray:
     return points
 
 
+def _placed(pose: np.ndarray, points_v: np.ndarray) -> np.ndarray:
+    """(N, 2) the points ``points_v`` (N, 2) [m, vehicle frame] in the frame ``pose`` (3,) is given in."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return np.column_stack([pose[0] + c * points_v[:, 0] - s * points_v[:, 1],
+                            pose[1] + s * points_v[:, 0] + c * points_v[:, 1]])
+
+
+def _within_bounds(grid: MatchGrid, xy_m: np.ndarray) -> np.ndarray:
+    """(N,) bool: whether each point ``xy_m`` (N, 2) [m, submap frame] lies within the submap's bounds
+    (everywhere when it has none)."""
+    if grid.bounds_m is None:
+        return np.ones(len(xy_m), bool)
+    b = grid.bounds_m
+    return (xy_m[:, 0] >= b[0]) & (xy_m[:, 0] <= b[2]) & (xy_m[:, 1] >= b[1]) & (xy_m[:, 1] <= b[3])
+
+
 def overlapping_points(grid: MatchGrid, points_v: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """The points of ``points_v`` (N, 2) [m, vehicle frame] that land within the submap's bounds at
     ``pose`` (vehicle in the submap's frame): points beyond them can only score where the scan is
@@ -153,46 +169,42 @@ def overlapping_points(grid: MatchGrid, points_v: np.ndarray, pose: np.ndarray) 
     submap would match one door too far)."""
     if grid.bounds_m is None:
         return points_v
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    x = pose[0] + c * points_v[:, 0] - s * points_v[:, 1]
-    y = pose[1] + s * points_v[:, 0] + c * points_v[:, 1]
-    b = grid.bounds_m
-    return points_v[(x >= b[0]) & (x <= b[2]) & (y >= b[1]) & (y <= b[3])]
+    return points_v[_within_bounds(grid, _placed(pose, points_v))]
 
 
 def overlap_score(grid: MatchGrid, cloud: np.ndarray, pose: np.ndarray, origins: np.ndarray | None = None
                   ) -> float | None:
     """Score of a match at ``pose`` with the points of ``cloud`` (N, 2) [m, vehicle frame] that land on
     the submap there; None (no evidence either way) with fewer than ``MIN_OVERLAP_POINTS`` on cells it
-    saw. A search scores the
-    points that overlap the submap at the predicted pose: shifted metres along a corridor they may
-    fit, while the points that overlap the submap at the shifted pose do not. On
-    infinite-corridor-rough false closures 5-9 m along corridors scored 0.72-0.91 in the search and
-    0.26-0.58 here; true ones 0.6-0.9 in both.
+    saw. A search scores the points that overlap the submap at the predicted pose: shifted metres
+    along a corridor they may fit, while the points that overlap the submap at the shifted pose do
+    not. On infinite-corridor-rough false closures 5-9 m along corridors scored 0.72-0.91 in the
+    search and 0.26-0.58 here; true ones 0.6-0.9 in both.
 
     Points on cells the submap saw score their value (the best pose within a cell and an angular
     step). A point on a cell it never saw is left out (a short-range scanner's submap leaves much of
     its bounds unseen: counted as misses, they cost exp2 nine true closures), unless its ray from
     ``origins`` (N, 2, where each point's scan was taken) crossed one of the submap's walls on its way
     there (a scan that sees through a wall): then it counts as a miss."""
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-
-    def placed(xy: np.ndarray) -> np.ndarray:
-        return np.column_stack([pose[0] + c * xy[:, 0] - s * xy[:, 1], pose[1] + s * xy[:, 0] + c * xy[:, 1]])
-
-    world = placed(cloud)
+    world = _placed(pose, cloud)
     seen = grid.observed_at(world)
     points = np.ascontiguousarray(cloud[seen])
     if len(points) < MIN_OVERLAP_POINTS:
         return None
     check = search(grid, points, pose, grid.resolution_m, angular_step_rad(points, grid.resolution_m), 0.0)
     score = 0.0 if check is None else check.score
-    if origins is None or grid.observed is None or grid.bounds_m is None:
+    if origins is None or grid.observed is None:
         return score
-    b = grid.bounds_m
-    unseen = ~seen & (world[:, 0] >= b[0]) & (world[:, 0] <= b[2]) & (world[:, 1] >= b[1]) & (world[:, 1] <= b[3])
-    through = int(np.count_nonzero(_crosses_a_wall(grid, placed(origins[unseen]), world[unseen])))
+    unseen = ~seen & _within_bounds(grid, world)
+    through = int(np.count_nonzero(_crosses_a_wall(grid, _placed(pose, origins[unseen]), world[unseen])))
     return score * len(points) / (len(points) + through)
+
+
+def _overlap_fails(grid: MatchGrid, cloud: np.ndarray, pose: np.ndarray, origins: np.ndarray,
+                   min_score: float) -> bool:
+    """Whether :func:`overlap_score` is below ``min_score`` (False where it abstains)."""
+    score = overlap_score(grid, cloud, pose, origins)
+    return score is not None and score < min_score
 
 
 def _crosses_a_wall(grid: MatchGrid, start_m: np.ndarray, end_m: np.ndarray, clear_m: float = 0.15,
@@ -375,16 +387,16 @@ class LoopCloser:
                 shift_m = float(max(abs(shift[0]), abs(shift[1])))
                 correction_m = float(np.hypot(delta[0], delta[1]))
             reason = "accepted" if line is None else "accepted (heading)"
-            # (a heading closure, correction 0, is not: its position along its line is arbitrary)
-            overlap = overlap_score(grid, cloud, pose, origins) if correction_m > OVERLAP_CHECK_M else None
-            if overlap is not None and overlap < c.overlap_min_score:
-                reason = "fails with the points it overlaps"
-            elif window_m > c.confirm_window_m and match.score < c.min_score_wide:
+            if window_m > c.confirm_window_m and match.score < c.min_score_wide:
                 reason = "low score for a wide window"
             elif shift_m > c.edge_share * window_m or abs(float(wrap_angle(shift[2]))) > c.edge_share * window_rad:
                 reason = "at the window's edge"
             elif ambiguous and line is None:
                 reason = "ambiguous"
+            # checked last (a search of its own); a heading closure (correction 0) is not: its position
+            # along its line is arbitrary
+            elif correction_m > OVERLAP_CHECK_M and _overlap_fails(grid, cloud, pose, origins, c.overlap_min_score):
+                reason = "fails with the points it overlaps"
             ok = reason.startswith("accepted")
             closures.append(Closure(k, s_index, s.anchor, match.score, match.runner_up_score, window_m, window_rad,
                                     ok, reason, correction_m, float(abs(delta[2])),
@@ -416,10 +428,8 @@ class LoopCloser:
         parts, origins = [], []
         for j in range(k, first - 1, -1):
             T = relative(self.path[k], self.path[j])
-            p = self.points_v[j]
-            cos, sin = math.cos(T[2]), math.sin(T[2])
-            parts.append(np.column_stack([T[0] + cos * p[:, 0] - sin * p[:, 1], T[1] + sin * p[:, 0] + cos * p[:, 1]]))
-            origins.append(np.broadcast_to(T[:2], (len(p), 2)))
+            parts.append(_placed(T, self.points_v[j]))
+            origins.append(np.broadcast_to(T[:2], (len(self.points_v[j]), 2)))
         return (np.ascontiguousarray(_thin(np.concatenate(parts), c.max_points)),
                 np.ascontiguousarray(_thin(np.concatenate(origins), c.max_points)))
 
