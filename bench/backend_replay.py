@@ -60,7 +60,8 @@ def record(name: str, seed: int, out_dir: Path, overrides: dict) -> Path:
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / f"{path.stem}_seed{seed}.npz"
     np.savez_compressed(target, log=str(path), seed=seed, config=config.model_dump_json(),
-                        path=slam.key_frame_path(), odometry=np.asarray(slam.key_frame_odometry),
+                        path=slam.key_frame_path(), matched=slam.key_frame_matched(),
+                        odometry=np.asarray(slam.key_frame_odometry),
                         t_s=slam.key_frame_times(), counts=np.array([len(p) for p in points]),
                         points=np.concatenate(points) if points else np.zeros((0, 2)))
     return target
@@ -79,7 +80,8 @@ def replay(recording: Path, overrides: dict) -> dict:
     config = SlamConfig.model_validate(merge_settings(config.model_dump(), overrides))
     points = np.split(data["points"], np.cumsum(data["counts"])[:-1])
     started = time.perf_counter()
-    result = close_loops(data["path"], points, config.loop_closing, config.grid.resolution_m)
+    unverified = ~data["matched"] if "matched" in data else None
+    result = close_loops(data["path"], points, config.loop_closing, config.grid.resolution_m, unverified)
     row = {"recording": recording.name, "backend_s": round(time.perf_counter() - started, 2)}
     summary = result.summary()
     summary.pop("closures")

@@ -228,6 +228,11 @@ class LoopClosingConfig(_Section):
     motion_sd_rad: float = Field(0.003, gt=0.0, le=3.2, description="Heading sd of a motion edge [rad] ...")
     motion_sd_rad_per_rad: float = Field(0.02, ge=0.0, le=10.0, description="... plus this per radian turned ...")
     motion_sd_rad_per_m: float = Field(0.005, ge=0.0, le=10.0, description="... plus this per metre [rad/m].")
+    unverified_sd_m: float = Field(0.3, gt=0.0, le=100.0, description="A motion edge that the front end did not "
+                                   "verify by a scan match (the particle kept its motion sample): sd [m] ...")
+    unverified_sd_rad: float = Field(0.3, gt=0.0, le=3.2, description="... and heading sd [rad].")
+    unverified_travel_m: float = Field(25.0, ge=0.0, le=1000.0, description="Such a step widens the closure "
+                                       "search windows across it as this much travel would [m].")
     closure_sd_m: float = Field(0.05, gt=0.0, le=10.0, description="Closure edges: sd [m].")
     closure_sd_rad: float = Field(0.01, gt=0.0, le=3.2, description="Closure edges: heading sd [rad].")
     cauchy_scale: float = Field(1.0, gt=0.0, le=100.0, description="Scale of the Cauchy loss on closure edges "

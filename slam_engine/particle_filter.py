@@ -200,6 +200,7 @@ class SlamFilter:
         self.log_weights = np.zeros(n)
         self.path_log_likelihood = np.zeros(n)
         self._history: list[np.ndarray] = []
+        self._matched: list[np.ndarray] = []  # per step, (N,) bool: the particle's scan match was accepted
         self._parents: list[np.ndarray] = []
         self._next_parents = np.arange(n)
         self._records: list[_ScanRecord] = []
@@ -325,11 +326,12 @@ class SlamFilter:
                     g.log_odds_hit, g.log_odds_miss, g.log_odds_min, g.log_odds_max, projected.free_from_m)
         self.grids.resample(np.zeros(self.config.particles, np.int64))  # every particle shares that map
         self.time_offset.record_step(scan.t_s, None)
-        self._record_step(scan.t_s, odom, projected)
+        self._record_step(scan.t_s, odom, projected, np.ones(self.config.particles, bool))
         self._stats.append((scan.t_s, float(self.config.particles), False, 1.0, False, 0.0))
 
-    def _record_step(self, t_s: float, odom: np.ndarray, projected: ProjectedScan) -> None:
+    def _record_step(self, t_s: float, odom: np.ndarray, projected: ProjectedScan, matched: np.ndarray) -> None:
         self._history.append(self.particles.copy())
+        self._matched.append(np.asarray(matched, bool).copy())
         self.key_frame_odometry.append(np.asarray(odom, np.float64).copy())
         self.key_frame_wheels.append(self.integrator.wheel_check())
         self.key_frame_ranges.append(self._ranges_m)
@@ -386,7 +388,7 @@ class SlamFilter:
         neff = n_eff(weights)
         resampled = neff < self.config.resample_threshold * n
         # the history holds the poses before resampling; the next step's parents say who survived
-        self._record_step(scan.t_s, odom, projected)
+        self._record_step(scan.t_s, odom, projected, accepted)
         clones_of = None
         if resampled:
             ancestors = low_variance_resample(weights, self.rng)
@@ -535,6 +537,18 @@ class SlamFilter:
             path[k] = self._history[k][idx]
             idx = int(self._parents[k][idx])
         return path
+
+    def key_frame_matched(self) -> np.ndarray:
+        """(steps,) bool: whether the best particle's ancestry matched its scan at every processed step
+        (False: the step's pose is its motion sample, unverified by the scan; the first step counts as
+        matched)."""
+        k_total = len(self._history)
+        matched = np.ones(k_total, bool)
+        idx = self._parent_of_current(self.best_particle())
+        for k in range(k_total - 1, -1, -1):
+            matched[k] = self._matched[k][idx]
+            idx = int(self._parents[k][idx])
+        return matched
 
     def key_frame_times(self) -> np.ndarray:
         """(steps,) time [s] of the scan processed at every step (key frame)."""

@@ -146,7 +146,7 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     _return_freed_memory()
     front_end_path = slam.key_frame_path()
     backend = close_loops(front_end_path, [scan.hits_v for scan in slam.key_frame_scans], config.loop_closing,
-                          config.grid.resolution_m)
+                          config.grid.resolution_m, unverified=~slam.key_frame_matched())
     _return_freed_memory()
     key_frames, smoothing = _keep_odometry_precision(front_end_path, backend.poses, slam.key_frame_odometry,
                                                      slam.key_frame_wheels, config)

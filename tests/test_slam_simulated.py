@@ -56,6 +56,25 @@ def test_particles_match_a_local_map_while_the_preview_keeps_the_whole_drive() -
     assert absolute_trajectory_error(result.trajectory, drive.ground_truth) < 0.05
 
 
+def test_key_frames_record_whether_the_scan_match_verified_them() -> None:
+    """Scans without a return leave the particles on their motion samples: the best particle's
+    ancestry reports exactly those key frames as unmatched (the back end treats their steps as
+    unverified)."""
+    from slam_engine.pipeline import run_filter
+
+    drive = simulate("office", seed=0, cameras=False, max_duration_s=20.0)
+    scans = drive.log.scans
+    blank = np.arange(40, 46)
+    scans.ranges_m[blank] = np.nan
+    slam = run_filter(drive.log, SlamConfig(particles=5, seed=0), np.random.default_rng(0))
+    matched = slam.key_frame_matched()
+    assert len(matched) == slam.steps_processed
+    unmatched_t = slam.key_frame_times()[~matched]
+    # measured: 3 of 53 key frames, all of them blank scans
+    assert 1 <= len(unmatched_t) <= len(blank)
+    assert np.isin(unmatched_t, scans.t_s[blank]).all()
+
+
 def _local_error_m(poses: np.ndarray, truth: np.ndarray) -> float:
     """Mean translation error [m] of the motion between consecutive scans."""
     est, true = relative(poses[:-1], poses[1:]), relative(truth[:-1], truth[1:])

@@ -98,6 +98,7 @@ class LoopClosingResult:
     closures: list[Closure] = field(default_factory=list)
     optimizations: int = 0
     submaps: int = 0
+    unverified_steps: int = 0  # front-end steps not verified by a scan match (loose motion edges)
 
     def summary(self) -> dict:
         accepted = [c for c in self.closures if c.accepted]
@@ -105,7 +106,8 @@ class LoopClosingResult:
         for c in self.closures:
             if not c.accepted:
                 reasons[c.reason] = reasons.get(c.reason, 0) + 1
-        return {"submaps": self.submaps, "candidates_matched": len(self.closures),
+        return {"submaps": self.submaps, "unverified_steps": self.unverified_steps,
+                "candidates_matched": len(self.closures),
                 "closures_accepted": len(accepted),
                 "heading_closures_accepted": sum(1 for c in accepted if c.kind == "heading"),
                 "closures_rejected": reasons,
@@ -232,15 +234,24 @@ class LoopCloser:
     """Loop closing over key frames with poses ``path`` (K, 3, world frame, from the front end)
     and end points ``points_v`` (K lists of (B, 2) [m], vehicle frame)."""
 
-    def __init__(self, path: np.ndarray, points_v: list[np.ndarray], config: LoopClosingConfig, resolution_m: float):
+    def __init__(self, path: np.ndarray, points_v: list[np.ndarray], config: LoopClosingConfig, resolution_m: float,
+                 unverified: np.ndarray | None = None):
         self.config = config
         self.path = np.asarray(path, np.float64)
+        # steps whose motion from the key frame before the front end did not verify by a scan match
+        self.unverified = np.zeros(len(self.path), bool) if unverified is None else np.array(unverified, bool)
+        if self.unverified.shape != (len(self.path),):
+            raise ValueError(f"unverified has shape {self.unverified.shape}, the path {len(self.path)} key frames")
+        self.unverified[:1] = False
         c = config
         in_reach = [p[np.hypot(p[:, 0], p[:, 1]) <= c.match_range_m] for p in points_v]
         self.points_v = [_thin(p, c.max_points) for p in in_reach]
         step = np.hypot(*np.diff(self.path[:, :2], axis=0).T) if len(self.path) > 1 else np.zeros(0)
         self.travel_m = np.concatenate([[0.0], np.cumsum(step)])
-        self.submaps = split_into_submaps(self.travel_m, c.submap_length_m, c.submap_max_nodes)
+        # a submap ends at an unverified key frame: the next one may have gone back to the map (the
+        # unverified one alone was off) or on from it, and the next submap is consistent either way
+        after_unverified = np.concatenate([[False], self.unverified[:-1]])
+        self.submaps = split_into_submaps(self.travel_m, c.submap_length_m, c.submap_max_nodes, after_unverified)
         self.submap_of = np.empty(len(self.path), np.int64)
         for s in self.submaps:
             self.submap_of[s.first: s.last + 1] = s.index
@@ -251,7 +262,10 @@ class LoopCloser:
         self._links_matrix: tuple[int, csr_matrix] | None = None
         for k in range(1, len(self.path)):
             motion = relative(self.path[k - 1], self.path[k])
-            self.graph.add_edge(k - 1, k, motion, self._motion_sigmas(motion))
+            sigmas = self._motion_sigmas(motion)
+            if self.unverified[k]:
+                sigmas = np.maximum(sigmas, [c.unverified_sd_m, c.unverified_sd_m, c.unverified_sd_rad])
+            self.graph.add_edge(k - 1, k, motion, sigmas)
 
     def _motion_sigmas(self, motion: np.ndarray) -> np.ndarray:
         c = self.config
@@ -307,7 +321,8 @@ class LoopCloser:
             # a closure that disagrees with the rest is then an outlier and lets go
             est = self.graph.optimize(self.graph.optimize(est, robust=False))
             optimizations += 2
-        return LoopClosingResult(poses=est, closures=closures, optimizations=optimizations, submaps=len(self.submaps))
+        return LoopClosingResult(poses=est, closures=closures, optimizations=optimizations, submaps=len(self.submaps),
+                                 unverified_steps=int(self.unverified.sum()))
 
     def _candidates(self, k: int, est: np.ndarray, window_m: float) -> list[int]:
         """Finished submaps, far enough back along the drive, with a key frame within reach of k."""
@@ -332,7 +347,7 @@ class LoopCloser:
 
         if self._links_matrix is None or self._links_matrix[0] != len(self._closure_links):
             n = len(self.path)
-            step = np.maximum(np.diff(self.travel_m), 1e-3)
+            step = np.maximum(np.diff(self.travel_m), 1e-3) + self.config.unverified_travel_m * self.unverified[1:]
             rows = [np.arange(n - 1)] + [np.array([i for i, _ in self._closure_links], np.int64)]
             cols = [np.arange(1, n)] + [np.array([j for _, j in self._closure_links], np.int64)]
             weights = [step, np.full(len(self._closure_links), CLOSURE_TRAVEL_M)]
@@ -474,9 +489,10 @@ class LoopCloser:
                             np.array([c.closure_sd_m, c.closure_sd_m, c.closure_sd_rad]), robust=True)
 
 
-def close_loops(path: np.ndarray, points_v: list[np.ndarray], config: LoopClosingConfig, resolution_m: float
-                ) -> LoopClosingResult:
-    """Optimised key-frame poses for the front end's ``path`` (K, 3) and key-frame end points."""
+def close_loops(path: np.ndarray, points_v: list[np.ndarray], config: LoopClosingConfig, resolution_m: float,
+                unverified: np.ndarray | None = None) -> LoopClosingResult:
+    """Optimised key-frame poses for the front end's ``path`` (K, 3) and key-frame end points;
+    ``unverified`` (K,) bool marks the steps whose motion the front end did not verify by a scan match."""
     if not config.enabled or len(path) < 3:
         return LoopClosingResult(poses=np.asarray(path, np.float64).copy())
-    return LoopCloser(path, points_v, config, resolution_m).run()
+    return LoopCloser(path, points_v, config, resolution_m, unverified).run()

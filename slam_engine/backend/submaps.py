@@ -44,13 +44,16 @@ class Submap:
         return range(self.first, self.last + 1)
 
 
-def split_into_submaps(path_length_m: np.ndarray, length_m: float, max_nodes: int) -> list[Submap]:
+def split_into_submaps(path_length_m: np.ndarray, length_m: float, max_nodes: int,
+                       breaks: np.ndarray | None = None) -> list[Submap]:
     """Consecutive submaps of about ``length_m`` of travel (and at most ``max_nodes`` key frames)
-    over key frames whose cumulative travel is ``path_length_m`` (K,)."""
+    over key frames whose cumulative travel is ``path_length_m`` (K,); a key frame where ``breaks``
+    (K,) bool is set starts a new submap (its pose relative to the one before is not trusted)."""
     submaps: list[Submap] = []
     first = 0
     for k in range(1, len(path_length_m)):
-        if path_length_m[k] - path_length_m[first] >= length_m or k - first + 1 > max_nodes:
+        if path_length_m[k] - path_length_m[first] >= length_m or k - first + 1 > max_nodes \
+                or (breaks is not None and breaks[k]):
             submaps.append(Submap(len(submaps), first, k - 1))
             first = k
     submaps.append(Submap(len(submaps), first, len(path_length_m) - 1))
