@@ -325,9 +325,11 @@ def test_closures_reported_accepted_are_the_graphs_closure_edges(drifting_office
     _, path, points = drifting_office
     closer = LoopCloser(path, points, SlamConfig().loop_closing, 0.05)
     result = closer.run()
-    accepted = sorted((c.anchor, c.node) for c in result.closures if c.accepted)
-    edges = sorted((e.i, e.j) for e in closer.graph.edges if e.robust)
+    accepted = sorted((c.node, c.submap) for c in result.closures if c.accepted)
+    # the final graph ties each closure to a key frame of its submap (the one nearest the node)
+    edges = sorted((e.j, int(closer.submap_of[e.i])) for e in closer.graph.edges if e.robust)
     assert accepted == edges and len(edges) >= 3
+    assert any(e.i != closer.submaps[closer.submap_of[e.i]].anchor for e in closer.graph.edges if e.robust)
     outscored = [c for c in result.closures if c.reason == OUTSCORED]
     assert outscored  # the office's key frames often see two old submaps
     for c in outscored:
