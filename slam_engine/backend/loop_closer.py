@@ -246,6 +246,10 @@ class LoopCloser:
         c = config
         in_reach = [p[np.hypot(p[:, 0], p[:, 1]) <= c.match_range_m] for p in points_v]
         self.points_v = [_thin(p, c.max_points) for p in in_reach]
+        # unverified with a scan to match: the match was rejected, so the motion may be off by more than
+        # its model allows and the windows across it widen (a scan without returns says nothing of the
+        # kind: with 10 % of a simulated office's scans blank, widening across those too lost the map)
+        self._rejected = self.unverified & np.array([len(p) >= MIN_OVERLAP_POINTS for p in in_reach], bool)
         step = np.hypot(*np.diff(self.path[:, :2], axis=0).T) if len(self.path) > 1 else np.zeros(0)
         self.travel_m = np.concatenate([[0.0], np.cumsum(step)])
         # a submap ends at an unverified key frame: the next one may have gone back to the map (the
@@ -359,7 +363,7 @@ class LoopCloser:
 
         if self._links_matrix is None or self._links_matrix[0] != len(self._closure_links):
             n = len(self.path)
-            step = np.maximum(np.diff(self.travel_m), 1e-3) + self.config.unverified_travel_m * self.unverified[1:]
+            step = np.maximum(np.diff(self.travel_m), 1e-3) + self.config.unverified_travel_m * self._rejected[1:]
             rows = [np.arange(n - 1)] + [np.array([i for i, _ in self._closure_links], np.int64)]
             cols = [np.arange(1, n)] + [np.array([j for _, j in self._closure_links], np.int64)]
             weights = [step, np.full(len(self._closure_links), CLOSURE_TRAVEL_M)]
