@@ -39,7 +39,7 @@ def test_branch_and_bound_finds_the_exhaustive_maximum() -> None:
                     x, y = cells[a, :, 0] + dx, cells[a, :, 1] + dy
                     inside = (x >= 0) & (x < grid.values.shape[1]) & (y >= 0) & (y < grid.values.shape[0])
                     best = max(best, int(grid.values[y[inside], x[inside]].astype(np.int64).sum()))
-        a, dx, dy, total = branch_and_bound(grid.pyramid, cells, window, 0, 0, 0, 0, -1, 0)
+        a, dx, dy, total = branch_and_bound(grid.pyramid, cells, window, 0, 0, 0, 0, -1, 0, 0.0, 0.0)
         assert total == best and a >= 0
 
 

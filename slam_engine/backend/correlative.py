@@ -143,8 +143,7 @@ def _inside_exclusion(a, dx, dy, size, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex
 
 
 @nb.njit(cache=True, nogil=True)
-def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux=0.0,
-                     ex_uy=0.0):
+def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy):
     """Best (a, dx, dy, total) over headings a and integer translations |dx|, |dy| <= window_cells,
     whose total exceeds ``min_total``; (-1, 0, 0, min_total) when none does. Nodes entirely inside the
     exclusion zone (``ex_angles`` >= 0; a box, or a strip along the unit direction ``(ex_ux, ex_uy)``)
@@ -259,7 +258,7 @@ def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, wind
     cells = _rotated_cells(points_v, x0, y0, th0, step, n_half, float(grid.origin_m[0]), float(grid.origin_m[1]),
                            1.0 / res)
     min_total = int(min_score * MAX_VALUE * n)
-    a, dx, dy, total = branch_and_bound(grid.pyramid, cells, window_cells, min_total, 0, 0, 0, -1, 0)
+    a, dx, dy, total = branch_and_bound(grid.pyramid, cells, window_cells, min_total, 0, 0, 0, -1, 0, 0.0, 0.0)
     if a < 0:
         return None
     pose = np.array([x0 + dx * res, y0 + dy * res, th0 + (a - n_half) * step])
@@ -269,7 +268,8 @@ def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, wind
     floor = int(max(min_total, runner_up_share * total))
     ex_cells = int(math.ceil(ambiguity_m / res))
     ex_angles = int(math.ceil(ambiguity_rad / step))
-    a2, dx2, dy2, total2 = branch_and_bound(grid.pyramid, cells, window_cells, floor, a, dx, dy, ex_angles, ex_cells)
+    a2, dx2, dy2, total2 = branch_and_bound(grid.pyramid, cells, window_cells, floor, a, dx, dy, ex_angles,
+                                            ex_cells, 0.0, 0.0)
     if a2 < 0:
         return CorrelativeMatch(pose=pose, score=float(score), runner_up_score=0.0)
     runner_up_pose = np.array([x0 + dx2 * res, y0 + dy2 * res, th0 + (a2 - n_half) * step])
