@@ -259,6 +259,8 @@ class LoopCloser:
         self.submap_of = np.empty(len(self.path), np.int64)
         for s in self.submaps:
             self.submap_of[s.first: s.last + 1] = s.index
+        self._submap_first = np.array([s.first for s in self.submaps], np.int64)
+        self._submap_last = np.array([s.last for s in self.submaps], np.int64)
         self.grids = SubmapGrids(self.submaps, self.path, in_reach, resolution_m, margin_m=1.0,
                                  unobserved=c.unobserved_score)
         self.graph = self._motion_graph()
@@ -340,19 +342,21 @@ class LoopCloser:
         return LoopClosingResult(poses=est, closures=closures, optimizations=optimizations, submaps=len(self.submaps),
                                  unverified_steps=int(self.unverified.sum()))
 
-    def _candidates(self, k: int, est: np.ndarray, window_m: float) -> list[int]:
-        """Finished submaps, far enough back along the drive, with a key frame within reach of k."""
+    def _candidates(self, k: int, est: np.ndarray, window_m: float) -> list[tuple[int, float]]:
+        """Finished submaps, far enough back along the drive, with a key frame within reach of k:
+        (index, distance from k to its nearest key frame [m]), nearest first."""
         c = self.config
-        out: list[tuple[float, int]] = []
-        for s in self.submaps:
-            if s.last >= k or self.travel_m[k] - self.travel_m[s.last] < c.min_loop_travel_m:
-                continue
-            nodes = est[s.first: s.last + 1, :2]
-            dist = float(np.min(np.hypot(*(nodes - est[k, :2]).T)))
-            if dist <= window_m + c.overlap_m:
-                out.append((dist, s.index))
-        out.sort()
-        return [index for _, index in out[: c.candidates_per_search]]
+        first, last = self._submap_first, self._submap_last
+        done = (last < k) & ~(self.travel_m[k] - self.travel_m[last] < c.min_loop_travel_m)
+        if not done.any():
+            return []
+        # the submaps partition the key frames in order: each one's nearest node in one pass
+        started = first < k
+        dist = np.minimum.reduceat(np.hypot(*(est[:k, :2] - est[k, :2]).T), first[started])
+        index = np.flatnonzero(started)
+        near = done[started] & (dist <= window_m + c.overlap_m)
+        out = sorted(zip(dist[near].tolist(), index[near].tolist(), strict=True))
+        return [(s_index, d) for d, s_index in out[: c.candidates_per_search]]
 
     def _uncertain_travel(self, k: int) -> np.ndarray:
         """(K,) how much drive separates key frame k from every other in the graph so far [m]: the
@@ -381,13 +385,12 @@ class LoopCloser:
         best: tuple[tuple[bool, float], _Found] | None = None
         first_record = len(closures)
         cloud, origins = self.match_cloud(k)
-        for s_index in self._candidates(k, est, c.max_window_m):
+        for s_index, dist_m in self._candidates(k, est, c.max_window_m):
             s = self.submaps[s_index]
             travel = float(np.min(travel_to[s.first: s.last + 1]))
             window_m = min(c.base_window_m + c.window_per_m * travel, c.max_window_m)
             window_rad = min(c.base_window_rad + c.window_rad_per_m * travel, c.max_window_rad)
-            nodes = est[s.first: s.last + 1, :2]
-            if float(np.min(np.hypot(*(nodes - est[k, :2]).T))) > window_m + c.overlap_m:
+            if dist_m > window_m + c.overlap_m:
                 continue
             grid = self.grids.grid(s_index)
             if grid is None:

@@ -37,6 +37,9 @@ class PoseGraph:
         self.initial = np.asarray(initial_poses, np.float64).copy()
         self.cauchy_scale = float(cauchy_scale)
         self.edges: list[Edge] = []
+        # each edge's GTSAM factor, built once (by edge number and whether its robust loss applies):
+        # the back end optimises the same graph, grown by a few closures, many times
+        self._factors: dict[tuple[int, bool], Any] = {}
 
     def add_edge(self, i: int, j: int, T_i_from_j: np.ndarray, sigmas: np.ndarray, robust: bool = False) -> None:
         """An edge; ``robust``: under the Cauchy loss (scale ``cauchy_scale`` standard deviations)."""
@@ -58,22 +61,34 @@ class PoseGraph:
         graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*start[0]), anchor_noise))
         for k in range(n):
             values.insert(k, gtsam.Pose2(*start[k]))
-        for e in self.edges:
-            if e.i >= n or e.j >= n:
-                continue
-            noise: Any = gtsam.noiseModel.Diagonal.Sigmas(e.sigmas)
-            if robust and e.robust:
-                noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(e.loss_scale), noise)
-            graph.add(gtsam.BetweenFactorPose2(e.i, e.j, gtsam.Pose2(*e.T_i_from_j), noise))
+        for number, e in enumerate(self.edges):
+            if e.i < n and e.j < n:
+                graph.add(self._factor(number, robust and e.robust))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
         return poses_of(gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize(), n)
 
+    def _factor(self, number: int, robust: bool) -> Any:
+        """The GTSAM factor of edge ``number`` (under its Cauchy loss when ``robust``), built once."""
+        import gtsam
+
+        factor = self._factors.get((number, robust))
+        if factor is None:
+            e = self.edges[number]
+            noise: Any = gtsam.noiseModel.Diagonal.Sigmas(e.sigmas)
+            if robust:
+                noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(e.loss_scale), noise)
+            factor = self._factors[(number, robust)] = gtsam.BetweenFactorPose2(e.i, e.j, gtsam.Pose2(*e.T_i_from_j),
+                                                                                noise)
+        return factor
+
 
 def poses_of(values: Any, n: int) -> np.ndarray:
-    """(n, 3) ``[x_m, y_m, theta_rad]`` of the Pose2 values 0..n-1 of a GTSAM result."""
-    out = np.empty((n, 3))
-    for k in range(n):
-        p = values.atPose2(k)
-        out[k] = (p.x(), p.y(), p.theta())
+    """(n, 3) ``[x_m, y_m, theta_rad]`` of the Pose2 values 0..n-1 of a GTSAM result (which holds
+    exactly those: GTSAM lists them in key order)."""
+    import gtsam
+
+    out = np.asarray(gtsam.utilities.extractPose2(values), np.float64).reshape(-1, 3)
+    if len(out) != n:
+        raise ValueError(f"poses_of: the result holds {len(out)} poses, expected {n}")
     return out
