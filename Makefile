@@ -24,6 +24,7 @@ lint: $(STAMP)
 	$(VENV)/bin/mypy
 
 bench: $(STAMP)
+	$(VENV)/bin/python -m slam_engine.kernels  # warm: the first run timed must not compile
 	$(VENV)/bin/python -m bench
 
 stress:  ## fuzz (1000 schema-generated requests), then load (50 uploads + jobs, 10 000 streamed chunks)
