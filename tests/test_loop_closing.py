@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slam_engine.backend.correlative import MatchGrid, branch_and_bound, refine_pose, search
+from slam_engine.backend.correlative import MatchGrid, branch_and_bound, max_pyramid, refine_pose, search
 from slam_engine.backend.loop_closer import OUTSCORED, LoopCloser, close_loops, overlap_score, overlapping_points
 from slam_engine.backend.pose_graph import PoseGraph
 from slam_engine.backend.submaps import match_grid_from_points, observed_mask
@@ -53,6 +53,29 @@ def _room_points(rng: np.random.Generator) -> np.ndarray:
         f = rng.random(n)
         pts.append(np.stack([x0 + f * (x1 - x0), y0 + f * (y1 - y0)], axis=1))
     return np.concatenate(pts)
+
+
+def test_max_pyramid_holds_the_largest_value_of_each_block() -> None:
+    values = np.random.default_rng(3).integers(0, 256, size=(37, 53)).astype(np.uint8)
+    pyramid = max_pyramid(values, 5)
+    for level in range(5):
+        size = 1 << level
+        for y in range(37):
+            for x in range(53):
+                assert pyramid[level, y, x] == values[y: y + size, x: x + size].max(), (level, y, x)
+
+
+def test_a_point_marks_its_cells_and_blurs_onto_their_neighbours() -> None:
+    """A point on the corner of four cells (the grid's lattice starts a whole number of cells from it)
+    marks each with twice its bilinear weight (0.25 -> 0.5: 128 of 255); the cells around them get 0.45
+    of that beside and 0.2 diagonally; nothing farther."""
+    point = np.array([[1.0, 2.0]])
+    grid = match_grid_from_points(point, 0.05, margin_m=0.2)
+    i, j = np.floor((point[0] - grid.origin_m) / 0.05 + 1e-9).astype(int)  # the cell above and right of it
+    block = grid.values[j - 3: j + 3, i - 3: i + 3].astype(int)
+    expected = np.zeros((6, 6), int)
+    expected[1:5, 1:5] = [[26, 57, 57, 26], [57, 128, 128, 57], [57, 128, 128, 57], [26, 57, 57, 26]]
+    assert np.array_equal(block, expected)
 
 
 def test_search_recovers_a_pose_metres_and_degrees_away() -> None:
