@@ -528,27 +528,27 @@ class SlamFilter:
         candidates = np.flatnonzero(self.log_weights >= top - 1e-9)
         return int(candidates[np.argmax(self.path_log_likelihood[candidates])])
 
-    def key_frame_path(self) -> np.ndarray:
-        """(steps, 3) poses of the best particle's ancestry at every processed scan (key frame)."""
+    def _best_ancestry(self) -> np.ndarray:
+        """(steps,) index, in every processed step's record, of the best particle's ancestor there."""
         k_total = len(self._history)
-        path = np.empty((k_total, 3))
+        ancestry = np.empty(k_total, np.int64)
         idx = self._parent_of_current(self.best_particle())
         for k in range(k_total - 1, -1, -1):
-            path[k] = self._history[k][idx]
+            ancestry[k] = idx
             idx = int(self._parents[k][idx])
-        return path
+        return ancestry
+
+    def key_frame_path(self) -> np.ndarray:
+        """(steps, 3) poses of the best particle's ancestry at every processed scan (key frame)."""
+        ancestry = self._best_ancestry()
+        return np.array([self._history[k][i] for k, i in enumerate(ancestry)]).reshape(-1, 3)
 
     def key_frame_matched(self) -> np.ndarray:
         """(steps,) bool: whether the best particle's ancestry matched its scan at every processed step
         (False: the step's pose is its motion sample, unverified by the scan; the first step counts as
         matched)."""
-        k_total = len(self._history)
-        matched = np.ones(k_total, bool)
-        idx = self._parent_of_current(self.best_particle())
-        for k in range(k_total - 1, -1, -1):
-            matched[k] = self._matched[k][idx]
-            idx = int(self._parents[k][idx])
-        return matched
+        ancestry = self._best_ancestry()
+        return np.array([self._matched[k][i] for k, i in enumerate(ancestry)], bool)
 
     def key_frame_times(self) -> np.ndarray:
         """(steps,) time [s] of the scan processed at every step (key frame)."""

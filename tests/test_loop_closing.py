@@ -305,24 +305,29 @@ def test_search_finds_the_line_of_a_corridor() -> None:
     assert unique is not None and unique.line_direction is None and unique.runner_up_score == 0.0
 
 
-@pytest.fixture(scope="module")
-def drifting_office() -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
-    """Key frames every 0.5 m of the simulated office loop (56 m): truth, a front-end path that drifts
-    0.004 rad and 1 cm per metre (0.6 m ATE), and each key frame's scan end points."""
+def _office_key_frames() -> tuple[np.ndarray, list[np.ndarray]]:
+    """The simulated office loop's true poses at key frames every 0.5 m, and each key frame's scan end
+    points (vehicle frame)."""
     drive = simulate("office", seed=0, cameras=False)
     truth_all = drive.pose_at(drive.log.scans.t_s)
     keep = [0]
     for k in range(1, len(truth_all)):
         if np.hypot(*(truth_all[k, :2] - truth_all[keep[-1], :2])) >= 0.5:
             keep.append(k)
-    truth = truth_all[keep]
+    projector = ScanProjector(drive.log.lidar, 30.0, 0.2, 20.0, 0.05, 0.0)
+    return truth_all[keep], [projector.project(drive.log.scans.ranges_m[k]).hits_v for k in keep]
+
+
+@pytest.fixture(scope="module")
+def drifting_office() -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Key frames every 0.5 m of the simulated office loop (56 m): truth, a front-end path that drifts
+    0.004 rad and 1 cm per metre (0.6 m ATE), and each key frame's scan end points."""
+    truth, points = _office_key_frames()
     motion = relative(truth[:-1], truth[1:])
     path = [truth[0]]
     for m in motion:
         d = float(np.hypot(m[0], m[1]))
         path.append(compose(path[-1], np.array([1.01 * m[0], 1.01 * m[1], m[2] + 0.004 * d])))
-    projector = ScanProjector(drive.log.lidar, 30.0, 0.2, 20.0, 0.05, 0.0)
-    points = [projector.project(drive.log.scans.ranges_m[k]).hits_v for k in keep]
     return truth, np.array(path), points
 
 
@@ -366,20 +371,12 @@ def test_an_unverified_step_is_where_the_graph_bends(glitch_at: int) -> None:
     it on some seeds). Marked unverified, that step bends freely in the pose graph, no submap or match
     cloud spans it, and closures across it are searched wider: the loop closes onto the truth. Unmarked,
     the glitch stays in a submap, in the clouds and in a stiff motion edge."""
-    drive = simulate("office", seed=0, cameras=False)
-    truth_all = drive.pose_at(drive.log.scans.t_s)
-    keep = [0]
-    for k in range(1, len(truth_all)):
-        if np.hypot(*(truth_all[k, :2] - truth_all[keep[-1], :2])) >= 0.5:
-            keep.append(k)
-    truth = truth_all[keep]
+    truth, points = _office_key_frames()
     steps = relative(truth[:-1], truth[1:])
     steps[glitch_at - 1, 2] += 0.25
     path = [truth[0]]
     for step in steps:
         path.append(compose(path[-1], step))
-    projector = ScanProjector(drive.log.lidar, 30.0, 0.2, 20.0, 0.05, 0.0)
-    points = [projector.project(drive.log.scans.ranges_m[k]).hits_v for k in keep]
     unverified = np.zeros(len(path), bool)
     unverified[glitch_at] = True
     config = SlamConfig().loop_closing
