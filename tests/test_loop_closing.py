@@ -23,14 +23,19 @@ def _ate(poses: np.ndarray, truth: np.ndarray) -> float:
     return absolute_trajectory_error(Trajectory(t, poses), Trajectory(t, truth))
 
 
-def test_branch_and_bound_finds_the_exhaustive_maximum() -> None:
+@pytest.mark.parametrize("near_low_edges", [False, True])
+def test_branch_and_bound_finds_the_exhaustive_maximum(near_low_edges: bool) -> None:
+    """Also where the best shift puts points left of and below the grid, with most of the map's weight
+    on its low edges: blocks that start off the grid must still bound what they cover of it."""
     rng = np.random.default_rng(3)
     for trial in range(5):
         values = (rng.random((40, 48)) ** 4 * 255).astype(np.uint8)
+        if near_low_edges:
+            values[6:, 6:] //= 8
         grid = MatchGrid.from_values(values, np.zeros(2), 0.1, n_levels=5)
-        pad = (grid.values.shape[0] - 40, grid.values.shape[1] - 48)
-        # 7 headings, 25 points, some near or beyond the map's edges; cells in the padded grid
-        cells = rng.integers(-12, 52, size=(7, 25, 2)).astype(np.int32) + np.array([pad[1], pad[0]], np.int32)
+        # 7 headings, 25 points, some near or beyond the map's edges
+        low, high = (-4, 20) if near_low_edges else (-12, 52)
+        cells = rng.integers(low, high, size=(7, 25, 2)).astype(np.int32)
         window = 9 + trial
         best = -1
         for a in range(7):

@@ -33,11 +33,12 @@ def max_pyramid(values: np.ndarray, n_levels: int) -> np.ndarray:
     for level in range(1, n_levels):
         half = 1 << (level - 1)
         prev = out[level - 1]
-        cur = prev.copy()
-        cur[:, : w - half] = np.maximum(cur[:, : w - half], prev[:, half:])
-        shifted = cur.copy()
-        shifted[: h - half, :] = np.maximum(shifted[: h - half, :], cur[half:, :])
-        out[level] = shifted
+        cur = out[level]
+        cur[:] = prev
+        if half < w:
+            np.maximum(cur[:, : w - half], prev[:, half:], out=cur[:, : w - half])
+        if half < h:  # in place: row y reads row y + half, not yet changed
+            np.maximum(cur[: h - half, :], cur[half:, :], out=cur[: h - half, :])
     return out
 
 
@@ -68,12 +69,8 @@ class MatchGrid:
     @classmethod
     def from_values(cls, values: np.ndarray, origin_m: np.ndarray, resolution_m: float, n_levels: int = 7
                     ) -> MatchGrid:
-        # pad the low sides by the largest block: a block that starts left of (or below) the map and
-        # reaches into it then has its true maximum (the bound must never be too low)
-        pad = 1 << (n_levels - 1)
-        values = np.ascontiguousarray(np.pad(np.asarray(values, np.uint8), ((pad, 0), (pad, 0))))
-        origin = np.asarray(origin_m, np.float64) - pad * float(resolution_m)
-        return cls(values, origin, float(resolution_m), max_pyramid(values, n_levels))
+        values = np.ascontiguousarray(values, np.uint8)
+        return cls(values, np.asarray(origin_m, np.float64), float(resolution_m), max_pyramid(values, n_levels))
 
     @property
     def n_levels(self) -> int:
@@ -113,13 +110,25 @@ def _rotated_cells(points_v, x0, y0, theta0, angle_step, n_angles_half, origin_x
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _score(pyramid, level, cells, a, dx, dy):
+    """Sum over the points of heading a, shifted by (dx, dy), of their blocks' maxima on ``level``. A
+    block that starts left of (or below) the grid and reaches into it is bounded by the block at the
+    edge, which covers the part of it on the grid: an upper bound still, without padding the grid."""
     h = pyramid.shape[1]
     w = pyramid.shape[2]
+    size = 1 << level
     total = 0
     for i in range(cells.shape[1]):
         x = cells[a, i, 0] + dx
         y = cells[a, i, 1] + dy
-        if 0 <= x < w and 0 <= y < h:
+        if x < 0:
+            if x + size <= 0:
+                continue
+            x = 0
+        if y < 0:
+            if y + size <= 0:
+                continue
+            y = 0
+        if x < w and y < h:
             total += pyramid[level, y, x]
     return total
 

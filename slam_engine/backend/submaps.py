@@ -131,8 +131,7 @@ def match_grid_from_points(points_m: np.ndarray, resolution_m: float, margin_m: 
         values = np.where(seen, values, np.maximum(values, np.float32(unobserved)))
     grid = MatchGrid.from_values(np.round(values * 255).astype(np.uint8), lo, resolution_m, n_levels)
     grid.bounds_m = np.concatenate([points_m.min(axis=0), points_m.max(axis=0)])
-    if seen is not None:  # padded on the low sides as the values were
-        grid.observed = np.pad(seen, ((grid.values.shape[0] - shape[0], 0), (grid.values.shape[1] - shape[1], 0)))
+    grid.observed = seen
     return grid
 
 
