@@ -73,6 +73,7 @@ def replay(recording: Path, overrides: dict) -> dict:
     from slam_engine.backend.loop_closer import close_loops
     from slam_engine.config import SlamConfig, merge_settings
     from slam_engine.evaluation import files_beside_log, read_ground_truth, read_relations, relation_errors
+    from slam_engine.particle_filter import engine_threads
     from slam_engine.result import Trajectory
 
     data = np.load(recording)
@@ -81,7 +82,8 @@ def replay(recording: Path, overrides: dict) -> dict:
     points = np.split(data["points"], np.cumsum(data["counts"])[:-1])
     started = time.perf_counter()
     unverified = ~data["matched"] if "matched" in data else None
-    result = close_loops(data["path"], points, config.loop_closing, config.grid.resolution_m, unverified)
+    result = close_loops(data["path"], points, config.loop_closing, config.grid.resolution_m, unverified,
+                         threads=engine_threads())
     row = {"recording": recording.name, "backend_s": round(time.perf_counter() - started, 2)}
     summary = result.summary()
     summary.pop("closures")

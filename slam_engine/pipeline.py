@@ -28,7 +28,7 @@ from slam_engine.memory_estimate import peak_resident_bytes
 from slam_engine.messages import ScanMessage
 from slam_engine.odometry import dead_reckoning, odometry_source
 from slam_engine.odometry_noise import estimate_noise
-from slam_engine.particle_filter import SlamFilter
+from slam_engine.particle_filter import SlamFilter, engine_threads
 from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, SlamResult, TextureMap, Trajectory
 
 
@@ -146,7 +146,7 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     _return_freed_memory()
     front_end_path = slam.key_frame_path()
     backend = close_loops(front_end_path, [scan.hits_v for scan in slam.key_frame_scans], config.loop_closing,
-                          config.grid.resolution_m, unverified=~slam.key_frame_matched())
+                          config.grid.resolution_m, unverified=~slam.key_frame_matched(), threads=engine_threads())
     _return_freed_memory()
     key_frames, smoothing = _keep_odometry_precision(front_end_path, backend.poses, slam.key_frame_odometry,
                                                      slam.key_frame_wheels, config)

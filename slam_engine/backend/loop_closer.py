@@ -29,14 +29,15 @@ building's loops close, keep it in check even where no pose closure is found.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from slam_engine.backend.correlative import MatchGrid, angular_step_rad, refine_pose, search
+from slam_engine.backend.correlative import CorrelativeMatch, MatchGrid, angular_step_rad, refine_pose, search
 from slam_engine.backend.pose_graph import PoseGraph
-from slam_engine.backend.submaps import SubmapGrids, split_into_submaps
+from slam_engine.backend.submaps import Submap, SubmapGrids, split_into_submaps
 from slam_engine.config import LoopClosingConfig
 from slam_engine.poses import compose, relative, wrap_angle
 
@@ -142,6 +143,20 @@ class _Found:
         return np.array([cos * u[0] - sin * u[1], sin * u[0] + cos * u[1]])
 
 
+@dataclass(frozen=True)
+class _Candidate:
+    """A submap to match a key frame against: its match grid, the key frame's predicted pose in its
+    frame (``T_anchor_from_node``), the cloud's points that overlap it there and the search half
+    widths [m, rad]."""
+
+    submap: Submap
+    grid: MatchGrid
+    initial: np.ndarray
+    points: np.ndarray
+    window_m: float
+    window_rad: float
+
+
 def _thin(points: np.ndarray, budget: int) -> np.ndarray:
     if len(points) > budget:
         return points[:: int(math.ceil(len(points) / budget))]
@@ -235,8 +250,10 @@ class LoopCloser:
     and end points ``points_v`` (K lists of (B, 2) [m], vehicle frame)."""
 
     def __init__(self, path: np.ndarray, points_v: list[np.ndarray], config: LoopClosingConfig, resolution_m: float,
-                 unverified: np.ndarray | None = None):
+                 unverified: np.ndarray | None = None, threads: int = 1):
         self.config = config
+        self.threads = max(1, int(threads))
+        self._pool: ThreadPoolExecutor | None = None
         self.path = np.asarray(path, np.float64)
         # steps whose motion from the key frame before the front end did not verify by a scan match
         self.unverified = np.zeros(len(self.path), bool) if unverified is None else np.array(unverified, bool)
@@ -288,6 +305,17 @@ class LoopCloser:
         return np.array([sd_xy, sd_xy, sd_th])
 
     def run(self) -> LoopClosingResult:
+        """Search every key frame for loops, in time order, and optimise the graph."""
+        if self.threads < 2:
+            return self._run()
+        with ThreadPoolExecutor(self.threads, thread_name_prefix="loop-closing") as pool:
+            self._pool = pool
+            try:
+                return self._run()
+            finally:
+                self._pool = None
+
+    def _run(self) -> LoopClosingResult:
         c = self.config
         n = len(self.path)
         est = self.path.copy()
@@ -380,11 +408,13 @@ class LoopCloser:
     def _search_node(self, k: int, est: np.ndarray, travel_to: np.ndarray, closures: list[Closure]
                      ) -> _Found | None:
         """Match key frame k against its candidate submaps (``travel_to``: :meth:`_uncertain_travel`);
-        the best verified one (a pose closure before a heading closure), or None."""
+        the best verified one (a pose closure before a heading closure), or None. The candidates'
+        searches run in ``threads`` threads (each is independent: the result does not depend on it)."""
         c = self.config
         best: tuple[tuple[bool, float], _Found] | None = None
         first_record = len(closures)
         cloud, origins = self.match_cloud(k)
+        tasks = []
         for s_index, dist_m in self._candidates(k, est, c.max_window_m):
             s = self.submaps[s_index]
             travel = float(np.min(travel_to[s.first: s.last + 1]))
@@ -399,17 +429,17 @@ class LoopCloser:
             points = overlapping_points(grid, cloud, initial)
             if len(points) < MIN_OVERLAP_POINTS:
                 continue
-            match = search(grid, points, initial, window_m, window_rad, c.min_score,
-                           ambiguity_m=c.ambiguity_m, ambiguity_rad=c.ambiguity_rad,
-                           runner_up_share=c.runner_up_ratio,
-                           line_half_width_m=c.line_half_width_m if c.heading_closures else 0.0,
-                           line_half_width_rad=c.line_half_width_rad)
-            if match is None:
+            tasks.append(_Candidate(s, grid, initial, points, window_m, window_rad))
+        if self._pool is not None and len(tasks) > 1:
+            results = list(self._pool.map(lambda task: self._match(k, task), tasks))
+        else:
+            results = [self._match(k, task) for task in tasks]
+        for task, result in zip(tasks, results, strict=True):
+            if result is None:
                 continue
-            # the key frame's own scan fits the pose found: the older scans in the cloud carry the
-            # front end's relative error (freiburg-079: 0.0196 m instead of 0.0206)
-            own = overlapping_points(grid, self.points_v[k], match.pose)
-            pose = refine_pose(grid, own if len(own) >= MIN_OVERLAP_POINTS else points, match.pose)
+            match, pose = result
+            s, grid, initial = task.submap, task.grid, task.initial
+            window_m, window_rad = task.window_m, task.window_rad
             ambiguous = match.runner_up_score >= c.runner_up_ratio * match.score
             line = match.line_direction if ambiguous else None
             delta = relative(initial, pose)
@@ -432,7 +462,7 @@ class LoopCloser:
             elif correction_m > OVERLAP_CHECK_M and _overlap_fails(grid, cloud, pose, origins, c.overlap_min_score):
                 reason = "fails with the points it overlaps"
             ok = reason.startswith("accepted")
-            closures.append(Closure(k, s_index, s.anchor, match.score, match.runner_up_score, window_m, window_rad,
+            closures.append(Closure(k, s.index, s.anchor, match.score, match.runner_up_score, window_m, window_rad,
                                     ok, reason, correction_m, float(abs(delta[2])),
                                     (float(pose[0]), float(pose[1]), float(pose[2])),
                                     None if line is None else (float(line[0]), float(line[1]))))
@@ -443,6 +473,20 @@ class LoopCloser:
             if closures[i].accepted and (best is None or i != best[1].record):
                 closures[i] = replace(closures[i], accepted=False, reason=OUTSCORED)
         return None if best is None else best[1]
+
+    def _match(self, k: int, task: _Candidate) -> tuple[CorrelativeMatch, np.ndarray] | None:
+        """The global match of key frame k's cloud against one candidate submap and its pose refined
+        with the key frame's own scan (the older scans in the cloud carry the front end's relative
+        error: freiburg-079 0.0196 m instead of 0.0206), or None. Safe to run in threads."""
+        c = self.config
+        match = search(task.grid, task.points, task.initial, task.window_m, task.window_rad, c.min_score,
+                       ambiguity_m=c.ambiguity_m, ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio,
+                       line_half_width_m=c.line_half_width_m if c.heading_closures else 0.0,
+                       line_half_width_rad=c.line_half_width_rad)
+        if match is None:
+            return None
+        own = overlapping_points(task.grid, self.points_v[k], match.pose)
+        return match, refine_pose(task.grid, own if len(own) >= MIN_OVERLAP_POINTS else task.points, match.pose)
 
     def match_points(self, k: int) -> np.ndarray:
         """What key frame k is matched with (its vehicle frame [m]): its end points and those of the
@@ -522,9 +566,10 @@ class LoopCloser:
 
 
 def close_loops(path: np.ndarray, points_v: list[np.ndarray], config: LoopClosingConfig, resolution_m: float,
-                unverified: np.ndarray | None = None) -> LoopClosingResult:
+                unverified: np.ndarray | None = None, threads: int = 1) -> LoopClosingResult:
     """Optimised key-frame poses for the front end's ``path`` (K, 3) and key-frame end points;
-    ``unverified`` (K,) bool marks the steps whose motion the front end did not verify by a scan match."""
+    ``unverified`` (K,) bool marks the steps whose motion the front end did not verify by a scan match.
+    A key frame's candidate submaps are matched in up to ``threads`` threads (same result for any)."""
     if not config.enabled or len(path) < 3:
         return LoopClosingResult(poses=np.asarray(path, np.float64).copy())
-    return LoopCloser(path, points_v, config, resolution_m, unverified).run()
+    return LoopCloser(path, points_v, config, resolution_m, unverified, threads).run()
