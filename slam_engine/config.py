@@ -163,8 +163,12 @@ class LoopClosingConfig(_Section):
 
     enabled: bool = Field(True, description="Close loops and optimise the trajectory after the filter.")
     odometry_smoothing: bool = Field(True, description="Where the log's odometry is locally more precise than "
-                                     "the scan matches (measured on the log: front end against odometry over "
-                                     "1-16 key frames), tie consecutive key frames by it in a final smoothing.")
+                                     "the final key-frame poses (measured on the log: those poses against odometry "
+                                     "over 1-16 key frames), tie consecutive key frames by it in a final smoothing.")
+    map_alignment_passes: int = Field(3, ge=0, le=10, description="After the pose graph, fit every key frame's "
+                                      "scan onto the map of all of them this many times (each onto the map of the "
+                                      "last fits) and combine the fits with the graph's poses by their measured "
+                                      "noise (0: keep the graph's poses).")
     submap_length_m: float = Field(8.0, gt=0.0, le=1000.0, description="Travel per submap [m].")
     submap_max_nodes: int = Field(80, ge=2, le=100000, description="At most this many key frames per submap.")
     search_every_m: float = Field(0.5, ge=0.0, le=100.0, description="Look for loops every this much travel [m].")

@@ -6,6 +6,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -22,6 +24,14 @@ def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
     y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
     return np.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def place_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N, 2) the points ``points`` (N, 2) [m], given in the frame of ``pose`` (3,), in the frame
+    ``pose`` is given in (e.g. vehicle-frame end points at a world pose: world frame)."""
+    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+    return np.column_stack([pose[0] + c * points[:, 0] - s * points[:, 1],
+                            pose[1] + s * points[:, 0] + c * points[:, 1]])
 
 
 def inverse(a: np.ndarray) -> np.ndarray:

@@ -29,6 +29,8 @@ def max_pyramid(values: np.ndarray, n_levels: int) -> np.ndarray:
     starting at each cell (cells beyond the edge count as 0)."""
     h, w = values.shape
     out = np.zeros((n_levels, h, w), np.uint8)
+    if n_levels == 0:  # a grid only refined against (refine_pose) needs none
+        return out
     out[0] = values
     for level in range(1, n_levels):
         half = 1 << (level - 1)

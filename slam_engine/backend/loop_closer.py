@@ -39,7 +39,7 @@ from slam_engine.backend.correlative import CorrelativeMatch, MatchGrid, angular
 from slam_engine.backend.pose_graph import PoseGraph
 from slam_engine.backend.submaps import Submap, SubmapGrids, split_into_submaps
 from slam_engine.config import LoopClosingConfig
-from slam_engine.poses import compose, relative, wrap_angle
+from slam_engine.poses import compose, place_points, relative, wrap_angle
 
 if TYPE_CHECKING:  # scipy.sparse (~25 MB) is imported by the back end itself, after the front end's peak
     from scipy.sparse import csr_matrix
@@ -163,13 +163,6 @@ def _thin(points: np.ndarray, budget: int) -> np.ndarray:
     return points
 
 
-def _placed(pose: np.ndarray, points_v: np.ndarray) -> np.ndarray:
-    """(N, 2) the points ``points_v`` (N, 2) [m, vehicle frame] in the frame ``pose`` (3,) is given in."""
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    return np.column_stack([pose[0] + c * points_v[:, 0] - s * points_v[:, 1],
-                            pose[1] + s * points_v[:, 0] + c * points_v[:, 1]])
-
-
 def _within_bounds(grid: MatchGrid, xy_m: np.ndarray) -> np.ndarray:
     """(N,) bool: whether each point ``xy_m`` (N, 2) [m, submap frame] lies within the submap's bounds
     (everywhere when it has none)."""
@@ -186,7 +179,7 @@ def overlapping_points(grid: MatchGrid, points_v: np.ndarray, pose: np.ndarray) 
     submap would match one door too far)."""
     if grid.bounds_m is None:
         return points_v
-    return points_v[_within_bounds(grid, _placed(pose, points_v))]
+    return points_v[_within_bounds(grid, place_points(pose, points_v))]
 
 
 def overlap_score(grid: MatchGrid, cloud: np.ndarray, pose: np.ndarray, origins: np.ndarray | None = None
@@ -203,7 +196,7 @@ def overlap_score(grid: MatchGrid, cloud: np.ndarray, pose: np.ndarray, origins:
     its bounds unseen: counted as misses, they cost exp2 nine true closures), unless its ray from
     ``origins`` (N, 2, where each point's scan was taken) crossed one of the submap's walls on its way
     there (a scan that sees through a wall): then it counts as a miss."""
-    world = _placed(pose, cloud)
+    world = place_points(pose, cloud)
     seen = grid.observed_at(world)
     points = np.ascontiguousarray(cloud[seen])
     if len(points) < MIN_OVERLAP_POINTS:
@@ -213,7 +206,7 @@ def overlap_score(grid: MatchGrid, cloud: np.ndarray, pose: np.ndarray, origins:
     if origins is None or grid.observed is None:
         return score
     unseen = ~seen & _within_bounds(grid, world)
-    through = int(np.count_nonzero(_crosses_a_wall(grid, _placed(pose, origins[unseen]), world[unseen])))
+    through = int(np.count_nonzero(_crosses_a_wall(grid, place_points(pose, origins[unseen]), world[unseen])))
     return score * len(points) / (len(points) + through)
 
 
@@ -506,7 +499,7 @@ class LoopCloser:
         parts, origins = [], []
         for j in range(k, first - 1, -1):
             T = relative(self.path[k], self.path[j])
-            parts.append(_placed(T, self.points_v[j]))
+            parts.append(place_points(T, self.points_v[j]))
             origins.append(np.broadcast_to(T[:2], (len(self.points_v[j]), 2)))
         return (np.ascontiguousarray(_thin(np.concatenate(parts), c.max_points)),
                 np.ascontiguousarray(_thin(np.concatenate(origins), c.max_points)))

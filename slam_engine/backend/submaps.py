@@ -26,6 +26,8 @@ from slam_engine.poses import compose, relative
 # weights of the blur around each end point's cell, by squared offset in cells (a Gaussian of
 # about 0.8 cells): matches a cell off still score, but less
 _BLUR = {0: 1.0, 1: 0.45, 2: 0.2}
+# end points marked at a time (the largest weight a cell gets is kept, so batches give the same grid)
+_MARK_BATCH = 65536
 
 
 @dataclass(frozen=True)
@@ -105,15 +107,17 @@ def match_grid_from_points(points_m: np.ndarray, resolution_m: float, margin_m: 
     lo = points_m.min(axis=0) - margin_m
     hi = points_m.max(axis=0) + margin_m
     shape = (int(np.ceil((hi[1] - lo[1]) / resolution_m)) + 2, int(np.ceil((hi[0] - lo[0]) / resolution_m)) + 2)
-    u = (points_m[:, 0] - lo[0]) / resolution_m - 0.5
-    v = (points_m[:, 1] - lo[1]) / resolution_m - 0.5
-    i0 = np.floor(u).astype(np.int64)
-    j0 = np.floor(v).astype(np.int64)
-    fu, fv = u - i0, v - j0
     hit = np.zeros(shape, np.float32)
-    for di, dj, weight in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv),
-                           (1, 1, fu * fv)):
-        np.maximum.at(hit, (j0 + dj, i0 + di), weight.astype(np.float32))
+    for start in range(0, len(points_m), _MARK_BATCH):  # in batches: a few MB of temporaries at most
+        batch = points_m[start: start + _MARK_BATCH]
+        u = (batch[:, 0] - lo[0]) / resolution_m - 0.5
+        v = (batch[:, 1] - lo[1]) / resolution_m - 0.5
+        i0 = np.floor(u).astype(np.int64)
+        j0 = np.floor(v).astype(np.int64)
+        fu, fv = u - i0, v - j0
+        for di, dj, weight in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv),
+                               (1, 1, fu * fv)):
+            np.maximum.at(hit, (j0 + dj, i0 + di), weight.astype(np.float32))
     hit = np.minimum(1.0, 2.0 * hit)  # a point between cells still marks both fully
     values = hit.copy()
     h, w = shape
