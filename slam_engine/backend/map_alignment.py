@@ -79,8 +79,8 @@ def fit_to_map(poses: np.ndarray, points_v: list[np.ndarray], resolution_m: floa
     fitted = poses.copy()
     even = poses.copy() if halves else None
     odd = poses.copy() if halves else None
+    reach = MARGIN_M + 3 * resolution_m  # every end point whose blur reaches a cell the fits read
     for nodes, box in _chunks(placed, CHUNK_M):
-        reach = MARGIN_M + 3 * resolution_m  # every end point whose blur reaches a cell the fits read
         inside = ((everything[:, 0] >= box[0] - reach) & (everything[:, 0] <= box[2] + reach)
                   & (everything[:, 1] >= box[1] - reach) & (everything[:, 1] <= box[3] + reach))
         grid = match_grid_from_points(everything if inside.all() else everything[inside], resolution_m, MARGIN_M,

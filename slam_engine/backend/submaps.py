@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam_engine.backend.correlative import MatchGrid
-from slam_engine.poses import compose, relative
+from slam_engine.poses import compose, place_points, relative
 
 # weights of the blur around each end point's cell, by squared offset in cells (a Gaussian of
 # about 0.8 cells): matches a cell off still score, but less
@@ -70,10 +70,7 @@ def submap_scans(submap: Submap, poses: np.ndarray, points_v: list[np.ndarray]
     out = []
     for k in submap.nodes():
         T = relative(anchor, poses[k])
-        pts = points_v[k]
-        c, s = np.cos(T[2]), np.sin(T[2])
-        out.append((T[:2].copy(), np.stack([T[0] + c * pts[:, 0] - s * pts[:, 1],
-                                              T[1] + s * pts[:, 0] + c * pts[:, 1]], axis=1)))
+        out.append((T[:2].copy(), place_points(T, points_v[k])))
     return out
 
 
