@@ -18,20 +18,6 @@ from slam_engine.grid import TILE, TILE_SHIFT, ParticleGrids, quantize_log_odds
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _mark(mark, out, count, p, tx, ty):
-    if ty < 0 or tx < 0 or ty >= mark.shape[1] or tx >= mark.shape[2]:
-        return count
-    if mark[p, ty, tx] == 0:
-        mark[p, ty, tx] = 1
-        if count < out.shape[0]:
-            out[count, 0] = p
-            out[count, 1] = ty
-            out[count, 2] = tx
-        count += 1
-    return count
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
 def _mark_band(mark, out, count, p, x0, y0, x1, y1, spread, transpose, tile_x0, tile_y0):
     """Mark every tile that the band of half width ``spread`` around the segment (x0, y0)-(x1, y1)
     [tile units] overlaps, the band measured along y, for ``|x1 - x0| >= |y1 - y0|``. The segment is
@@ -47,9 +33,18 @@ def _mark_band(mark, out, count, p, x0, y0, x1, y1, spread, transpose, tile_x0, 
         hi = int(math.floor(max(ya, yb) + spread))
         for row in range(lo, hi + 1):
             if transpose:
-                count = _mark(mark, out, count, p, row - tile_x0, col - tile_y0)
+                tx, ty = row - tile_x0, col - tile_y0
             else:
-                count = _mark(mark, out, count, p, col - tile_x0, row - tile_y0)
+                tx, ty = col - tile_x0, row - tile_y0
+            # marked and listed here, not in a helper: an inlined helper taking arrays costs numba
+            # reference counting at every call
+            if 0 <= ty < mark.shape[1] and 0 <= tx < mark.shape[2] and mark[p, ty, tx] == 0:
+                mark[p, ty, tx] = 1
+                if count < out.shape[0]:
+                    out[count, 0] = p
+                    out[count, 1] = ty
+                    out[count, 2] = tx
+                count += 1
     return count
 
 
@@ -60,38 +55,26 @@ def _mark_band(mark, out, count, p, x0, y0, x1, y1, spread, transpose, tile_x0, 
 _SPREAD_CELLS = 1.0
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
+@nb.njit(cache=True, nogil=True)
 def collect_touched_tiles(particles, poses, origin_v, ends_v, resolution_m, tile_x0, tile_y0, mark, out):
     """Mark (in ``mark``, list in ``out``) every tile a beam of each particle ``particles[k]`` (at
     ``poses[k]``) writes: the tiles overlapped by the band ``_SPREAD_CELLS`` wide either side (along
     its minor axis) of the segment between the cell centres of the LiDAR and the beam's end.
     Returns the number of distinct (particle, tile) pairs, listed particle by particle in the order
-    found (as a serial loop would). Particles run in parallel threads, each listing into its own
-    ``len(out) // len(poses)`` rows of ``out``; when a particle needs more, the return value exceeds
-    ``len(out)`` (rows enough for every particle to list as many as the busiest): the caller grows
-    ``out``, clears ``mark`` and calls again."""
-    n_poses = poses.shape[0]
-    per = out.shape[0] // n_poses
-    counts = np.zeros(n_poses, np.int64)
-    for k in nb.prange(n_poses):
-        counts[k] = _collect_particle(particles[k], poses[k], origin_v, ends_v, resolution_m, tile_x0, tile_y0, mark,
-                                      out[k * per:(k + 1) * per])
-    busiest = counts.max()
-    if busiest > per:
-        return max(busiest * n_poses, out.shape[0] + 1)
-    total = 0
-    for k in range(n_poses):  # compact: row total <= k * per, so rows are copied forward only
-        for i in range(counts[k]):
-            for j in range(3):
-                out[total, j] = out[k * per + i, j]
-            total += 1
-    return total
+    found; when it exceeds ``len(out)`` (the rows past it are not listed) the caller grows ``out``,
+    clears ``mark`` and calls again. Serial: in threads it took longer (a fraction of a millisecond
+    a scan, less than waking them)."""
+    count = 0
+    for k in range(poses.shape[0]):
+        count = _collect_particle(particles[k], poses[k], origin_v, ends_v, resolution_m, tile_x0, tile_y0, mark,
+                                  out, count)
+    return count
 
 
 @nb.njit(cache=True, nogil=True)
-def _collect_particle(p, pose, origin_v, ends_v, resolution_m, tile_x0, tile_y0, mark, out):
-    """:func:`collect_touched_tiles` for particle p at ``pose`` (3,), listing into ``out``."""
-    count = 0
+def _collect_particle(p, pose, origin_v, ends_v, resolution_m, tile_x0, tile_y0, mark, out, count):
+    """:func:`collect_touched_tiles` for particle p at ``pose`` (3,), listing into ``out`` from row
+    ``count`` on; returns the new count."""
     tile = float(TILE)
     spread = _SPREAD_CELLS / tile
     c = math.cos(pose[2])
@@ -152,43 +135,6 @@ def _raise(levels0, levels1, levels2, levels3, t, iy, ix, delta, hi):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _lower(levels0, levels1, levels2, levels3, t, iy, ix, delta, lo):
-    """Add ``delta`` < 0 to cell (iy, ix) of pool tile t, clamped at ``lo``; a coarse maximum the
-    cell held is recomputed (max of its 2x2 finer cells), level by level while it changes."""
-    old = levels0[t, iy, ix]
-    v = old + delta
-    if v < lo:
-        v = lo
-    if v >= old:
-        return
-    levels0[t, iy, ix] = v
-    i = iy >> 1
-    j = ix >> 1
-    if old < levels1[t, i, j]:  # it was not the maximum of its 2x2 block
-        return
-    m = _max4(levels0[t, 2 * i, 2 * j], levels0[t, 2 * i, 2 * j + 1], levels0[t, 2 * i + 1, 2 * j],
-              levels0[t, 2 * i + 1, 2 * j + 1])
-    if m == old:
-        return
-    levels1[t, i, j] = m
-    i >>= 1
-    j >>= 1
-    if old < levels2[t, i, j]:
-        return
-    m = _max4(levels1[t, 2 * i, 2 * j], levels1[t, 2 * i, 2 * j + 1], levels1[t, 2 * i + 1, 2 * j],
-              levels1[t, 2 * i + 1, 2 * j + 1])
-    if m == old:
-        return
-    levels2[t, i, j] = m
-    i >>= 1
-    j >>= 1
-    if old < levels3[t, i, j]:
-        return
-    levels3[t, i, j] = _max4(levels2[t, 2 * i, 2 * j], levels2[t, 2 * i, 2 * j + 1], levels2[t, 2 * i + 1, 2 * j],
-                             levels2[t, 2 * i + 1, 2 * j + 1])
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
 def _tile_of(tables, refcount, p, tile_x0, tile_y0, gx, gy):
     """Pool index of the (private) tile holding global cell (gx, gy), or -1."""
     tx = (gx >> TILE_SHIFT) - tile_x0
@@ -225,6 +171,8 @@ def _integrate_particle(levels0, levels1, levels2, levels3, tables, refcount, ti
                         log_odds_max):
     """:func:`integrate_rays` for particle p at ``pose`` (3,)."""
     mask = TILE - 1
+    n_ty = tables.shape[1]
+    n_tx = tables.shape[2]
     c = math.cos(pose[2])
     s = math.sin(pose[2])
     ox = pose[0] + c * origin_v[0] - s * origin_v[1]
@@ -256,13 +204,48 @@ def _integrate_particle(levels0, levels1, levels2, levels3, tables, refcount, ti
         key_y = y >> TILE_SHIFT
         t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
         n_cells = max(dx, -dy) + (0 if is_hit[b] else 1)
+        # the hot loop, written out: an inlined helper taking arrays costs numba reference counting
+        # (atomic increments) at every call, which made this loop 1.7x slower
         for _ in range(n_cells):
             if (x >> TILE_SHIFT) != key_x or (y >> TILE_SHIFT) != key_y:
                 key_x = x >> TILE_SHIFT
                 key_y = y >> TILE_SHIFT
-                t = _tile_of(tables, refcount, p, tile_x0, tile_y0, x, y)
+                tx = key_x - tile_x0
+                ty = key_y - tile_y0
+                t = -1
+                if 0 <= tx < n_tx and 0 <= ty < n_ty:
+                    t = tables[p, ty, tx]
+                    if t >= 0 and refcount[t] != 1:
+                        t = -1
             if t >= 0:
-                _lower(levels0, levels1, levels2, levels3, t, y & mask, x & mask, log_odds_miss, log_odds_min)
+                # add log_odds_miss to the cell, clamped at log_odds_min; a coarse maximum the cell held
+                # is recomputed (max of its 2x2 finer cells), level by level while it changes
+                iy = y & mask
+                ix = x & mask
+                old = levels0[t, iy, ix]
+                v = max(old + log_odds_miss, log_odds_min)
+                if v < old:
+                    levels0[t, iy, ix] = v
+                    i = iy >> 1
+                    j = ix >> 1
+                    if old >= levels1[t, i, j]:
+                        m = _max4(levels0[t, 2 * i, 2 * j], levels0[t, 2 * i, 2 * j + 1], levels0[t, 2 * i + 1, 2 * j],
+                                  levels0[t, 2 * i + 1, 2 * j + 1])
+                        if m != old:
+                            levels1[t, i, j] = m
+                            i >>= 1
+                            j >>= 1
+                            if old >= levels2[t, i, j]:
+                                m = _max4(levels1[t, 2 * i, 2 * j], levels1[t, 2 * i, 2 * j + 1],
+                                          levels1[t, 2 * i + 1, 2 * j], levels1[t, 2 * i + 1, 2 * j + 1])
+                                if m != old:
+                                    levels2[t, i, j] = m
+                                    i >>= 1
+                                    j >>= 1
+                                    if old >= levels3[t, i, j]:
+                                        levels3[t, i, j] = _max4(levels2[t, 2 * i, 2 * j], levels2[t, 2 * i, 2 * j + 1],
+                                                                 levels2[t, 2 * i + 1, 2 * j],
+                                                                 levels2[t, 2 * i + 1, 2 * j + 1])
             e2 = 2 * err
             if e2 >= dy:
                 err += dy
@@ -331,9 +314,13 @@ def insert_scan(
     grids.touched_at[buffer[:n, 1], buffer[:n, 2]] = grids.clock_m
     free_from = np.zeros(len(ends_v)) if free_from_m is None else np.ascontiguousarray(free_from_m, np.float64)
     lv = grids.levels
-    integrate_rays(lv[0], lv[1], lv[2], lv[3], grids.tables, grids.refcount, grids.tile_x0, grids.tile_y0, particles,
-                   poses, origin_v, ends_v, is_hit, free_from, grids.resolution_m,
-                   quantize_log_odds(log_odds_hit), quantize_log_odds(log_odds_miss), quantize_log_odds(log_odds_min),
-                   quantize_log_odds(log_odds_max))
+    log_odds = (quantize_log_odds(log_odds_hit), quantize_log_odds(log_odds_miss), quantize_log_odds(log_odds_min),
+                quantize_log_odds(log_odds_max))
+    if len(particles) == 1:  # one map (the product map's): no threads to wake
+        _integrate_particle(lv[0], lv[1], lv[2], lv[3], grids.tables, grids.refcount, grids.tile_x0, grids.tile_y0,
+                            particles[0], poses[0], origin_v, ends_v, is_hit, free_from, grids.resolution_m, *log_odds)
+    else:
+        integrate_rays(lv[0], lv[1], lv[2], lv[3], grids.tables, grids.refcount, grids.tile_x0, grids.tile_y0,
+                       particles, poses, origin_v, ends_v, is_hit, free_from, grids.resolution_m, *log_odds)
     clear_marks(grids._mark, buffer, n)
     return n

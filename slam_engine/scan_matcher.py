@@ -31,12 +31,13 @@ def _squash_table() -> np.ndarray:
 
 
 SQUASH = _squash_table()
+SQUASH_OFFSET = 32768  # SQUASH index of stored value 0
 PRESEARCH_STEP_RAD = 0.03  # heading step of the coarse correlative search [rad] (~1.7 deg)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _squash(squash, stored):
-    return squash[stored + 32768]
+    return squash[stored + SQUASH_OFFSET]
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -75,43 +76,86 @@ def _sample(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, x, y):
     return m, dmdu * inv_res, dmdv * inv_res
 
 
+@nb.njit(cache=True, nogil=True)
+def _cell_value(pool, tables, p, tile_x0, tile_y0, shift, cx, cy):
+    """:func:`slam_engine.grid.cell_value` as a called (not inlined) function: for the rare point whose
+    four cells span tiles."""
+    return cell_value(pool, tables, p, tile_x0, tile_y0, shift, cx, cy)
+
+
 @nb.njit(cache=True, nogil=True, inline="always")
 def _evaluate(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride, x, y, theta, H, g):
     """Sum of squared residuals (1 - M) at pose (x, y, theta), filling the Gauss-Newton system
     H (3, 3) and g (3,) (for the step that lowers the residuals). Returns (E, sum M, n)."""
     c = math.cos(theta)
     s = math.sin(theta)
-    for a in range(3):
-        g[a] = 0.0
-        for b in range(3):
-            H[a, b] = 0.0
+    h00 = h01 = h02 = h11 = h12 = h22 = 0.0
+    g0 = g1 = g2 = 0.0
     e = 0.0
     m_sum = 0.0
     n = 0
+    mask = (1 << shift) - 1
+    n_ty = tables.shape[1]
+    n_tx = tables.shape[2]
     for i in range(0, points_v.shape[0], stride):
         px = points_v[i, 0]
         py = points_v[i, 1]
         wx = x + c * px - s * py
         wy = y + s * px + c * py
-        m, mx, my = _sample(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, wx, wy)
+        # the bilinear map value M and its gradient [1/m], written out here: an inlined helper taking
+        # arrays costs numba reference counting (atomic increments) at every point (1.4x slower)
+        u = wx * inv_res - 0.5
+        v = wy * inv_res - 0.5
+        fi = math.floor(u)
+        fj = math.floor(v)
+        i0 = int(fi)
+        j0 = int(fj)
+        fu = u - fi
+        fv = v - fj
+        li = i0 & mask
+        lj = j0 & mask
+        tx = (i0 >> shift) - tile_x0
+        ty = (j0 >> shift) - tile_y0
+        if li < mask and lj < mask and 0 <= tx < n_tx and 0 <= ty < n_ty:  # all four cells in one tile
+            t = tables[p, ty, tx]
+            if t < 0:
+                v00 = v10 = v01 = v11 = 0.5
+            else:
+                v00 = squash[pool[t, lj, li] + SQUASH_OFFSET]
+                v10 = squash[pool[t, lj, li + 1] + SQUASH_OFFSET]
+                v01 = squash[pool[t, lj + 1, li] + SQUASH_OFFSET]
+                v11 = squash[pool[t, lj + 1, li + 1] + SQUASH_OFFSET]
+        else:
+            v00 = squash[_cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0, j0) + SQUASH_OFFSET]
+            v10 = squash[_cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0 + 1, j0) + SQUASH_OFFSET]
+            v01 = squash[_cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0, j0 + 1) + SQUASH_OFFSET]
+            v11 = squash[_cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0 + 1, j0 + 1) + SQUASH_OFFSET]
+        m = (1.0 - fv) * ((1.0 - fu) * v00 + fu * v10) + fv * ((1.0 - fu) * v01 + fu * v11)
+        mx = ((1.0 - fv) * (v10 - v00) + fv * (v11 - v01)) * inv_res
+        my = ((1.0 - fu) * (v01 - v00) + fu * (v11 - v10)) * inv_res
         r = 1.0 - m
         jt = mx * (-s * px - c * py) + my * (c * px - s * py)
-        j0, j1, j2 = mx, my, jt
-        H[0, 0] += j0 * j0
-        H[0, 1] += j0 * j1
-        H[0, 2] += j0 * j2
-        H[1, 1] += j1 * j1
-        H[1, 2] += j1 * j2
-        H[2, 2] += j2 * j2
-        g[0] += j0 * r
-        g[1] += j1 * r
-        g[2] += j2 * r
+        h00 += mx * mx
+        h01 += mx * my
+        h02 += mx * jt
+        h11 += my * my
+        h12 += my * jt
+        h22 += jt * jt
+        g0 += mx * r
+        g1 += my * r
+        g2 += jt * r
         e += r * r
         m_sum += m
         n += 1
-    H[1, 0] = H[0, 1]
-    H[2, 0] = H[0, 2]
-    H[2, 1] = H[1, 2]
+    H[0, 0] = h00
+    H[0, 1] = H[1, 0] = h01
+    H[0, 2] = H[2, 0] = h02
+    H[1, 1] = h11
+    H[1, 2] = H[2, 1] = h12
+    H[2, 2] = h22
+    g[0] = g0
+    g[1] = g1
+    g[2] = g2
     return e, m_sum, n
 
 
