@@ -36,6 +36,26 @@ PRESEARCH_STEP_RAD = 0.03  # heading step of the coarse correlative search [rad]
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def _bilinear_corner(x, y, inv_res):
+    """Global indices (i0, j0) of the cell centre left of and below (x, y) [m] on a level of cells
+    ``1 / inv_res`` wide, and the fractions (fu, fv) of the way to the next centres. Scalars only:
+    an inlined helper that took arrays would cost reference counting at every point."""
+    u = x * inv_res - 0.5
+    v = y * inv_res - 0.5
+    fi = math.floor(u)
+    fj = math.floor(v)
+    return int(fi), int(fj), u - fi, v - fj
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _bilinear(v00, v10, v01, v11, fu, fv):
+    """Bilinear value between four cell values at fractions (fu, fv), and its derivatives along u and v
+    [per cell]."""
+    m = (1.0 - fv) * ((1.0 - fu) * v00 + fu * v10) + fv * ((1.0 - fu) * v01 + fu * v11)
+    return m, (1.0 - fv) * (v10 - v00) + fv * (v11 - v01), (1.0 - fu) * (v01 - v00) + fu * (v11 - v10)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def _squash(squash, stored):
     return squash[stored + SQUASH_OFFSET]
 
@@ -43,14 +63,7 @@ def _squash(squash, stored):
 @nb.njit(cache=True, nogil=True, inline="always")
 def _sample(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, x, y):
     """Bilinear map value M at (x, y) [m] and its gradient [1/m] on one level."""
-    u = x * inv_res - 0.5
-    v = y * inv_res - 0.5
-    fi = math.floor(u)
-    fj = math.floor(v)
-    i0 = int(fi)
-    j0 = int(fj)
-    fu = u - fi
-    fv = v - fj
+    i0, j0, fu, fv = _bilinear_corner(x, y, inv_res)
     mask = (1 << shift) - 1
     li = i0 & mask
     lj = j0 & mask
@@ -70,9 +83,7 @@ def _sample(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, x, y):
         v10 = _squash(squash, cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0 + 1, j0))
         v01 = _squash(squash, cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0, j0 + 1))
         v11 = _squash(squash, cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0 + 1, j0 + 1))
-    m = (1.0 - fv) * ((1.0 - fu) * v00 + fu * v10) + fv * ((1.0 - fu) * v01 + fu * v11)
-    dmdu = (1.0 - fv) * (v10 - v00) + fv * (v11 - v01)
-    dmdv = (1.0 - fu) * (v01 - v00) + fu * (v11 - v10)
+    m, dmdu, dmdv = _bilinear(v00, v10, v01, v11, fu, fv)
     return m, dmdu * inv_res, dmdv * inv_res
 
 
@@ -102,16 +113,9 @@ def _evaluate(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_
         py = points_v[i, 1]
         wx = x + c * px - s * py
         wy = y + s * px + c * py
-        # the bilinear map value M and its gradient [1/m], written out here: an inlined helper taking
-        # arrays costs numba reference counting (atomic increments) at every point (1.4x slower)
-        u = wx * inv_res - 0.5
-        v = wy * inv_res - 0.5
-        fi = math.floor(u)
-        fj = math.floor(v)
-        i0 = int(fi)
-        j0 = int(fj)
-        fu = u - fi
-        fv = v - fj
+        # :func:`_sample`'s cell lookups written out here: an inlined helper taking arrays costs numba
+        # reference counting (atomic increments) at every point (1.4x slower)
+        i0, j0, fu, fv = _bilinear_corner(wx, wy, inv_res)
         li = i0 & mask
         lj = j0 & mask
         tx = (i0 >> shift) - tile_x0
@@ -130,9 +134,9 @@ def _evaluate(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_
             v10 = squash[_cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0 + 1, j0) + SQUASH_OFFSET]
             v01 = squash[_cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0, j0 + 1) + SQUASH_OFFSET]
             v11 = squash[_cell_value(pool, tables, p, tile_x0, tile_y0, shift, i0 + 1, j0 + 1) + SQUASH_OFFSET]
-        m = (1.0 - fv) * ((1.0 - fu) * v00 + fu * v10) + fv * ((1.0 - fu) * v01 + fu * v11)
-        mx = ((1.0 - fv) * (v10 - v00) + fv * (v11 - v01)) * inv_res
-        my = ((1.0 - fu) * (v01 - v00) + fu * (v11 - v10)) * inv_res
+        m, dmdu, dmdv = _bilinear(v00, v10, v01, v11, fu, fv)
+        mx = dmdu * inv_res
+        my = dmdv * inv_res
         r = 1.0 - m
         jt = mx * (-s * px - c * py) + my * (c * px - s * py)
         h00 += mx * mx
