@@ -36,7 +36,9 @@ TERMINAL = {"succeeded", "failed", "cancelled"}
 # before the heartbeat reaper would fail the job with the other reason.
 HEARTBEAT_S, WORKER_LOST_S, CANCEL_GRACE_S = 0.5, 8.0, 2.0
 QUICK = {"particles": 5, "seed": 1, "resolution_m": 0.1, "snapshot_every_scans": 0}
-SLOW = {**QUICK, "particles": 25}  # several seconds: long enough to kill or cancel mid-run
+# tens of seconds: long enough to kill or cancel mid-run however fast the engine gets (25 particles at
+# 0.1 m finished its 200 scans before the cancel once the kernels got faster); every test stops it early
+SLOW = {**QUICK, "particles": 100, "resolution_m": 0.05}
 
 
 def _require(condition: bool, reason: str) -> None:
