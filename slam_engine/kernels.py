@@ -22,13 +22,13 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 KERNEL_MODULES = ("slam_engine.grid", "slam_engine.map_pooling", "slam_engine.raycast", "slam_engine.scan_matcher",
-                  "slam_engine.backend.correlative")
+                  "slam_engine.backend.correlative", "slam_engine.backend.submaps")
 # Kernels a run calls from Python (the others are compiled into these).
 ENTRY_KERNELS = ("grid._privatize", "map_pooling.pool_known_max", "raycast.collect_touched_tiles",
                  "raycast.integrate_rays", "raycast._integrate_particle", "raycast.clear_marks",
                  "scan_matcher.match_particles",
                  "scan_matcher.score_particles", "correlative._rotated_cells", "correlative.branch_and_bound",
-                 "correlative._refine")
+                 "correlative._refine", "submaps._blurred_hits")
 
 
 def kernels() -> dict[str, Any]:

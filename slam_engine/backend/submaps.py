@@ -15,19 +15,20 @@ the drive.
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 
 from slam_engine.backend.correlative import MatchGrid
 from slam_engine.poses import compose, place_points, relative
 
-# weights of the blur around each end point's cell, by squared offset in cells (a Gaussian of
-# about 0.8 cells): matches a cell off still score, but less
-_BLUR = {0: 1.0, 1: 0.45, 2: 0.2}
-# end points marked at a time (the largest weight a cell gets is kept, so batches give the same grid)
-_MARK_BATCH = 65536
+# weights of the blur around each end point's cell (a Gaussian of about 0.8 cells): matches a cell
+# off still score, but less; the cell itself has weight 1
+BLUR_SIDE = 0.45  # the four cells beside it
+BLUR_CORNER = 0.2  # the four cells diagonal to it
 
 
 @dataclass(frozen=True)
@@ -101,39 +102,72 @@ def match_grid_from_points(points_m: np.ndarray, resolution_m: float, margin_m: 
     so a wall between two cell centres stays there when the grid is interpolated. With ``scans``
     (:func:`submap_scans`), cells none of them saw hold at least ``unobserved`` (in [0, 1]): a point
     there is neither a hit nor a miss (what the submap never looked at cannot contradict a scan)."""
+    if margin_m < resolution_m:
+        raise ValueError(f"match_grid_from_points: margin_m {margin_m} is less than a cell ({resolution_m} m)")
     lo = points_m.min(axis=0) - margin_m
     hi = points_m.max(axis=0) + margin_m
     shape = (int(np.ceil((hi[1] - lo[1]) / resolution_m)) + 2, int(np.ceil((hi[0] - lo[0]) / resolution_m)) + 2)
-    hit = np.zeros(shape, np.float32)
-    for start in range(0, len(points_m), _MARK_BATCH):  # in batches: a few MB of temporaries at most
-        batch = points_m[start: start + _MARK_BATCH]
-        u = (batch[:, 0] - lo[0]) / resolution_m - 0.5
-        v = (batch[:, 1] - lo[1]) / resolution_m - 0.5
-        i0 = np.floor(u).astype(np.int64)
-        j0 = np.floor(v).astype(np.int64)
-        fu, fv = u - i0, v - j0
-        for di, dj, weight in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv),
-                               (1, 1, fu * fv)):
-            np.maximum.at(hit, (j0 + dj, i0 + di), weight.astype(np.float32))
-    hit = np.minimum(1.0, 2.0 * hit)  # a point between cells still marks both fully
-    values = hit.copy()
-    h, w = shape
-    for dy in range(-2, 3):
-        for dx in range(-2, 3):
-            weight = _BLUR.get(dx * dx + dy * dy)
-            if weight is None or (dx == 0 and dy == 0):
-                continue
-            src = hit[max(0, -dy): h - max(0, dy), max(0, -dx): w - max(0, dx)]
-            dst = values[max(0, dy): h - max(0, -dy), max(0, dx): w - max(0, -dx)]
-            np.maximum(dst, weight * src, out=dst)
+    values = _blurred_hits(np.ascontiguousarray(points_m, np.float64), float(lo[0]), float(lo[1]), float(resolution_m),
+                           shape[0], shape[1], BLUR_SIDE, BLUR_CORNER)
     seen = None
     if scans is not None and unobserved > 0:
         seen = observed_mask(scans, lo, shape, resolution_m)
-        values = np.where(seen, values, np.maximum(values, np.float32(unobserved)))
-    grid = MatchGrid.from_values(np.round(values * 255).astype(np.uint8), lo, resolution_m, n_levels)
+        values = np.where(seen, values, np.maximum(values, _to_uint8(np.float32(unobserved))))
+    grid = MatchGrid.from_values(values, lo, resolution_m, n_levels)
     grid.bounds_m = np.concatenate([points_m.min(axis=0), points_m.max(axis=0)])
     grid.observed = seen
     return grid
+
+
+def _to_uint8(weight: np.float32) -> np.uint8:
+    """A weight in [0, 1] as a match-grid value (float32 arithmetic, rounded half to even)."""
+    return np.uint8(np.rint(np.float32(255.0) * weight))
+
+
+@nb.njit(cache=True, nogil=True)
+def _blurred_hits(points_m, lo_x, lo_y, resolution_m, rows, cols, blur_side, blur_corner):
+    """(rows, cols) uint8 values of :func:`match_grid_from_points` (before ``unobserved``): each point
+    marks the four cells around it with its bilinear weights (float32; a cell keeps its largest),
+    doubled and capped at 1, blurred by the largest of its own and its neighbours' weights times the
+    blur's, and scaled to 0-255 (rounding is monotonic, so rounding before the maxima gives the same
+    values). Only the cells the points touch are visited: O(points), whatever the grid's size."""
+    hit = np.zeros((rows, cols), np.float32)
+    n = points_m.shape[0]
+    for k in range(n):
+        u = (points_m[k, 0] - lo_x) / resolution_m - 0.5
+        v = (points_m[k, 1] - lo_y) / resolution_m - 0.5
+        i0 = np.int64(math.floor(u))
+        j0 = np.int64(math.floor(v))
+        fu = u - i0
+        fv = v - j0
+        hit[j0, i0] = max(hit[j0, i0], np.float32((1 - fu) * (1 - fv)))
+        hit[j0, i0 + 1] = max(hit[j0, i0 + 1], np.float32(fu * (1 - fv)))
+        hit[j0 + 1, i0] = max(hit[j0 + 1, i0], np.float32((1 - fu) * fv))
+        hit[j0 + 1, i0 + 1] = max(hit[j0 + 1, i0 + 1], np.float32(fu * fv))
+    out = np.zeros((rows, cols), np.uint8)
+    side = np.float32(blur_side)
+    corner = np.float32(blur_corner)
+    for t in range(4 * n):  # each point's four cells again; a cell is blurred once (then marked -1)
+        k = t >> 2
+        i = np.int64(math.floor((points_m[k, 0] - lo_x) / resolution_m - 0.5)) + (t & 1)
+        j = np.int64(math.floor((points_m[k, 1] - lo_y) / resolution_m - 0.5)) + ((t >> 1) & 1)
+        raw = hit[j, i]
+        if raw <= 0:
+            continue
+        hit[j, i] = -1.0
+        weight = min(np.float32(1.0), np.float32(2.0) * raw)  # a point between cells still marks both fully
+        for y in range(max(j - 1, 0), min(j + 2, rows)):
+            for x in range(max(i - 1, 0), min(i + 2, cols)):
+                if y == j and x == i:
+                    blurred = weight
+                elif y == j or x == i:
+                    blurred = side * weight
+                else:
+                    blurred = corner * weight
+                value = np.uint8(np.rint(np.float32(255.0) * blurred))
+                if out[y, x] < value:
+                    out[y, x] = value
+    return out
 
 
 class SubmapGrids:
