@@ -153,6 +153,28 @@ def _walls(x_from: float, x_to: float, doors: list[float], half_width_m: float =
                            np.stack([xs, np.full_like(xs, half_width_m)], 1)])
 
 
+def test_a_higher_min_score_only_prunes_the_search() -> None:
+    """The loop closer searches a wide window with min_score_wide: the best pose and the runner-up are
+    those of a search with the lower min_score, as long as the runner-up counts from that lower score."""
+    grid = match_grid_from_points(_walls(0.0, 40.0, [6.0, 10.0, 22.0, 30.0]), 0.05, margin_m=1.0)
+    scan = _walls(-6.0, 6.0, [-4.0, 0.0])  # seen from x = 10 m
+    kwargs = dict(window_m=6.0, window_rad=0.1, ambiguity_m=1.0, ambiguity_rad=0.15, runner_up_share=0.5)
+    low = search(grid, scan, np.array([9.0, 0.0, 0.0]), min_score=0.3, **kwargs)
+    assert low is not None and low.runner_up_pose is not None
+    np.testing.assert_allclose(low.pose, [10.0, 0.0, 0.0], atol=1e-9)
+    between = (low.score + low.runner_up_score) / 2  # above the runner-up (14 m), below the best
+    assert low.runner_up_score < between < low.score
+    high = search(grid, scan, np.array([9.0, 0.0, 0.0]), min_score=between, runner_up_min_score=0.3, **kwargs)
+    assert high is not None and high.runner_up_pose is not None
+    np.testing.assert_array_equal(high.pose, low.pose)
+    np.testing.assert_array_equal(high.runner_up_pose, low.runner_up_pose)
+    assert (high.score, high.runner_up_score) == (low.score, low.runner_up_score)
+    alone = search(grid, scan, np.array([9.0, 0.0, 0.0]), min_score=between, **kwargs)
+    assert alone is not None and alone.runner_up_score == 0.0  # the runner-up counts from min_score by default
+    assert search(grid, scan, np.array([9.0, 0.0, 0.0]), min_score=low.score + 0.001, runner_up_min_score=0.3,
+                  **kwargs) is None
+
+
 def test_a_match_that_fits_only_the_points_picked_at_the_prediction_fails_the_overlap_check() -> None:
     """The search scores the points that overlap the submap at the predicted pose. Here those 4 m of
     corridor fit the submap 4 m back, where the rest of the cloud (a narrow passage) lands on the

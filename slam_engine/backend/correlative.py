@@ -245,11 +245,13 @@ def angular_step_rad(points_v: np.ndarray, resolution_m: float, reach_cap_m: flo
 def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, window_m: float, window_rad: float,
            min_score: float, ambiguity_m: float = 0.0, ambiguity_rad: float = 0.0,
            runner_up_share: float = 0.0, line_half_width_m: float = 0.0, line_half_width_rad: float = 0.0,
-           ) -> CorrelativeMatch | None:
+           runner_up_min_score: float | None = None) -> CorrelativeMatch | None:
     """Best pose of ``points_v`` within ``window_m`` / ``window_rad`` of ``initial_pose`` scoring
     above ``min_score``, or None. With ``ambiguity_m`` > 0 a second search reports the best score
     of a pose more than ``ambiguity_m`` / ``ambiguity_rad`` from the best one (at least
-    ``runner_up_share`` of the best score to count; else 0), and its pose.
+    ``runner_up_share`` of the best score and ``runner_up_min_score`` (default ``min_score``) to count;
+    else 0), and its pose. A ``min_score`` above ``runner_up_min_score`` only prunes: the best pose,
+    when it scores above it, and the runner-up are those a lower ``min_score`` finds.
 
     With ``line_half_width_m`` > 0, an ambiguous match whose runner-up has the best's heading
     (within ``line_half_width_rad``) is tested for a *line* of equally good poses, as a corridor
@@ -276,7 +278,8 @@ def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, wind
     score = total / (MAX_VALUE * n)
     if ambiguity_m <= 0:
         return CorrelativeMatch(pose=pose, score=float(score), runner_up_score=0.0)
-    floor = int(max(min_total, runner_up_share * total))
+    runner_up_total = min_total if runner_up_min_score is None else int(runner_up_min_score * MAX_VALUE * n)
+    floor = int(max(runner_up_total, runner_up_share * total))
     ex_cells = int(math.ceil(ambiguity_m / res))
     ex_angles = int(math.ceil(ambiguity_rad / step))
     a2, dx2, dy2, total2 = branch_and_bound(grid.pyramid, cells, window_cells, floor, a, dx, dy, ex_angles,
