@@ -46,8 +46,29 @@ def test_branch_and_bound_finds_the_exhaustive_maximum(near_low_edges: bool) -> 
                     x, y = cells[a, :, 0] + dx, cells[a, :, 1] + dy
                     inside = (x >= 0) & (x < grid.values.shape[1]) & (y >= 0) & (y < grid.values.shape[0])
                     best = max(best, int(grid.values[y[inside], x[inside]].astype(np.int64).sum()))
-        a, dx, dy, total = branch_and_bound(grid.pyramid, cells, window, 0, 0, 0, 0, -1, 0, 0.0, 0.0)
+        a, dx, dy, total = branch_and_bound(grid.pyramid, cells, window, 0, 0, 0, 0, -1, 0, 0.0, 0.0, 1)
         assert total == best and a >= 0
+        for shards in (2, 3):  # searched in parallel: the same pose
+            in_shards = branch_and_bound(grid.pyramid, cells, window, 0, 0, 0, 0, -1, 0, 0.0, 0.0, shards)
+            assert in_shards == (a, dx, dy, total)
+
+
+def test_branch_and_bound_breaks_ties_alike_in_any_number_of_shards() -> None:
+    """A map of a few equal values gives many equally good poses: the one picked is the first the
+    search reaches, whichever shard reaches it and however fast."""
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        values = ((rng.random((40, 48)) < 0.15) * 255).astype(np.uint8)
+        grid = MatchGrid.from_values(values, np.zeros(2), 0.1, n_levels=5)
+        cells = rng.integers(0, 40, size=(5, 6, 2)).astype(np.int32)
+        found = {branch_and_bound(grid.pyramid, cells, 8, 0, 0, 0, 0, -1, 0, 0.0, 0.0, shards)
+                 for shards in (1, 2, 3, 4)}
+        assert len(found) == 1, found
+        # the runner-up search (an exclusion zone around the best) as well
+        a, dx, dy, total = found.pop()
+        runner_up = {branch_and_bound(grid.pyramid, cells, 8, total // 2, a, dx, dy, 1, 3, 0.0, 0.0, shards)
+                     for shards in (1, 2, 3, 4)}
+        assert len(runner_up) == 1, runner_up
 
 
 def _room_points(rng: np.random.Generator) -> np.ndarray:

@@ -153,25 +153,29 @@ def _inside_exclusion(a, dx, dy, size, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex
     return True
 
 
-@nb.njit(cache=True, nogil=True)
-def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy):
+@nb.njit(cache=True, nogil=True, parallel=True)
+def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy,
+                     n_shards):
     """Best (a, dx, dy, total) over headings a and integer translations |dx|, |dy| <= window_cells,
     whose total exceeds ``min_total``; (-1, 0, 0, min_total) when none does. Nodes entirely inside the
     exclusion zone (``ex_angles`` >= 0; a box, or a strip along the unit direction ``(ex_ux, ex_uy)``)
-    are skipped: a second search with it finds the best match that is *not* the first one."""
+    are skipped: a second search with it finds the best match that is *not* the first one.
+
+    The search is depth first from the best top-level node, the best child first; of equally good
+    leaves, the first one reached wins. The top-level nodes are dealt out to ``n_shards`` shards,
+    searched in parallel (:func:`_descend`); the result is the same for any number of shards."""
     top = pyramid.shape[0] - 1
     while top > 0 and (1 << top) > 2 * window_cells + 1:
         top -= 1
     size_top = 1 << top
     n_angles = cells.shape[0]
     per_axis = (2 * window_cells) // size_top + 1
-    cap = n_angles * per_axis * per_axis + 4 * (top + 2)
+    cap = n_angles * per_axis * per_axis
     st_a = np.empty(cap, np.int64)
     st_x = np.empty(cap, np.int64)
     st_y = np.empty(cap, np.int64)
-    st_h = np.empty(cap, np.int64)
     st_s = np.empty(cap, np.int64)
-    # initial candidates: every heading, the window tiled by top-level blocks; pushed worst first
+    # the top-level nodes: every heading, the window tiled by top-level blocks; searched best first
     m = 0
     for a in range(n_angles):
         for ix in range(per_axis):
@@ -183,56 +187,99 @@ def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, 
                 st_a[m] = a
                 st_x[m] = dx
                 st_y[m] = dy
-                st_h[m] = top
                 st_s[m] = _score(pyramid, top, cells, a, dx, dy)
                 m += 1
     order = np.argsort(st_s[:m])
-    st_a[:m] = st_a[:m][order]
-    st_x[:m] = st_x[:m][order]
-    st_y[:m] = st_y[:m][order]
-    st_h[:m] = st_h[:m][order]
-    st_s[:m] = st_s[:m][order]
+    top_a = st_a[:m][order]
+    top_x = st_x[:m][order]
+    top_y = st_y[:m][order]
+    top_s = st_s[:m][order]
+    shard_best = np.full(n_shards, min_total, np.int64)
+    found = np.empty((n_shards, 5), np.int64)
+    for shard in nb.prange(n_shards):
+        _descend(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy,
+                 top, top_a, top_x, top_y, top_s, shard, n_shards, shard_best, found)
+    # the best total; of equal ones, the one under the top-level node searched first
+    best = 0
+    for q in range(1, n_shards):
+        if found[q, 3] > found[best, 3] or (found[q, 3] == found[best, 3] and found[q, 4] > found[best, 4]):
+            best = q
+    if found[best, 0] < 0:
+        return -1, 0, 0, min_total
+    return found[best, 0], found[best, 1], found[best, 2], found[best, 3]
+
+
+@nb.njit(cache=True, nogil=True)
+def _descend(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy,
+             top, top_a, top_x, top_y, top_s, shard, n_shards, shard_best, found):
+    """:func:`branch_and_bound` under the top-level nodes ``shard``, ``shard + n_shards``, ... counted
+    from the best (the arrays ``top_*`` are sorted by score, ascending). Writes ``found[shard]`` =
+    (a, dx, dy, total, position of its top-level node) of the first best leaf, (-1, 0, 0, min_total,
+    -1) when none beats ``min_total``. A node is cut when it cannot beat this shard's best, or falls
+    short of another shard's (``shard_best``, read while they run): a tie with another shard's best
+    is still searched, so the result does not depend on how fast the shards run."""
+    cap = 4 * (top + 2) + 1
+    st_a = np.empty(cap, np.int64)
+    st_x = np.empty(cap, np.int64)
+    st_y = np.empty(cap, np.int64)
+    st_h = np.empty(cap, np.int64)
+    st_s = np.empty(cap, np.int64)
     best_total = min_total
-    best_a, best_x, best_y = -1, 0, 0
+    best_a, best_x, best_y, best_position = -1, 0, 0, -1
     ca = np.empty(4, np.int64)
     cx = np.empty(4, np.int64)
     cy = np.empty(4, np.int64)
     cs = np.empty(4, np.int64)
-    while m > 0:
-        m -= 1
-        s = st_s[m]
-        if s <= best_total:
-            continue
-        h = st_h[m]
-        a, dx, dy = st_a[m], st_x[m], st_y[m]
-        if h == 0:
-            best_total, best_a, best_x, best_y = s, a, dx, dy
-            continue
-        half = 1 << (h - 1)
-        k = 0
-        for i in range(2):
-            for j in range(2):
-                x = dx + i * half
-                y = dy + j * half
-                if x > window_cells or y > window_cells:
-                    continue
-                if _inside_exclusion(a, x, y, half, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy):
-                    continue
-                sc = _score(pyramid, h - 1, cells, a, x, y)
-                if sc <= best_total:
-                    continue
-                ca[k], cx[k], cy[k], cs[k] = a, x, y, sc
-                k += 1
-        # push the k children worst first, so that the best is expanded next
-        for _ in range(k):
-            lo = 0
-            for q in range(1, k):
-                if cs[q] < cs[lo]:
-                    lo = q
-            st_a[m], st_x[m], st_y[m], st_h[m], st_s[m] = ca[lo], cx[lo], cy[lo], h - 1, cs[lo]
-            m += 1
-            cs[lo] = np.iinfo(np.int64).max
-    return best_a, best_x, best_y, best_total
+    for position in range(top_a.shape[0] - 1 - shard, -1, -n_shards):
+        st_a[0], st_x[0], st_y[0], st_h[0], st_s[0] = (top_a[position], top_x[position], top_y[position], top,
+                                                       top_s[position])
+        m = 1
+        while m > 0:
+            m -= 1
+            s = st_s[m]
+            if s <= best_total:
+                continue
+            others = min_total
+            for q in range(n_shards):
+                if q != shard and shard_best[q] > others:
+                    others = shard_best[q]
+            if s < others:
+                continue
+            h = st_h[m]
+            a, dx, dy = st_a[m], st_x[m], st_y[m]
+            if h == 0:
+                best_total, best_a, best_x, best_y, best_position = s, a, dx, dy, position
+                shard_best[shard] = s
+                continue
+            half = 1 << (h - 1)
+            k = 0
+            for i in range(2):
+                for j in range(2):
+                    x = dx + i * half
+                    y = dy + j * half
+                    if x > window_cells or y > window_cells:
+                        continue
+                    if _inside_exclusion(a, x, y, half, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy):
+                        continue
+                    sc = _score(pyramid, h - 1, cells, a, x, y)
+                    if sc <= best_total or sc < others:
+                        continue
+                    ca[k], cx[k], cy[k], cs[k] = a, x, y, sc
+                    k += 1
+            # push the k children worst first, so that the best is expanded next
+            for _ in range(k):
+                lo = 0
+                for q in range(1, k):
+                    if cs[q] < cs[lo]:
+                        lo = q
+                st_a[m], st_x[m], st_y[m], st_h[m], st_s[m] = ca[lo], cx[lo], cy[lo], h - 1, cs[lo]
+                m += 1
+                cs[lo] = np.iinfo(np.int64).max
+    found[shard, 0] = best_a
+    found[shard, 1] = best_x
+    found[shard, 2] = best_y
+    found[shard, 3] = best_total
+    found[shard, 4] = best_position
 
 
 def angular_step_rad(points_v: np.ndarray, resolution_m: float, reach_cap_m: float = 10.0) -> float:
@@ -245,7 +292,7 @@ def angular_step_rad(points_v: np.ndarray, resolution_m: float, reach_cap_m: flo
 def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, window_m: float, window_rad: float,
            min_score: float, ambiguity_m: float = 0.0, ambiguity_rad: float = 0.0,
            runner_up_share: float = 0.0, line_half_width_m: float = 0.0, line_half_width_rad: float = 0.0,
-           runner_up_min_score: float | None = None) -> CorrelativeMatch | None:
+           runner_up_min_score: float | None = None, threads: int = 1) -> CorrelativeMatch | None:
     """Best pose of ``points_v`` within ``window_m`` / ``window_rad`` of ``initial_pose`` scoring
     above ``min_score``, or None. With ``ambiguity_m`` > 0 a second search reports the best score
     of a pose more than ``ambiguity_m`` / ``ambiguity_rad`` from the best one (at least
@@ -258,7 +305,9 @@ def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, wind
     gives: a third search over every pose farther than ``line_half_width_m`` from the line through
     the two, or turned more than ``ambiguity_rad`` from the best. When nothing there reaches the
     runner-up share, the match is ambiguous only along that line, and ``line_direction`` holds the
-    line's unit direction (submap frame): the heading is still found."""
+    line's unit direction (submap frame): the heading is still found.
+
+    Each search runs in ``threads`` threads (the result does not depend on it)."""
     points_v = np.ascontiguousarray(points_v, np.float64)
     n = len(points_v)
     if n == 0:
@@ -271,7 +320,8 @@ def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, wind
     cells = _rotated_cells(points_v, x0, y0, th0, step, n_half, float(grid.origin_m[0]), float(grid.origin_m[1]),
                            1.0 / res)
     min_total = int(min_score * MAX_VALUE * n)
-    a, dx, dy, total = branch_and_bound(grid.pyramid, cells, window_cells, min_total, 0, 0, 0, -1, 0, 0.0, 0.0)
+    shards = max(1, int(threads))
+    a, dx, dy, total = branch_and_bound(grid.pyramid, cells, window_cells, min_total, 0, 0, 0, -1, 0, 0.0, 0.0, shards)
     if a < 0:
         return None
     pose = np.array([x0 + dx * res, y0 + dy * res, th0 + (a - n_half) * step])
@@ -283,7 +333,7 @@ def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, wind
     ex_cells = int(math.ceil(ambiguity_m / res))
     ex_angles = int(math.ceil(ambiguity_rad / step))
     a2, dx2, dy2, total2 = branch_and_bound(grid.pyramid, cells, window_cells, floor, a, dx, dy, ex_angles,
-                                            ex_cells, 0.0, 0.0)
+                                            ex_cells, 0.0, 0.0, shards)
     if a2 < 0:
         return CorrelativeMatch(pose=pose, score=float(score), runner_up_score=0.0)
     runner_up_pose = np.array([x0 + dx2 * res, y0 + dy2 * res, th0 + (a2 - n_half) * step])
@@ -293,7 +343,7 @@ def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, wind
         u = np.array([dx2 - dx, dy2 - dy], np.float64)
         u /= np.hypot(u[0], u[1])
         a3, _, _, _ = branch_and_bound(grid.pyramid, cells, window_cells, floor, a, dx, dy, ex_angles,
-                                       int(math.ceil(line_half_width_m / res)), float(u[0]), float(u[1]))
+                                       int(math.ceil(line_half_width_m / res)), float(u[0]), float(u[1]), shards)
         if a3 < 0:
             line = u
     return CorrelativeMatch(pose=pose, score=float(score), runner_up_score=float(total2 / (MAX_VALUE * n)),

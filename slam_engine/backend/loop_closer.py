@@ -29,7 +29,6 @@ building's loops close, keep it in check even where no pose closure is found.
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
@@ -246,7 +245,6 @@ class LoopCloser:
                  unverified: np.ndarray | None = None, threads: int = 1):
         self.config = config
         self.threads = max(1, int(threads))
-        self._pool: ThreadPoolExecutor | None = None
         self.path = np.asarray(path, np.float64)
         # steps whose motion from the key frame before the front end did not verify by a scan match
         self.unverified = np.zeros(len(self.path), bool) if unverified is None else np.array(unverified, bool)
@@ -299,16 +297,6 @@ class LoopCloser:
 
     def run(self) -> LoopClosingResult:
         """Search every key frame for loops, in time order, and optimise the graph."""
-        if self.threads < 2:
-            return self._run()
-        with ThreadPoolExecutor(self.threads, thread_name_prefix="loop-closing") as pool:
-            self._pool = pool
-            try:
-                return self._run()
-            finally:
-                self._pool = None
-
-    def _run(self) -> LoopClosingResult:
         c = self.config
         n = len(self.path)
         est = self.path.copy()
@@ -401,8 +389,8 @@ class LoopCloser:
     def _search_node(self, k: int, est: np.ndarray, travel_to: np.ndarray, closures: list[Closure]
                      ) -> _Found | None:
         """Match key frame k against its candidate submaps (``travel_to``: :meth:`_uncertain_travel`);
-        the best verified one (a pose closure before a heading closure), or None. The candidates'
-        searches run in ``threads`` threads (each is independent: the result does not depend on it)."""
+        the best verified one (a pose closure before a heading closure), or None. Each candidate's
+        search runs in ``threads`` threads (the result does not depend on it)."""
         c = self.config
         best: tuple[tuple[bool, float], _Found] | None = None
         first_record = len(closures)
@@ -423,10 +411,7 @@ class LoopCloser:
             if len(points) < MIN_OVERLAP_POINTS:
                 continue
             tasks.append(_Candidate(s, grid, initial, points, window_m, window_rad))
-        if self._pool is not None and len(tasks) > 1:
-            results = list(self._pool.map(lambda task: self._match(k, task), tasks))
-        else:
-            results = [self._match(k, task) for task in tasks]
+        results = [self._match(k, task) for task in tasks]
         for task, result in zip(tasks, results, strict=True):
             if result is None:
                 continue
@@ -468,7 +453,7 @@ class LoopCloser:
     def _match(self, k: int, task: _Candidate) -> tuple[CorrelativeMatch, np.ndarray] | None:
         """The global match of key frame k's cloud against one candidate submap and its pose refined
         with the key frame's own scan (the older scans in the cloud carry the front end's relative
-        error: freiburg-079 0.0196 m instead of 0.0206), or None. Safe to run in threads."""
+        error: freiburg-079 0.0196 m instead of 0.0206), or None."""
         c = self.config
         # a window wider than confirm_window_m needs min_score_wide: the search prunes with it (on
         # infinite-corridor-rough 40 % faster than pruning with min_score and rejecting after), while
@@ -478,7 +463,7 @@ class LoopCloser:
                        max(c.min_score, c.min_score_wide) if wide else c.min_score, runner_up_min_score=c.min_score,
                        ambiguity_m=c.ambiguity_m, ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio,
                        line_half_width_m=c.line_half_width_m if c.heading_closures else 0.0,
-                       line_half_width_rad=c.line_half_width_rad)
+                       line_half_width_rad=c.line_half_width_rad, threads=self.threads)
         if match is None:
             return None
         own = overlapping_points(task.grid, self.points_v[k], match.pose)
@@ -565,7 +550,7 @@ def close_loops(path: np.ndarray, points_v: list[np.ndarray], config: LoopClosin
                 unverified: np.ndarray | None = None, threads: int = 1) -> LoopClosingResult:
     """Optimised key-frame poses for the front end's ``path`` (K, 3) and key-frame end points;
     ``unverified`` (K,) bool marks the steps whose motion the front end did not verify by a scan match.
-    A key frame's candidate submaps are matched in up to ``threads`` threads (same result for any)."""
+    Each global search runs in ``threads`` threads (same result for any: :func:`correlative.branch_and_bound`)."""
     if not config.enabled or len(path) < 3:
         return LoopClosingResult(poses=np.asarray(path, np.float64).copy())
     return LoopCloser(path, points_v, config, resolution_m, unverified, threads).run()
