@@ -377,14 +377,16 @@ class LoopCloser:
         if self._links_matrix is None or self._links_matrix[0] != len(self._closure_links):
             n = len(self.path)
             step = np.maximum(np.diff(self.travel_m), 1e-3) + self.config.unverified_travel_m * self._rejected[1:]
-            rows = [np.arange(n - 1)] + [np.array([i for i, _ in self._closure_links], np.int64)]
-            cols = [np.arange(1, n)] + [np.array([j for _, j in self._closure_links], np.int64)]
-            weights = [step, np.full(len(self._closure_links), CLOSURE_TRAVEL_M)]
-            matrix = csr_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+            rows = np.concatenate([np.arange(n - 1), np.array([i for i, _ in self._closure_links], np.int64)])
+            cols = np.concatenate([np.arange(1, n), np.array([j for _, j in self._closure_links], np.int64)])
+            weights = np.concatenate([step, np.full(len(self._closure_links), CLOSURE_TRAVEL_M)])
+            # both directions stored: a directed search then needs no transpose per call
+            matrix = csr_matrix((np.concatenate([weights, weights]), (np.concatenate([rows, cols]),
+                                                                      np.concatenate([cols, rows]))), shape=(n, n))
             self._links_matrix = (len(self._closure_links), matrix)
         c = self.config
         limit = (c.max_window_m - c.base_window_m) / max(c.window_per_m, 1e-9)
-        return dijkstra(self._links_matrix[1], directed=False, indices=k, limit=limit)
+        return dijkstra(self._links_matrix[1], directed=True, indices=k, limit=limit)
 
     def _search_node(self, k: int, est: np.ndarray, travel_to: np.ndarray, closures: list[Closure]
                      ) -> _Found | None:
