@@ -22,13 +22,15 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 KERNEL_MODULES = ("slam_engine.grid", "slam_engine.map_pooling", "slam_engine.raycast", "slam_engine.scan_matcher",
-                  "slam_engine.backend.correlative", "slam_engine.backend.submaps")
+                  "slam_engine.backend.correlative", "slam_engine.backend.submaps",
+                  "slam_engine.backend.travel_graph")
 # Kernels a run calls from Python (the others are compiled into these).
 ENTRY_KERNELS = ("grid._privatize", "map_pooling.pool_known_max", "raycast.collect_touched_tiles",
                  "raycast.integrate_rays", "raycast._integrate_particle", "raycast.clear_marks",
                  "scan_matcher.match_particles",
                  "scan_matcher.score_particles", "correlative._rotated_cells", "correlative.branch_and_bound",
-                 "correlative._refine", "submaps._blurred_hits")
+                 "correlative._refine", "submaps._blurred_hits",
+                 "travel_graph.shortest_distances")
 
 
 def kernels() -> dict[str, Any]:
@@ -86,6 +88,9 @@ def warm_up() -> dict[str, list[str]]:
                    ambiguity_rad=0.1, runner_up_share=0.9)
     if match is not None:
         refine_pose(match_grid_from_points(wall, 0.05, 1.0), wall, match.pose)
+    from slam_engine.backend.travel_graph import adjacency, shortest_distances
+
+    shortest_distances(*adjacency(3, np.array([0, 1]), np.array([1, 2]), np.array([1.0, 1.0])), 0, 10.0)
     return compile_report()
 
 

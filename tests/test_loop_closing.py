@@ -497,3 +497,17 @@ def test_map_alignment_builds_its_map_a_stretch_at_a_time() -> None:
         assert box[2] - box[0] <= max(15.0, *own) and box[3] - box[1] <= max(15.0, *own)
         for k in nodes:
             assert (placed[k] >= box[:2] - 1e-9).all() and (placed[k] <= box[2:] + 1e-9).all()
+
+
+def test_travel_graph_distances_are_the_shortest_paths_within_the_limit() -> None:
+    """A chain of 1 m steps 0-1-2-3-4 with a 0.5 m shortcut 0-4: node 4 is 0.5 m away, node 3 1.5 m
+    (through 4, not 3 m along the chain); beyond the limit, or unconnected, is inf."""
+    from slam_engine.backend.travel_graph import adjacency, shortest_distances
+
+    graph = adjacency(6, np.array([0, 1, 2, 3, 0]), np.array([1, 2, 3, 4, 4]), np.array([1.0, 1.0, 1.0, 1.0, 0.5]))
+    np.testing.assert_array_equal(shortest_distances(*graph, 0, 10.0), [0.0, 1.0, 2.0, 1.5, 0.5, np.inf])
+    np.testing.assert_array_equal(shortest_distances(*graph, 2, 1.5), [np.inf, 1.0, 0.0, 1.0, np.inf, np.inf])
+    with pytest.raises(ValueError, match="positive"):
+        adjacency(2, np.array([0]), np.array([1]), np.array([0.0]))
+    with pytest.raises(ValueError, match="outside"):
+        adjacency(2, np.array([0]), np.array([2]), np.array([1.0]))

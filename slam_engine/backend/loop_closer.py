@@ -30,18 +30,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from slam_engine.backend.correlative import CorrelativeMatch, MatchGrid, angular_step_rad, refine_pose, search
 from slam_engine.backend.pose_graph import PoseGraph
 from slam_engine.backend.submaps import Submap, SubmapGrids, split_into_submaps
+from slam_engine.backend.travel_graph import adjacency, shortest_distances
 from slam_engine.config import LoopClosingConfig
 from slam_engine.poses import compose, place_points, relative, wrap_angle
-
-if TYPE_CHECKING:  # scipy.sparse (~25 MB) is imported by the back end itself, after the front end's peak
-    from scipy.sparse import csr_matrix
 
 # how much drift an accepted closure leaves between the key frames it joins, in metres of travel
 CLOSURE_TRAVEL_M = 1.0
@@ -273,7 +270,8 @@ class LoopCloser:
                                  unobserved=c.unobserved_score)
         self.graph = self._motion_graph()
         self._closure_links: list[tuple[int, int]] = []
-        self._links_matrix: tuple[int, csr_matrix] | None = None
+        # (closures it holds, adjacency) of the drive-distance graph, rebuilt when closures are added
+        self._links: tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
         self._accepted: list[_Found] = []
 
     def _motion_graph(self) -> PoseGraph:
@@ -371,22 +369,16 @@ class LoopCloser:
         """(K,) how much drive separates key frame k from every other in the graph so far [m]: the
         shortest path over front-end motions (their travel) and accepted closures (each worth
         ``CLOSURE_TRAVEL_M``). Drift, and so the search window, grows with it."""
-        from scipy.sparse import csr_matrix
-        from scipy.sparse.csgraph import dijkstra
-
-        if self._links_matrix is None or self._links_matrix[0] != len(self._closure_links):
+        if self._links is None or self._links[0] != len(self._closure_links):
             n = len(self.path)
             step = np.maximum(np.diff(self.travel_m), 1e-3) + self.config.unverified_travel_m * self._rejected[1:]
-            rows = np.concatenate([np.arange(n - 1), np.array([i for i, _ in self._closure_links], np.int64)])
-            cols = np.concatenate([np.arange(1, n), np.array([j for _, j in self._closure_links], np.int64)])
-            weights = np.concatenate([step, np.full(len(self._closure_links), CLOSURE_TRAVEL_M)])
-            # both directions stored: a directed search then needs no transpose per call
-            matrix = csr_matrix((np.concatenate([weights, weights]), (np.concatenate([rows, cols]),
-                                                                      np.concatenate([cols, rows]))), shape=(n, n))
-            self._links_matrix = (len(self._closure_links), matrix)
+            start = np.concatenate([np.arange(n - 1), np.array([i for i, _ in self._closure_links], np.int64)])
+            end = np.concatenate([np.arange(1, n), np.array([j for _, j in self._closure_links], np.int64)])
+            length = np.concatenate([step, np.full(len(self._closure_links), CLOSURE_TRAVEL_M)])
+            self._links = (len(self._closure_links), adjacency(n, start, end, length))
         c = self.config
         limit = (c.max_window_m - c.base_window_m) / max(c.window_per_m, 1e-9)
-        return dijkstra(self._links_matrix[1], directed=True, indices=k, limit=limit)
+        return shortest_distances(*self._links[1], k, limit)
 
     def _search_node(self, k: int, est: np.ndarray, travel_to: np.ndarray, closures: list[Closure]
                      ) -> _Found | None:
