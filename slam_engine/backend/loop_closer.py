@@ -405,8 +405,8 @@ class LoopCloser:
             if len(points) < MIN_OVERLAP_POINTS:
                 continue
             tasks.append(_Candidate(s, grid, initial, points, window_m, window_rad))
-        results = [self._match(k, task) for task in tasks]
-        for task, result in zip(tasks, results, strict=True):
+        for task in tasks:
+            result = self._match(k, task)
             if result is None:
                 continue
             match, pose = result

@@ -41,14 +41,12 @@ def shortest_distances(indptr, neighbours, lengths, source, limit):
     inf where it is longer than ``limit`` or there is none."""
     n = indptr.shape[0] - 1
     dist = np.full(n, np.inf)
-    done = np.zeros(n, np.bool_)
     dist[source] = 0.0
     heap = [(0.0, source)]
     while len(heap):
         d, u = heapq.heappop(heap)
-        if done[u]:
+        if d > dist[u]:  # a stale entry: u was reached by a shorter path since
             continue
-        done[u] = True
         for e in range(indptr[u], indptr[u + 1]):
             v = neighbours[e]
             candidate = d + lengths[e]
