@@ -22,14 +22,14 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 KERNEL_MODULES = ("slam_engine.grid", "slam_engine.map_pooling", "slam_engine.raycast", "slam_engine.scan_matcher",
-                  "slam_engine.backend.correlative", "slam_engine.backend.submaps",
+                  "slam_engine.backend.correlative", "slam_engine.backend.submaps", "slam_engine.backend.polygon_fill",
                   "slam_engine.backend.travel_graph")
 # Kernels a run calls from Python (the others are compiled into these).
 ENTRY_KERNELS = ("grid._privatize", "map_pooling.pool_known_max", "raycast.collect_touched_tiles",
                  "raycast.integrate_rays", "raycast._integrate_particle", "raycast.clear_marks",
                  "scan_matcher.match_particles",
                  "scan_matcher.score_particles", "correlative._rotated_cells", "correlative.branch_and_bound",
-                 "correlative._refine", "submaps._blurred_hits",
+                 "correlative._refine", "submaps._blurred_hits", "polygon_fill.fill_polygons",
                  "travel_graph.shortest_distances")
 
 
@@ -81,9 +81,10 @@ def warm_up() -> dict[str, list[str]]:
                                      np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]))
     # the back end's matcher (a short drive closes no loop): a wall seen twice
     from slam_engine.backend.correlative import refine_pose, search
-    from slam_engine.backend.submaps import match_grid_from_points
+    from slam_engine.backend.submaps import match_grid_from_points, observed_mask
 
     wall = np.stack([np.linspace(0.0, 4.0, 80), np.full(80, 2.0)], axis=1)
+    observed_mask([(np.array([2.0, 0.0]), wall)], np.array([-1.0, -1.0]), (80, 120), 0.05)
     match = search(match_grid_from_points(wall, 0.05, 1.0), wall, np.zeros(3), 0.5, 0.1, 0.1, ambiguity_m=0.5,
                    ambiguity_rad=0.1, runner_up_share=0.9)
     if match is not None:

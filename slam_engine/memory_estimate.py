@@ -5,9 +5,8 @@ Where a run's memory goes (whole process, measured on the benchmark logs):
 
 - the interpreter and the libraries the front end needs (numpy, numba/llvmlite, pydantic): ~115 MB,
   numba's compiler context and the kernels loaded from the cache: ~70 MB. The back end's GTSAM
-  (~40 MB) and OpenCV (~15 MB: the submaps' polygons; camera data too) and the products' libraries
-  are imported when first used, after the front end's peak; pyproj and Open3D only for geo origins
-  and tilted LiDARs;
+  (~40 MB) and the products' libraries are imported when first used, after the front end's peak;
+  OpenCV (~15 MB) only for camera data, pyproj and Open3D only for geo origins and tilted LiDARs;
 - the log: its arrays, plus the parser's temporaries while loading (about 3x the arrays);
 - per scan: the key frames' ranges (the log's own rows), the back end's end points and the
   trajectories (:data:`SCAN_BYTES_PER_BEAM` a beam, an upper bound);

@@ -23,6 +23,7 @@ import numba as nb
 import numpy as np
 
 from slam_engine.backend.correlative import MatchGrid
+from slam_engine.backend.polygon_fill import fill_polygons
 from slam_engine.poses import compose, place_points, relative
 
 # weights of the blur around each end point's cell (a Gaussian of about 0.8 cells): matches a cell
@@ -79,18 +80,21 @@ def observed_mask(scans: list[tuple[np.ndarray, np.ndarray]], lo_m: np.ndarray, 
                   resolution_m: float) -> np.ndarray:
     """(H, W) bool: cells that a scan of ``scans`` (position, end points; grid frame [m]) saw, i.e.
     lie inside the polygon from its position through its end points in bearing order (the free space
-    it looked across, up to and including what it hit). Cell (0, 0)'s lower corner is at ``lo_m``."""
-    import cv2  # imported when used: OpenCV only for the back end's polygons
-
-    mask = np.zeros(shape, np.uint8)
-    shift = 4  # sub-cell vertex precision for fillPoly: 1/16 cell
+    it looked across, up to and including what it hit). Cell (0, 0)'s lower corner is at ``lo_m``.
+    Rasterised by :func:`~slam_engine.backend.polygon_fill.fill_polygons`."""
+    shift = 4  # sub-cell vertex precision: 1/16 cell
+    rings = []
     for origin, pts in scans:
         if len(pts) < 2:
             continue
         bearing = np.arctan2(pts[:, 1] - origin[1], pts[:, 0] - origin[0])
-        ring = np.vstack([origin[None, :], pts[np.argsort(bearing)]])
-        cells = np.round(((ring - lo_m) / resolution_m - 0.5) * (1 << shift)).astype(np.int32)
-        cv2.fillPoly(mask, [cells], 1, lineType=cv2.LINE_8, shift=shift)
+        rings.append(np.vstack([origin[None, :], pts[np.argsort(bearing)]]))
+    mask = np.zeros(shape, np.uint8)
+    if rings:
+        vertices = np.concatenate(rings)
+        cells = np.round(((vertices - lo_m) / resolution_m - 0.5) * (1 << shift)).astype(np.int64)
+        starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
+        fill_polygons(mask, np.ascontiguousarray(cells[:, 0]), np.ascontiguousarray(cells[:, 1]), starts, shift)
     return mask.astype(bool)
 
 
