@@ -12,7 +12,7 @@ Where a run's memory goes (whole process, measured on the benchmark logs):
   trajectories (:data:`SCAN_BYTES_PER_BEAM` a beam, an upper bound);
 - the particles' copy-on-write tile pool: the tiles of the area seen, plus the tiles each particle
   holds privately (touched since its map diverged: up to about :data:`PRIVATE_TILES_PER_PARTICLE`,
-  fewer on a small map), with a quarter of slack as the pool grows; the per-particle tile tables;
+  fewer on a small map), with the slack left as the pool grows (:data:`POOL_SLACK`); the per-particle tile tables;
 - the product map: the final grid (float32) and, while the products are written, its grey, ROS
   and track-mask rasters (one byte a cell each; the GeoTIFF and the PNG with the tracks are
   streamed), and the product map's own single-particle tiles: :data:`DENSE_BYTES_PER_CELL`;

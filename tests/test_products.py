@@ -504,7 +504,7 @@ def test_animation_places_snapshots_that_reach_past_the_final_map() -> None:
     big[150:155, 100:105] = 4.0  # a wall around x = -5 + 100.5 * 0.05 = 0.03 m, y = -5 + 152 * 0.05 = 2.6 m
     snapshot = MapSnapshot(scan_index=0, t_s=0.0, grid=OccupancyGrid(big, 0.05, -5.0, -5.0),
                            trajectory=Trajectory(np.zeros(2), np.zeros((2, 3))))
-    frames = animation_frames([snapshot], final, Trajectory(np.zeros(2), np.zeros((2, 3))), max_side_px=64)
+    frames = list(animation_frames([snapshot], final, Trajectory(np.zeros(2), np.zeros((2, 3))), max_side_px=64))
     assert len(frames) == 2 and frames[0].size == frames[1].size
     pixel_m = (299 * 0.05) / frames[0].size[0]
     col = int((0.15 - -5.0) / pixel_m)

@@ -10,6 +10,7 @@ are palette images with a fixed palette, so the GIF encoder has no colours to qu
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -38,10 +39,10 @@ _GRAY_TO_INDEX = np.rint(np.arange(256) * 254 / 255).astype(np.uint8)
 
 
 def animation_frames(snapshots: list[MapSnapshot], final_grid: OccupancyGrid, final_trajectory: Trajectory,
-                     max_side_px: int = MAX_SIDE_PX) -> list[Image.Image]:
-    """Palette frames: each snapshot, then the final map; canvases share the extent and scale
-    (the final grid's resolution times the smallest whole factor that brings the longer side to
-    <= ``max_side_px``)."""
+                     max_side_px: int = MAX_SIDE_PX) -> Iterator[Image.Image]:
+    """Palette frames, drawn as they are asked for: each snapshot, then the final map; canvases share
+    the extent and scale (the final grid's resolution times the smallest whole factor that brings the
+    longer side to <= ``max_side_px``)."""
     grids = [s.grid for s in snapshots] + [final_grid]
     res = final_grid.resolution_m
     left = min(g.origin_x_m for g in grids)
@@ -52,7 +53,6 @@ def animation_frames(snapshots: list[MapSnapshot], final_grid: OccupancyGrid, fi
     pixel_m = res * shrink
     width, height = max(1, round((right - left) / pixel_m)), max(1, round((top - bottom) / pixel_m))
     final = MapSnapshot(scan_index=-1, t_s=0.0, grid=final_grid, trajectory=final_trajectory)
-    frames = []
     for snapshot in [*snapshots, final]:
         grid = snapshot.grid.pooled(max(1, math.floor(pixel_m / snapshot.grid.resolution_m + 1e-9)))
         image = occupancy_image(grid)
@@ -76,15 +76,15 @@ def animation_frames(snapshots: list[MapSnapshot], final_grid: OccupancyGrid, fi
         if len(trajectory) > 1:
             points = [((x - left) / pixel_m, (top - y) / pixel_m) for x, y in trajectory.poses[:, :2]]
             ImageDraw.Draw(frame).line(points, fill=_TRAJECTORY_INDEX, width=1)
-        frames.append(frame)
-    return frames
+        yield frame
 
 
 def write_animation_gif(snapshots: list[MapSnapshot], final_grid: OccupancyGrid, final_trajectory: Trajectory,
                         path: str | Path, max_side_px: int = MAX_SIDE_PX) -> Path:
-    """Write the looping GIF (len(snapshots) + 1 frames; Pillow merges identical consecutive frames)."""
+    """Write the looping GIF (len(snapshots) + 1 frames; Pillow merges identical consecutive frames).
+    Frames are drawn one at a time as Pillow takes them (it keeps its own copy of each until it writes)."""
     frames = animation_frames(snapshots, final_grid, final_trajectory, max_side_px)
-    durations = [FRAME_DURATION_MS] * (len(frames) - 1) + [LAST_FRAME_DURATION_MS]
+    durations = [FRAME_DURATION_MS] * len(snapshots) + [LAST_FRAME_DURATION_MS]
     with atomic_path(path) as tmp:
-        frames[0].save(tmp, format="GIF", save_all=True, append_images=frames[1:], duration=durations, loop=0)
+        next(frames).save(tmp, format="GIF", save_all=True, append_images=frames, duration=durations, loop=0)
     return Path(path)
