@@ -156,6 +156,9 @@ def main(argv: list[str]) -> int:
 
     record["peak_process_mb"] = peak_resident_bytes() / 2**20  # the whole process, scoring included
     Path(argv[1]).write_text(json.dumps(record, indent=1))
+    import gc
+
+    gc.freeze()  # exits as `lidarmap run` does (service.cli.freeze_for_exit): no collections at teardown
     return 0
 
 

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import atexit
+import gc
+
 import typer
 
 from service.cli import bench_cmd, config_cmd, evaluate_cmd, formats_cmd, run_cmd, serve, submit_cmd, worker_cmd
@@ -49,4 +52,14 @@ worker_cmd.register(app)
 
 def main() -> None:
     """Console-script entry point."""
+    atexit.register(freeze_for_exit)  # registered first, so it runs after every other exit handler
     app()
+
+
+def freeze_for_exit() -> None:
+    """Spare the exiting process the interpreter's garbage collections over every object still
+    alive (numba's type system and the engine's: 0.35-0.4 s after ``lidarmap run`` on intel, 0.05 s
+    with this): those objects are frozen (:func:`gc.freeze`), so the collections that module
+    teardown runs skip them. They are still freed by reference counting; only reference cycles
+    left at exit are not collected, and the operating system takes their memory back."""
+    gc.freeze()
