@@ -41,27 +41,22 @@ def _line(mask, x1, y1, x2, y2):
     step_y = 1
     if dy < 0:
         dy, step_y = -dy, -1
+    # a cell along the major axis each step, and one along the minor axis when the error runs out
+    steep = dy > dx
+    major, minor = (dy, dx) if steep else (dx, dy)
+    major_x, major_y, minor_x, minor_y = (0, step_y, 1, 0) if steep else (1, 0, 0, step_y)
     x, y = x1, y1
-    if dy > dx:  # steep: a cell per row
-        err = dy - 2 * dx
-        for _ in range(dy + 1):
-            if 0 <= y < rows and 0 <= x < cols:
-                mask[y, x] = 1
-            if err < 0:
-                err += 2 * dy
-                x += 1
-            err -= 2 * dx
-            y += step_y
-    else:  # a cell per column
-        err = dx - 2 * dy
-        for _ in range(dx + 1):
-            if 0 <= y < rows and 0 <= x < cols:
-                mask[y, x] = 1
-            if err < 0:
-                err += 2 * dx
-                y += step_y
-            err -= 2 * dy
-            x += 1
+    err = major - 2 * minor
+    for _ in range(major + 1):
+        if 0 <= y < rows and 0 <= x < cols:
+            mask[y, x] = 1
+        if err < 0:
+            err += 2 * major
+            x += minor_x
+            y += minor_y
+        err -= 2 * minor
+        x += major_x
+        y += major_y
 
 
 @nb.njit(cache=True, nogil=True)
@@ -76,12 +71,12 @@ def _fill_one(mask, vx, vy, shift):
     edge_x = np.empty(n, np.int64)  # column at edge_y0 (XY_SHIFT fraction bits)
     edge_dx = np.empty(n, np.int64)  # column change per row
     n_edges = 0
+    rounding = np.int64(1) << (XY_SHIFT - 1)
     x0 = np.int64(vx[n - 1]) << (XY_SHIFT - shift)
     y0 = (np.int64(vy[n - 1]) + half) >> shift
     for i in range(n):
         x1 = np.int64(vx[i]) << (XY_SHIFT - shift)
         y1 = (np.int64(vy[i]) + half) >> shift
-        rounding = np.int64(1) << (XY_SHIFT - 1)
         _line(mask, (x0 + rounding) >> XY_SHIFT, y0, (x1 + rounding) >> XY_SHIFT, y1)
         if y0 != y1:
             edge_dx[n_edges] = _truncated_division(x1 - x0, y1 - y0)
@@ -96,7 +91,6 @@ def _fill_one(mask, vx, vy, shift):
     order = np.argsort(edge_y0[:n_edges], kind="mergesort")
     active = np.empty(n_edges, np.int64)  # the edges crossing the row, by their crossing's column
     crossing = np.empty(n_edges, np.int64)  # edge k's column on the row (XY_SHIFT fraction bits)
-    crossings = np.empty(n_edges, np.int64)  # the active edges' crossings, in order
     n_active = 0
     next_edge = 0
     for y in range(edge_y0[order[0]], min(edge_y1[:n_edges].max(), rows)):
@@ -123,11 +117,9 @@ def _fill_one(mask, vx, vy, shift):
             active[b + 1] = k
         if y < 0:
             continue
-        for a in range(n_active):
-            crossings[a] = crossing[active[a]]
         for a in range(0, n_active - 1, 2):
-            first = (crossings[a] + (np.int64(1) << XY_SHIFT) - 1) >> XY_SHIFT  # rounded up
-            last = crossings[a + 1] >> XY_SHIFT  # rounded down
+            first = (crossing[active[a]] + (np.int64(1) << XY_SHIFT) - 1) >> XY_SHIFT  # rounded up
+            last = crossing[active[a + 1]] >> XY_SHIFT  # rounded down
             for x in range(max(first, 0), min(last, cols - 1) + 1):
                 mask[y, x] = 1
 
