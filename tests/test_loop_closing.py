@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 
 from slam_engine.backend import map_alignment
-from slam_engine.backend.correlative import MatchGrid, branch_and_bound, max_pyramid, refine_pose, search
+from slam_engine.backend.correlative import (
+    MatchGrid,
+    branch_and_bound,
+    max_pyramid,
+    refine_pose,
+    refine_poses,
+    search,
+)
 from slam_engine.backend.loop_closer import OUTSCORED, LoopCloser, close_loops, overlap_score, overlapping_points
 from slam_engine.backend.map_alignment import align_to_map
 from slam_engine.backend.pose_graph import PoseGraph
@@ -488,8 +495,10 @@ def test_map_alignment_builds_its_map_a_stretch_at_a_time() -> None:
     """The stretches (:func:`map_alignment._chunks`) partition the key frames in order, each box holds
     its key frames' end points and stays within the size unless one key frame alone exceeds it."""
     truth, points = _office_key_frames()
+    points[3] = points[3][:0]  # a key frame without end points belongs to the stretch around it
     placed = [place_points(p, q) for p, q in zip(truth, points, strict=True)]
-    chunks = map_alignment._chunks(placed, 15.0)
+    starts = np.concatenate([[0], np.cumsum([len(p) for p in placed])])
+    chunks = map_alignment._chunks(np.concatenate(placed), starts, 15.0)
     assert len(chunks) > 5
     assert [k for nodes, _ in chunks for k in nodes] == list(range(len(truth)))
     for nodes, box in chunks:
@@ -497,6 +506,52 @@ def test_map_alignment_builds_its_map_a_stretch_at_a_time() -> None:
         assert box[2] - box[0] <= max(15.0, *own) and box[3] - box[1] <= max(15.0, *own)
         for k in nodes:
             assert (placed[k] >= box[:2] - 1e-9).all() and (placed[k] <= box[2:] + 1e-9).all()
+
+
+def test_refining_many_key_frames_at_once_gives_each_fit_refine_pose_gives() -> None:
+    """:func:`correlative.refine_poses` (key frames in threads, all or every second end point) returns
+    bit for bit what :func:`refine_pose` returns key frame by key frame, a fit pushed beyond its bound
+    (kept at its start) included; key frames not asked for keep their poses."""
+    truth, points = _office_key_frames()
+    placed = np.concatenate([place_points(p, q) for p, q in zip(truth, points, strict=True)])
+    grid = match_grid_from_points(placed, 0.05, 1.0, n_levels=0)
+    rng = np.random.default_rng(3)
+    start = truth + rng.normal(0.0, 1.0, truth.shape) * [0.02, 0.02, 0.005]
+    start[1] = truth[1] + [0.3, 0.0, 0.0]  # six cells off: its fit moves too far and keeps its start
+    vehicle = np.concatenate(points)
+    starts = np.concatenate([[0], np.cumsum([len(p) for p in points])])
+    nodes = np.arange(0, len(truth), 2)
+    for first, step in ((0, 1), (0, 2), (1, 2)):
+        many = refine_poses(grid, vehicle, starts, start, nodes, first=first, step=step)
+        for k in range(len(truth)):
+            one = refine_pose(grid, points[k][first::step], start[k]) if k in nodes else start[k]
+            assert np.array_equal(many[k], one), (first, step, k)
+    assert np.array_equal(many[1], start[1])  # not asked for
+    assert np.array_equal(refine_poses(grid, vehicle, starts, start, nodes[:1])[0],
+                          refine_pose(grid, points[0], start[0]))
+    fitted = refine_poses(grid, vehicle, starts, start, np.array([1]))
+    assert np.array_equal(fitted[1], start[1])  # beyond 1.5 cells: the start kept
+
+
+def test_a_key_frames_match_cloud_is_its_scans_placed_one_by_one() -> None:
+    """The cloud a key frame is matched with (:meth:`LoopCloser.match_cloud`): the end points of the key
+    frames over the last ``match_span_m`` of travel, each placed by its front-end pose relative to the
+    key frame's, thinned to ``max_points``, and each point's scan origin; the same values as placing
+    them scan by scan."""
+    truth, points = _office_key_frames()
+    config = LoopClosingConfig(match_span_m=3.0, max_points=400)
+    closer = LoopCloser(truth, points, config, 0.05)
+    k = len(truth) - 1
+    cloud, origins = closer.match_cloud(k)
+    first = int(np.searchsorted(closer.travel_m, closer.travel_m[k] - 3.0, side="left"))
+    assert first < k - 1
+    parts = [place_points(relative(truth[k], truth[j]), closer.points_v[j]) for j in range(k, first - 1, -1)]
+    froms = [np.repeat(relative(truth[k], truth[j])[None, :2], len(closer.points_v[j]), 0)
+             for j in range(k, first - 1, -1)]
+    every = int(np.ceil(sum(map(len, parts)) / 400))
+    assert every > 1 and len(cloud) <= 400
+    assert np.array_equal(cloud, np.concatenate(parts)[::every])
+    assert np.array_equal(origins, np.concatenate(froms)[::every])
 
 
 def test_travel_graph_distances_are_the_shortest_paths_within_the_limit() -> None:

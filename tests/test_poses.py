@@ -10,7 +10,10 @@ from slam_engine.poses import (
     interpolate,
     inverse,
     is_planar_4x4,
+    place_each,
+    place_points,
     planar_from_4x4,
+    point_bounds,
     relative,
     to_matrix,
     to_matrix_4x4,
@@ -55,3 +58,22 @@ def test_interpolate_takes_the_short_way_round_pi() -> None:
     assert abs(abs(mid[0, 2]) - np.pi) < 1e-9  # through pi, not through 0
     np.testing.assert_allclose(mid[1], poses[0])  # clamped before the start
     np.testing.assert_allclose(mid[2, :2], poses[1, :2])  # clamped after the end
+
+
+def test_placing_point_sets_at_once_equals_placing_them_one_by_one() -> None:
+    """place_each: every point at its own set's pose, bit for bit what place_points gives set by set."""
+    rng = np.random.default_rng(4)
+    poses = rng.uniform(-20, 20, (7, 3))
+    sets = [rng.uniform(-30, 30, (n, 2)) for n in (5, 0, 12, 1, 30, 8, 3)]
+    owner = np.repeat(np.arange(7), [len(p) for p in sets])
+    together = place_each(poses, np.concatenate(sets), owner)
+    assert np.array_equal(together, np.concatenate([place_points(p, q) for p, q in zip(poses, sets, strict=True)]))
+    every_third = place_each(poses, np.concatenate(sets)[::3], owner[::3])
+    assert np.array_equal(every_third, together[::3])
+
+
+def test_point_bounds_are_the_columns_extremes() -> None:
+    points = np.random.default_rng(5).normal(0.0, 10.0, (1001, 2))
+    low, high = point_bounds(points)
+    assert np.array_equal(low, points.min(axis=0)) and np.array_equal(high, points.max(axis=0))
+    assert np.array_equal(point_bounds(np.array([[1.0, -2.0]]))[1], [1.0, -2.0])

@@ -437,6 +437,11 @@ def _refine(values, origin_x, origin_y, inv_res, points_v, pose, iterations):
     return e
 
 
+# a refined pose farther than this from its start keeps the start [cells, rad]
+REFINE_MAX_SHIFT_CELLS = 1.5
+REFINE_MAX_TURN_RAD = 0.02
+
+
 def refine_pose(grid: MatchGrid, points_v: np.ndarray, pose: np.ndarray, iterations: int = 20) -> np.ndarray:
     """Sub-cell fit of ``pose`` (Levenberg-Marquardt on the bilinear grid values), kept within one
     cell and one angular step of the start (a lattice match is already that close)."""
@@ -444,6 +449,37 @@ def refine_pose(grid: MatchGrid, points_v: np.ndarray, pose: np.ndarray, iterati
     fitted = start.copy()
     _refine(grid.values, float(grid.origin_m[0]), float(grid.origin_m[1]), 1.0 / grid.resolution_m,
             np.ascontiguousarray(points_v, np.float64), fitted, iterations)
-    if np.hypot(*(fitted[:2] - start[:2])) > 1.5 * grid.resolution_m or abs(fitted[2] - start[2]) > 0.02:
+    if (np.hypot(*(fitted[:2] - start[:2])) > REFINE_MAX_SHIFT_CELLS * grid.resolution_m
+            or abs(fitted[2] - start[2]) > REFINE_MAX_TURN_RAD):
         return start
+    return fitted
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _refine_many(values, origin_x, origin_y, inv_res, points_v, starts, first, step, nodes, poses, iterations):
+    """:func:`_refine` of ``poses[k]`` (in place) for each ``k`` in ``nodes``, with the end points
+    ``points_v[starts[k] + first:starts[k + 1]:step]``; key frames in parallel threads (each fit
+    reads only the grid and writes only its own pose: the same poses as one by one)."""
+    for n in nb.prange(nodes.shape[0]):
+        k = nodes[n]
+        _refine(values, origin_x, origin_y, inv_res, points_v[starts[k] + first:starts[k + 1]:step], poses[k],
+                iterations)
+
+
+def refine_poses(grid: MatchGrid, points_v: np.ndarray, starts: np.ndarray, poses: np.ndarray, nodes: np.ndarray,
+                 first: int = 0, step: int = 1, iterations: int = 20) -> np.ndarray:
+    """:func:`refine_pose` for many key frames at once (in threads): (K, 3) ``poses`` with those of
+    ``nodes`` (indices) fitted, each onto ``grid`` with its end points ``points_v[starts[k] + first:
+    starts[k + 1]:step]`` ((N, 2) [m], vehicle frame; ``starts`` (K + 1,) row offsets); the other rows
+    as given. Each fit is the very one :func:`refine_pose` makes, and kept under the same bounds."""
+    start = np.asarray(poses, np.float64)
+    fitted = start.copy()
+    nodes = np.ascontiguousarray(nodes, np.int64)
+    _refine_many(grid.values, float(grid.origin_m[0]), float(grid.origin_m[1]), 1.0 / grid.resolution_m,
+                 np.ascontiguousarray(points_v, np.float64), np.ascontiguousarray(starts, np.int64), int(first),
+                 int(step), nodes, fitted, iterations)
+    moved = fitted[nodes] - start[nodes]
+    too_far = ((np.hypot(moved[:, 0], moved[:, 1]) > REFINE_MAX_SHIFT_CELLS * grid.resolution_m)
+               | (np.abs(moved[:, 2]) > REFINE_MAX_TURN_RAD))
+    fitted[nodes[too_far]] = start[nodes[too_far]]
     return fitted

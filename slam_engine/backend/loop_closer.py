@@ -38,7 +38,7 @@ from slam_engine.backend.pose_graph import PoseGraph
 from slam_engine.backend.submaps import Submap, SubmapGrids, split_into_submaps
 from slam_engine.backend.travel_graph import adjacency, shortest_distances
 from slam_engine.config import LoopClosingConfig
-from slam_engine.poses import compose, place_points, relative, wrap_angle
+from slam_engine.poses import compose, place_each, place_points, relative, wrap_angle
 
 # how much drift an accepted closure leaves between the key frames it joins, in metres of travel
 CLOSURE_TRAVEL_M = 1.0
@@ -251,6 +251,7 @@ class LoopCloser:
         c = config
         in_reach = [p[np.hypot(p[:, 0], p[:, 1]) <= c.match_range_m] for p in points_v]
         self.points_v = [_thin(p, c.max_points) for p in in_reach]
+        self.counts = np.array([len(p) for p in self.points_v], np.int64)
         # unverified with a scan to match: the match was rejected, so the motion may be off by more than
         # its model allows and the windows across it widen (a scan without returns says nothing of the
         # kind: with 10 % of a simulated office's scans blank, widening across those too lost the map)
@@ -478,13 +479,12 @@ class LoopCloser:
         first = int(np.searchsorted(self.travel_m, self.travel_m[k] - c.match_span_m, side="left"))
         if first >= k:
             return self.points_v[k], np.zeros_like(self.points_v[k])
-        parts, origins = [], []
-        for j in range(k, first - 1, -1):
-            T = relative(self.path[k], self.path[j])
-            parts.append(place_points(T, self.points_v[j]))
-            origins.append(np.broadcast_to(T[:2], (len(self.points_v[j]), 2)))
-        return (np.ascontiguousarray(_thin(np.concatenate(parts), c.max_points)),
-                np.ascontiguousarray(_thin(np.concatenate(origins), c.max_points)))
+        frames = np.arange(k, first - 1, -1)  # k first, then back along the drive
+        owner = _thin(np.repeat(np.arange(len(frames)), self.counts[frames]), c.max_points)
+        rows = _thin(np.arange(int(self.counts[frames].sum())), c.max_points)
+        T = relative(self.path[k], self.path[frames])  # each key frame in k's frame
+        points = np.concatenate([self.points_v[j] for j in frames.tolist()])[rows]
+        return place_each(T, points, owner), np.ascontiguousarray(T[owner, :2])
 
     def _agrees(self, first: _Found, second: _Found, est: np.ndarray) -> bool:
         """Whether two closures imply the same correction: the second key frame's pose from the first

@@ -4,7 +4,7 @@ After the pose graph, every key frame's pose still carries its own front-end err
 against the particle's map at that moment, and the proposal's draw around it. The map of all key
 frames at their optimised poses averages those errors away. Each key frame's scan is fitted onto
 that map (a blurred hit grid, :func:`~slam_engine.backend.submaps.match_grid_from_points`; sub-cell
-Levenberg-Marquardt, :func:`~slam_engine.backend.correlative.refine_pose`), the map is re-rendered
+Levenberg-Marquardt, :func:`~slam_engine.backend.correlative.refine_poses`), the map is re-rendered
 from the fitted poses and the scans fitted again (``passes``).
 
 The fits and the graph's poses are then combined by least squares
@@ -29,11 +29,11 @@ import math
 
 import numpy as np
 
-from slam_engine.backend.correlative import refine_pose
+from slam_engine.backend.correlative import refine_poses
 from slam_engine.backend.odometry_smoothing import smooth_with_odometry
 from slam_engine.backend.submaps import match_grid_from_points
 from slam_engine.odometry_noise import MAD_TO_SD, MATCH_SD_FLOOR, ODOMETRY_SD_FLOOR, NoiseEstimate, estimate_noise
-from slam_engine.poses import place_points, wrap_angle
+from slam_engine.poses import place_points, point_bounds, wrap_angle
 
 # a key frame needs this many end points to be fitted (fewer: it keeps its pose)
 MIN_POINTS = 30
@@ -43,22 +43,26 @@ MARGIN_M = 1.0
 CHUNK_M = 60.0
 
 
-def _chunks(placed: list[np.ndarray], size_m: float) -> list[tuple[range, np.ndarray]]:
-    """Runs of consecutive key frames whose end points (``placed``: world frame) fit in a box of
-    ``size_m`` (a key frame alone may exceed it), each with its box [x_min, y_min, x_max, y_max] [m]."""
+def _chunks(placed: np.ndarray, starts: np.ndarray, size_m: float) -> list[tuple[range, np.ndarray]]:
+    """Runs of consecutive key frames whose end points (``placed`` (N, 2), world frame; key frame k's
+    are rows ``starts[k]:starts[k + 1]``) fit in a box of ``size_m`` (a key frame alone may exceed
+    it), each with its box [x_min, y_min, x_max, y_max] [m]."""
+    counts = np.diff(starts)
+    filled = np.flatnonzero(counts)
+    lows = np.minimum.reduceat(placed, starts[filled], axis=0) if len(filled) else np.empty((0, 2))
+    highs = np.maximum.reduceat(placed, starts[filled], axis=0) if len(filled) else np.empty((0, 2))
     out: list[tuple[range, np.ndarray]] = []
     first, box = 0, None
-    for k, pts in enumerate(placed):
-        if not len(pts):
-            continue
-        own = np.concatenate([pts.min(axis=0), pts.max(axis=0)])
-        grown = own if box is None else np.concatenate([np.minimum(box[:2], own[:2]), np.maximum(box[2:], own[2:])])
+    for k, lo, hi in zip(filled.tolist(), lows.tolist(), highs.tolist(), strict=True):
+        own = lo + hi
+        grown = own if box is None else [min(box[0], lo[0]), min(box[1], lo[1]), max(box[2], hi[0]),
+                                         max(box[3], hi[1])]
         if box is not None and max(grown[2] - grown[0], grown[3] - grown[1]) > size_m:
-            out.append((range(first, k), box))
+            out.append((range(first, k), np.array(box)))
             first, grown = k, own
         box = grown
     if box is not None:
-        out.append((range(first, len(placed)), box))
+        out.append((range(first, len(counts)), np.array(box)))
     return out
 
 
@@ -71,27 +75,31 @@ def fit_to_map(poses: np.ndarray, points_v: list[np.ndarray], resolution_m: floa
     keeps its pose in both). The map is built a stretch of key frames at a time (``CHUNK_M``
     across, from every end point within its reach): a whole building's would take gigabytes."""
     poses = np.asarray(poses, np.float64)
-    ends = np.cumsum([len(p) for p in points_v])
-    everything = np.empty((int(ends[-1]) if len(ends) else 0, 2))
-    placed = np.split(everything, ends[:-1])  # each key frame's rows (views)
-    for pose, pts, rows in zip(poses, points_v, placed, strict=True):
-        rows[:] = place_points(pose, pts)
+    counts = np.array([len(p) for p in points_v], np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    vehicle = np.concatenate(points_v) if len(points_v) else np.empty((0, 2))
+    everything = np.empty_like(vehicle)
+    for pose, k in zip(poses, range(len(points_v)), strict=True):
+        everything[starts[k]:starts[k + 1]] = place_points(pose, points_v[k])
     fitted = poses.copy()
     even = poses.copy() if halves else None
     odd = poses.copy() if halves else None
     reach = MARGIN_M + 3 * resolution_m  # every end point whose blur reaches a cell the fits read
-    for nodes, box in _chunks(placed, CHUNK_M):
-        inside = ((everything[:, 0] >= box[0] - reach) & (everything[:, 0] <= box[2] + reach)
-                  & (everything[:, 1] >= box[1] - reach) & (everything[:, 1] <= box[3] + reach))
-        grid = match_grid_from_points(everything if inside.all() else everything[inside], resolution_m, MARGIN_M,
-                                      n_levels=0)
-        for k in nodes:
-            pts = points_v[k]
-            if len(pts) >= MIN_POINTS:
-                fitted[k] = refine_pose(grid, pts, poses[k])
-            if even is not None and odd is not None and len(pts) >= 2 * MIN_POINTS:
-                even[k] = refine_pose(grid, pts[0::2], poses[k])
-                odd[k] = refine_pose(grid, pts[1::2], poses[k])
+    lowest, highest = point_bounds(everything) if len(everything) else (np.zeros(2), np.zeros(2))
+    for nodes, box in _chunks(everything, starts, CHUNK_M):
+        if (lowest >= box[:2] - reach).all() and (highest <= box[2:] + reach).all():
+            near = everything
+        else:
+            near = everything[(everything[:, 0] >= box[0] - reach) & (everything[:, 0] <= box[2] + reach)
+                              & (everything[:, 1] >= box[1] - reach) & (everything[:, 1] <= box[3] + reach)]
+        grid = match_grid_from_points(near, resolution_m, MARGIN_M, n_levels=0)
+        ks = np.arange(nodes.start, nodes.stop)
+        chunk = counts[ks]
+        fitted[ks] = refine_poses(grid, vehicle, starts, poses, ks[chunk >= MIN_POINTS])[ks]
+        if even is not None and odd is not None:
+            halved = ks[chunk >= 2 * MIN_POINTS]
+            even[ks] = refine_poses(grid, vehicle, starts, poses, halved, first=0, step=2)[ks]
+            odd[ks] = refine_poses(grid, vehicle, starts, poses, halved, first=1, step=2)[ks]
     return fitted, even, odd
 
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from slam_engine.backend.correlative import MatchGrid
 from slam_engine.backend.polygon_fill import fill_polygons
-from slam_engine.poses import compose, place_points, relative
+from slam_engine.poses import compose, place_points, point_bounds, relative
 
 # weights of the blur around each end point's cell (a Gaussian of about 0.8 cells): matches a cell
 # off still score, but less; the cell itself has weight 1
@@ -108,8 +108,9 @@ def match_grid_from_points(points_m: np.ndarray, resolution_m: float, margin_m: 
     there is neither a hit nor a miss (what the submap never looked at cannot contradict a scan)."""
     if margin_m < resolution_m:
         raise ValueError(f"match_grid_from_points: margin_m {margin_m} is less than a cell ({resolution_m} m)")
-    lo = points_m.min(axis=0) - margin_m
-    hi = points_m.max(axis=0) + margin_m
+    lowest, highest = point_bounds(points_m)
+    lo = lowest - margin_m
+    hi = highest + margin_m
     shape = (int(np.ceil((hi[1] - lo[1]) / resolution_m)) + 2, int(np.ceil((hi[0] - lo[0]) / resolution_m)) + 2)
     values = _blurred_hits(np.ascontiguousarray(points_m, np.float64), float(lo[0]), float(lo[1]), float(resolution_m),
                            shape[0], shape[1], BLUR_SIDE, BLUR_CORNER)
@@ -118,7 +119,7 @@ def match_grid_from_points(points_m: np.ndarray, resolution_m: float, margin_m: 
         seen = observed_mask(scans, lo, shape, resolution_m)
         values = np.where(seen, values, np.maximum(values, _to_uint8(np.float32(unobserved))))
     grid = MatchGrid.from_values(values, lo, resolution_m, n_levels)
-    grid.bounds_m = np.concatenate([points_m.min(axis=0), points_m.max(axis=0)])
+    grid.bounds_m = np.concatenate([lowest, highest])
     grid.observed = seen
     return grid
 
