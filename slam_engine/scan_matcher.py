@@ -165,15 +165,17 @@ def _evaluate(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_
 
 @nb.njit(cache=True, nogil=True)
 def _fit_level(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride, pose, prior_pose, prior_w,
-               iterations):
-    """Damped Gauss-Newton (Levenberg-Marquardt) on one level; updates ``pose`` in place."""
-    H = np.zeros((3, 3))
+               iterations, H):
+    """Damped Gauss-Newton (Levenberg-Marquardt) on one level; updates ``pose`` in place. Returns
+    :func:`_evaluate`'s (E, sum M, n) at the final pose (without the prior), and leaves its ``H`` in
+    ``H`` (3, 3)."""
     g = np.zeros(3)
     H2 = np.zeros((3, 3))
     g2 = np.zeros(3)
     A = np.zeros((3, 3))
-    e, _, _ = _evaluate(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride,
-                        pose[0], pose[1], pose[2], H, g)
+    e, m_sum, n = _evaluate(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride,
+                            pose[0], pose[1], pose[2], H, g)
+    e_data = e
     d0 = pose[0] - prior_pose[0]
     d1 = pose[1] - prior_pose[1]
     d2 = pose[2] - prior_pose[2]
@@ -192,12 +194,12 @@ def _fit_level(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points
         step = np.linalg.solve(A, b)
         for a in range(3):
             cand[a] = pose[a] + step[a]
-        e2, _, _ = _evaluate(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride,
-                             cand[0], cand[1], cand[2], H2, g2)
+        e2_data, m_sum2, n2 = _evaluate(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, stride,
+                                        cand[0], cand[1], cand[2], H2, g2)
         d0 = cand[0] - prior_pose[0]
         d1 = cand[1] - prior_pose[1]
         d2 = cand[2] - prior_pose[2]
-        e2 += prior_w[0] * d0 * d0 + prior_w[1] * d1 * d1 + prior_w[2] * d2 * d2
+        e2 = e2_data + prior_w[0] * d0 * d0 + prior_w[1] * d1 * d1 + prior_w[2] * d2 * d2
         if e2 < e:
             for a in range(3):
                 pose[a] = cand[a]
@@ -206,6 +208,7 @@ def _fit_level(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points
                     H[a, c] = H2[a, c]
             small = abs(step[0]) + abs(step[1]) < 2e-3 / inv_res and abs(step[2]) < 5e-5
             e = e2
+            e_data, m_sum, n = e2_data, m_sum2, n2
             lam *= 0.3
             if small:
                 break
@@ -213,6 +216,7 @@ def _fit_level(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points
             lam *= 8.0
             if lam > 1e4:
                 break
+    return e_data, m_sum, n
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
@@ -308,10 +312,11 @@ def _match_one(squash, levels0, levels1, levels2, levels3, tables, tile_x0, tile
             pool = levels1
         else:
             pool = levels0
-        _fit_level(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, strides[level], pose, prior,
-                   prior_w, iterations[level])
-    e, m_sum, n = _evaluate(squash, levels0, tables, p, tile_x0, tile_y0, TILE_SHIFT, 1.0 / resolution_m, points_v, 1,
-                            pose[0], pose[1], pose[2], H, g)
+        e, m_sum, n = _fit_level(squash, pool, tables, p, tile_x0, tile_y0, shift, inv_res, points_v, strides[level],
+                                 pose, prior, prior_w, iterations[level], H)
+    if strides[0] != 1:  # level 0's fit read every strides[0]-th point: the outputs hold all of them
+        e, m_sum, n = _evaluate(squash, levels0, tables, p, tile_x0, tile_y0, TILE_SHIFT, 1.0 / resolution_m, points_v,
+                                1, pose[0], pose[1], pose[2], H, g)
     out_poses[k, 0] = pose[0]
     out_poses[k, 1] = pose[1]
     out_poses[k, 2] = pose[2]
