@@ -480,8 +480,9 @@ class LoopCloser:
         if first >= k:
             return self.points_v[k], np.zeros_like(self.points_v[k])
         frames = np.arange(k, first - 1, -1)  # k first, then back along the drive
-        owner = _thin(np.repeat(np.arange(len(frames)), self.counts[frames]), c.max_points)
-        rows = _thin(np.arange(int(self.counts[frames].sum())), c.max_points)
+        counts = self.counts[frames]
+        owner = _thin(np.repeat(np.arange(len(frames)), counts), c.max_points)
+        rows = _thin(np.arange(int(counts.sum())), c.max_points)
         T = relative(self.path[k], self.path[frames])  # each key frame in k's frame
         points = np.concatenate([self.points_v[j] for j in frames.tolist()])[rows]
         return place_each(T, points, owner), np.ascontiguousarray(T[owner, :2])

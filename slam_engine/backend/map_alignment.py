@@ -54,7 +54,7 @@ def _chunks(placed: np.ndarray, starts: np.ndarray, size_m: float) -> list[tuple
     out: list[tuple[range, np.ndarray]] = []
     first, box = 0, None
     for k, lo, hi in zip(filled.tolist(), lows.tolist(), highs.tolist(), strict=True):
-        own = lo + hi
+        own = [*lo, *hi]  # [x_min, y_min, x_max, y_max]
         grown = own if box is None else [min(box[0], lo[0]), min(box[1], lo[1]), max(box[2], hi[0]),
                                          max(box[3], hi[1])]
         if box is not None and max(grown[2] - grown[0], grown[3] - grown[1]) > size_m:
@@ -79,8 +79,8 @@ def fit_to_map(poses: np.ndarray, points_v: list[np.ndarray], resolution_m: floa
     starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     vehicle = np.concatenate(points_v) if len(points_v) else np.empty((0, 2))
     everything = np.empty_like(vehicle)
-    for pose, k in zip(poses, range(len(points_v)), strict=True):
-        everything[starts[k]:starts[k + 1]] = place_points(pose, points_v[k])
+    for k, (pose, pts) in enumerate(zip(poses, points_v, strict=True)):
+        everything[starts[k]:starts[k + 1]] = place_points(pose, pts)
     fitted = poses.copy()
     even = poses.copy() if halves else None
     odd = poses.copy() if halves else None
