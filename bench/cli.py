@@ -105,7 +105,8 @@ def accuracy(
 
     def progress(record: dict) -> None:
         if record.get("status") == "ok":
-            console.print(f"  {record['case']} seed {record['seed']}: process {fmt(record.get('process_s'), 1)} s, "
+            console.print(f"  {record['case']} seed {record['seed']}: run {fmt(record.get('run_process_s'), 1)} s "
+                          f"(process with scoring {fmt(record.get('process_s'), 1)} s), "
                           f"SLAM {fmt(record.get('wall_s'), 1)} s, products {fmt(record.get('products_s'), 2)} s, "
                           f"peak run {fmt(record.get('peak_run_mb'), 0)} MB (process with scoring "
                           f"{fmt(record.get('peak_memory_mb'), 0)} MB)", highlight=False)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from slam_engine.drive_log import DriveLog
 from slam_engine.result import OccupancyGrid, Trajectory
@@ -51,13 +52,24 @@ def scan_endpoints_world(log: DriveLog, trajectory: Trajectory, max_range_m: flo
     return points
 
 
+# p > OCCUPIED_PROBABILITY, as log-odds: no exp over every cell of a large map
+_OCCUPIED_LOG_ODDS = float(np.log(OCCUPIED_PROBABILITY / (1.0 - OCCUPIED_PROBABILITY)))
+
+
 def _occupied(grid: OccupancyGrid) -> np.ndarray:
-    return grid.probability() > OCCUPIED_PROBABILITY
+    """Occupied cells (probability above ``OCCUPIED_PROBABILITY``), cropped to the box around them
+    with a free margin of one cell (what the neighbour and edge counts below read: the rest of a
+    large map is empty)."""
+    occupied = grid.log_odds > _OCCUPIED_LOG_ODDS
+    rows, cols = np.flatnonzero(occupied.any(axis=1)), np.flatnonzero(occupied.any(axis=0))
+    if len(rows) == 0:
+        return np.zeros((0, 0), bool)
+    return np.pad(occupied[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1], 1)
 
 
 def wall_thickness_m(grid: OccupancyGrid) -> float:
     """2 x occupied area / boundary length [m] (NaN for a map without occupied cells)."""
-    occupied = np.pad(_occupied(grid), 1)
+    occupied = _occupied(grid)
     area = int(occupied.sum())
     if area == 0:
         return float("nan")
@@ -75,20 +87,28 @@ def occupied_with_neighbour(grid: OccupancyGrid) -> float:
     return float(np.mean(neighbours[occupied] > 0))
 
 
-def _hit_cells(points: np.ndarray, origin: np.ndarray, shape: tuple[int, int], resolution_m: float,
-               min_hits: int) -> np.ndarray:
+def _hit_cells(points: np.ndarray, origin: np.ndarray, resolution_m: float, min_hits: int) -> np.ndarray:
+    """(K, 2) integer (x, y) cells, counted from ``origin`` [m], that hold at least ``min_hits`` of
+    ``points`` (N, 2) [m]; NaN points are dropped."""
     points = points[np.isfinite(points[:, 0])]
     cells = np.floor((points - origin) / resolution_m).astype(np.int64)
-    counts = np.zeros(shape, dtype=np.int64)
-    np.add.at(counts, (cells[:, 1], cells[:, 0]), 1)
-    return counts >= min_hits
+    if len(cells) == 0:
+        return np.zeros((0, 2), np.int64)
+    # one integer per cell (cells are >= 0 from the origin), counted by sorting: no dense grid
+    rows = int(cells[:, 1].max()) + 1
+    keys, counts = np.unique(cells[:, 0] * rows + cells[:, 1], return_counts=True)
+    keys = keys[counts >= min_hits]
+    return np.column_stack([keys // rows, keys % rows])
 
 
 def half_agreement(endpoints: np.ndarray, resolution_m: float = AGREEMENT_RESOLUTION_M,
                    window_m: float = AGREEMENT_WINDOW_M, min_hits: int = 2) -> dict:
     """Agreement of the walls seen in the first and the second half of the scans (module docstring).
 
-    ``endpoints`` (N_scans, N_beams, 2) as from :func:`scan_endpoints_world`."""
+    ``endpoints`` (N_scans, N_beams, 2) as from :func:`scan_endpoints_world`. Each hit cell's distance
+    to the other half's nearest hit cell is the Euclidean distance between cell indices (what a
+    distance transform of the other half's hit grid gives), found with a k-d tree over the hit cells
+    alone: a long drive's dense grid (tens of millions of cells) took seconds."""
     half = endpoints.shape[0] // 2
     first, second = endpoints[:half].reshape(-1, 2), endpoints[half:].reshape(-1, 2)
     every = endpoints.reshape(-1, 2)
@@ -96,15 +116,14 @@ def half_agreement(endpoints: np.ndarray, resolution_m: float = AGREEMENT_RESOLU
     if half == 0 or every.shape[0] == 0:
         return {"half_agreement": float("nan"), "half_mean_offset_m": float("nan"), "half_overlap_cells": 0}
     origin = every.min(axis=0) - 2 * resolution_m
-    shape_xy = np.floor((every.max(axis=0) - origin) / resolution_m).astype(int) + 3
-    shape = (int(shape_xy[1]), int(shape_xy[0]))
-    hits = [_hit_cells(part, origin, shape, resolution_m, min_hits) for part in (first, second)]
-    distances = [ndimage.distance_transform_edt(~h) * resolution_m if h.any() else None for h in hits]
+    hits = [_hit_cells(part, origin, resolution_m, min_hits) for part in (first, second)]
+    reach_cells = window_m / resolution_m + 1.0  # farther neighbours are outside the window anyway
     offsets = []
-    for mine, theirs in ((hits[0], distances[1]), (hits[1], distances[0])):
-        if theirs is None:
+    for mine, theirs in ((hits[0], hits[1]), (hits[1], hits[0])):
+        if len(theirs) == 0 or len(mine) == 0:
             continue
-        distance = theirs[mine]
+        cells_away, _ = cKDTree(theirs).query(mine, distance_upper_bound=reach_cells)
+        distance = cells_away * resolution_m
         offsets.append(distance[distance <= window_m])
     all_offsets = np.concatenate(offsets) if offsets else np.zeros(0)
     if all_offsets.size == 0:

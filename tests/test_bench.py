@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 from rich.console import Console
+from scipy import ndimage
 
 from bench.cases import cases_for_path, simulated_cases
 from bench.cli import parse_seeds
@@ -138,9 +139,14 @@ def test_json_records_every_seed_with_consistent_numbers(bench_run):
         assert (products / "occupancy.png").exists() and (products / "run.json").exists()
         assert run["products_s"] > 0 and run["products_share"] == pytest.approx(run["products_s"] / run["wall_s"])
         assert run["process_s"] > run["import_s"] + run["load_s"] + run["wall_s"] + run["products_s"]
+        # what `lidarmap run` costs: the process less the bench's scoring after the products
+        assert 0 < run["scoring_s"] < run["process_s"]
+        assert run["run_process_s"] == pytest.approx(run["process_s"] - run["scoring_s"])
+        assert run["run_process_s"] > run["import_s"] + run["load_s"] + run["wall_s"] + run["products_s"]
         assert run["config"]["snapshot_every_scans"] == 1  # 12 scans // 40 frames, at least 1
     summary = written["summaries"][0]
     assert summary["products_s"] == sorted(r["products_s"] for r in runs)[1]  # median of 3
+    assert summary["run_process_s"] == sorted(r["run_process_s"] for r in runs)[1]
 
 
 def test_summary_takes_median_and_worst_seed(bench_run):
@@ -211,6 +217,65 @@ def test_map_numbers_on_hand_made_grids():
     shifted = np.stack([wall, wall + [0.0, 0.3]])
     moved = half_agreement(shifted, 0.05)
     assert moved["half_agreement"] == 0.0 and moved["half_mean_offset_m"] == pytest.approx(0.3, abs=0.03)
+
+
+def _dense_half_agreement(endpoints: np.ndarray, resolution_m: float, window_m: float, min_hits: int) -> dict:
+    """The half agreement by its definition on a dense grid: each half's hit cells, the distance
+    transform of the other half's, read at them."""
+    every = endpoints.reshape(-1, 2)
+    every = every[np.isfinite(every[:, 0])]
+    origin = every.min(axis=0) - 2 * resolution_m
+    shape_xy = np.floor((every.max(axis=0) - origin) / resolution_m).astype(int) + 3
+    hits = []
+    for part in (endpoints[:len(endpoints) // 2], endpoints[len(endpoints) // 2:]):
+        points = part.reshape(-1, 2)
+        points = points[np.isfinite(points[:, 0])]
+        cells = np.floor((points - origin) / resolution_m).astype(np.int64)
+        counts = np.zeros((shape_xy[1], shape_xy[0]), np.int64)
+        np.add.at(counts, (cells[:, 1], cells[:, 0]), 1)
+        hits.append(counts >= min_hits)
+    offsets = []
+    for mine, theirs in ((hits[0], hits[1]), (hits[1], hits[0])):
+        distance = ndimage.distance_transform_edt(~theirs)[mine] * resolution_m
+        offsets.append(distance[distance <= window_m])
+    every_offset = np.concatenate(offsets)
+    if every_offset.size == 0:
+        return {"half_agreement": float("nan"), "half_mean_offset_m": float("nan"), "half_overlap_cells": 0}
+    return {"half_agreement": float(np.mean(every_offset <= resolution_m * 1.5)),
+            "half_mean_offset_m": float(np.mean(every_offset)), "half_overlap_cells": int(every_offset.size)}
+
+
+def test_half_agreement_equals_the_distance_transform_definition():
+    rng = np.random.default_rng(3)
+    overlapping = 0
+    for trial in range(20):
+        scans, beams = int(rng.integers(2, 30)), int(rng.integers(5, 80))
+        # walls seen from both halves with a small offset, plus clutter and no-return beams
+        endpoints = rng.uniform(-3, 3, (scans, beams, 2))
+        endpoints[scans // 2:, : beams // 2] = endpoints[: scans - scans // 2, : beams // 2] + rng.normal(0, 0.04, 2)
+        endpoints[rng.random((scans, beams)) < 0.1] = np.nan
+        for min_hits in (1, 2):
+            expected = _dense_half_agreement(endpoints, 0.05, 0.5, min_hits)
+            got = half_agreement(endpoints, 0.05, 0.5, min_hits)
+            assert got["half_overlap_cells"] == expected["half_overlap_cells"], trial
+            overlapping += got["half_overlap_cells"] > 0
+            assert got["half_agreement"] == pytest.approx(expected["half_agreement"], abs=1e-12, nan_ok=True)
+            assert got["half_mean_offset_m"] == pytest.approx(expected["half_mean_offset_m"], abs=1e-12, nan_ok=True)
+    assert overlapping >= 20  # most trials compare real overlaps, not two NaNs
+
+
+def test_map_numbers_ignore_empty_map_around_the_walls():
+    """A wall on the grid's border, and the same wall inside a much larger empty map: same numbers."""
+    wall = np.zeros((6, 30))
+    wall[0, :] = 3.0
+    wall[3, 5:9] = 3.0
+    large = np.zeros((200, 300))
+    large[50:56, 100:130] = wall
+    for f in (wall_thickness_m, occupied_with_neighbour):
+        assert f(OccupancyGrid(wall, 0.05, 0.0, 0.0)) == f(OccupancyGrid(large, 0.05, 0.0, 0.0))
+    edges = 2 * 30 + 2 + 2 * 4 + 2  # the border row's two long sides and ends, the short wall's
+    assert wall_thickness_m(OccupancyGrid(wall, 0.05, 0.0, 0.0)) == pytest.approx(2 * 34 / edges * 0.05)
+    assert np.isnan(wall_thickness_m(OccupancyGrid(np.zeros((4, 4)), 0.05, 0.0, 0.0)))
 
 
 def test_parse_seeds():
