@@ -136,6 +136,47 @@ def _rebuild_coarse(levels0, levels1, levels2, levels3, tables, touched, n_touch
                     dst[t, i, j] = m if m > m2 else m2
 
 
+@nb.njit(cache=True, nogil=True)
+def _tiles_to_grid(levels0, table, r0, r1, c0, c1, archive_index, archive_tiles, pool, scale):
+    """The float32 log-odds grid of the tiles of ``table`` (one particle's tile table) in rows
+    ``r0:r1`` and columns ``c0:c1``, each cell its stored value (plus that of the archived tile
+    ``archive_tiles[archive_index[r, c]]`` where the index is not -1) divided by ``scale``; 0 where
+    no tile is. With ``pool`` > 1 the grid pooled as :func:`~slam_engine.map_pooling.pool_known_max`
+    pools it (each block the largest of its known, non-zero cells), without the full-resolution
+    grid: the largest stored value of a block, divided once (division by a positive scale keeps the
+    order, rounding included, and only a stored 0 gives 0)."""
+    tile = levels0.shape[1]
+    h = (r1 - r0) * tile
+    w = (c1 - c0) * tile
+    unknown = np.iinfo(np.int32).min
+    best = np.full(((h + pool - 1) // pool, (w + pool - 1) // pool), unknown, np.int32)
+    block_of = np.empty(tile, np.int64)
+    for c in range(c0, c1):
+        for j in range(tile):
+            block_of[j] = ((c - c0) * tile + j) // pool
+        for r in range(r0, r1):
+            t = table[r, c]
+            a = archive_index[r, c]
+            if t < 0 and a < 0:
+                continue
+            for i in range(tile):
+                row = best[((r - r0) * tile + i) // pool]
+                for j in range(tile):
+                    stored = np.int32(0)
+                    if t >= 0:
+                        stored += np.int32(levels0[t, i, j])
+                    if a >= 0:
+                        stored += np.int32(archive_tiles[a, i, j])
+                    if stored != 0 and stored > row[block_of[j]]:
+                        row[block_of[j]] = stored
+    out = np.zeros(best.shape, np.float32)
+    for i in range(best.shape[0]):
+        for j in range(best.shape[1]):
+            if best[i, j] != unknown:
+                out[i, j] = np.float32(best[i, j]) / scale
+    return out
+
+
 class ParticleGrids:
     """Occupancy maps of ``n_particles`` particles sharing copy-on-write tiles.
 
@@ -156,8 +197,10 @@ class ParticleGrids:
         self._mark = np.zeros((self.n_particles, 1, 1), np.uint8)
         self.clock_m = 0.0  # travel so far [m], advanced by the filter
         self.touched_at = np.full((1, 1), -np.inf)  # clock_m when a scan last touched each tile position
-        # forgotten level-0 tiles of the leading particle, by global (tile y, tile x): previews show them
-        self.archive: dict[tuple[int, int], np.ndarray] = {}
+        # forgotten level-0 tiles of the leading particle: previews show them. Stacked (``archive_tiles``,
+        # slot by global (tile y, tile x) in ``archive_slots``), so that a map is drawn without copying them
+        self.archive_tiles = np.zeros((0, TILE, TILE), POOL_DTYPE)
+        self.archive_slots: dict[tuple[int, int], int] = {}
 
     # --- geometry -------------------------------------------------------------------------
     @property
@@ -167,6 +210,11 @@ class ParticleGrids:
     @property
     def tile_size_m(self) -> float:
         return TILE * self.resolution_m
+
+    @property
+    def archive(self) -> dict[tuple[int, int], np.ndarray]:
+        """The forgotten level-0 tiles of the leading particle by global (tile y, tile x) (views)."""
+        return {key: self.archive_tiles[slot] for key, slot in self.archive_slots.items()}
 
     def world_to_cell(self, x_m: np.ndarray, y_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global level-0 cell indices of map-frame points [m]."""
@@ -263,14 +311,28 @@ class ParticleGrids:
             if t < 0:
                 continue
             key = (int(self.tile_y0 + ty), int(self.tile_x0 + tx))
-            kept = self.archive.get(key)
+            slot = self.archive_slots.get(key)
             tile = self.levels[0][t]
-            self.archive[key] = tile.copy() if kept is None else np.clip(
-                kept.astype(np.int32) + tile, log_odds_min, log_odds_max).astype(POOL_DTYPE)
+            if slot is None:
+                slot = self._archive_slot(key)
+                self.archive_tiles[slot] = tile
+            else:
+                kept = self.archive_tiles[slot]
+                kept[...] = np.clip(kept.astype(np.int32) + tile, log_odds_min, log_odds_max)
         self.tables[:, stale] = -1
         self.touched_at[stale] = -np.inf
         self._recount()
         return int(stale.sum())
+
+    def _archive_slot(self, key: tuple[int, int]) -> int:
+        """A new archive slot for tile position ``key`` (the stack grows by a quarter when full)."""
+        slot = len(self.archive_slots)
+        if slot == len(self.archive_tiles):  # copied, not resized in place: views of it may be held
+            grown = np.zeros((slot + slot // 4 + 16, TILE, TILE), POOL_DTYPE)
+            grown[:slot] = self.archive_tiles
+            self.archive_tiles = grown
+        self.archive_slots[key] = slot
+        return slot
 
     def keep_only(self, particle: int | None) -> None:
         """Drop every map but particle ``particle``'s (None: every map): the other tables are emptied
@@ -289,7 +351,8 @@ class ParticleGrids:
         self.free_stack = np.zeros(0, np.int32)
         self.n_free = 0
         if particle is None:
-            self.archive = {}
+            self.archive_tiles = np.zeros((0, TILE, TILE), POOL_DTYPE)
+            self.archive_slots = {}
 
     # --- reporting ------------------------------------------------------------------------
     def tiles_in_use(self) -> int:
@@ -299,13 +362,13 @@ class ParticleGrids:
         """Bytes held by the pool, the tables and the scratch buffers."""
         return int(sum(lv.nbytes for lv in self.levels) + self.refcount.nbytes + self.free_stack.nbytes
                    + self.tables.nbytes + self._mark.nbytes + self._touched.nbytes + self.touched_at.nbytes
-                   + sum(tile.nbytes for tile in self.archive.values()))
+                   + self.archive_tiles.nbytes)
 
     def _observed_tiles(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
         """Rows and columns (of the tables) of the tiles of ``particle``'s map and of the archive."""
         rows, cols = np.nonzero(self.tables[particle] >= 0)
-        if self.archive:
-            keys = np.array(list(self.archive), np.int64)
+        if self.archive_slots:
+            keys = np.array(list(self.archive_slots), np.int64)
             rows = np.concatenate([rows, keys[:, 0] - self.tile_y0])
             cols = np.concatenate([cols, keys[:, 1] - self.tile_x0])
         return rows, cols
@@ -320,40 +383,21 @@ class ParticleGrids:
     def occupancy_grid(self, particle: int, pool: int = 1) -> OccupancyGrid:
         """Particle ``particle``'s level-0 map (with the archive's forgotten tiles added) as a dense
         float32 grid cropped to its observed tiles; with ``pool`` > 1, that grid pooled by ``pool``
-        (:meth:`OccupancyGrid.pooled`), built a few tile rows at a time so that the full-resolution
-        grid never exists."""
-        table = self.tables[particle]
+        (:meth:`OccupancyGrid.pooled`), built from the tiles (:func:`_tiles_to_grid`) so that the
+        full-resolution grid never exists."""
         rows, cols = self._observed_tiles(particle)
         if len(rows) == 0:
             return OccupancyGrid(np.zeros((1, 1), np.float32), self.resolution_m, 0.0, 0.0)
-        r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
+        r0, r1, c0, c1 = int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1
         origin_x = float((self.tile_x0 + c0) * self.tile_size_m)
         origin_y = float((self.tile_y0 + r0) * self.tile_size_m)
         pool = max(1, int(pool))
-        # a band of `pool` tile rows pools to whole blocks (TILE rows): bands pool independently
-        band_tiles = r1 - r0 if pool == 1 else pool
+        archive_index = np.full(self.tables.shape[1:], -1, np.int32)
+        for (ty, tx), slot in self.archive_slots.items():
+            archive_index[ty - self.tile_y0, tx - self.tile_x0] = slot
+        archive_tiles = self.archive_tiles if len(self.archive_tiles) else np.zeros((1, TILE, TILE), POOL_DTYPE)
+        # the same float32 values as converting the whole int16 grid, then dividing
         scale = np.float32(1.0 / LOG_ODDS_UNIT)
-        archived_by_row: dict[int, dict[int, np.ndarray]] = {}  # table row -> {table column: archived tile}
-        for (ty, tx), kept_tile in self.archive.items():
-            archived_by_row.setdefault(ty - self.tile_y0, {})[tx - self.tile_x0] = kept_tile
-        bands = []
-        for b0 in range(r0, r1, band_tiles):
-            b1 = min(r1, b0 + band_tiles)
-            band = np.zeros(((b1 - b0) * TILE, (c1 - c0) * TILE), np.float32)
-            for r in range(b0, b1):
-                archived = archived_by_row.get(int(r), {})
-                for c in sorted(set(np.flatnonzero(table[r, c0:c1] >= 0).tolist()) | {a - c0 for a in archived}):
-                    t = table[r, c0 + c]
-                    kept = archived.get(c0 + c)
-                    if t < 0:
-                        assert kept is not None  # the column is in the table or in the archive
-                        tile = kept
-                    else:
-                        tile = self.levels[0][t] if kept is None else self.levels[0][t].astype(np.int32) + kept
-                    # the same float32 values as converting the whole int16 grid, then dividing
-                    np.divide(tile, scale, out=band[(r - b0) * TILE:(r - b0 + 1) * TILE, c * TILE:(c + 1) * TILE],
-                              dtype=np.float32)
-            if pool == 1:
-                return OccupancyGrid(band, self.resolution_m, origin_x, origin_y)
-            bands.append(OccupancyGrid(band, self.resolution_m, origin_x, origin_y).pooled(pool).log_odds)
-        return OccupancyGrid(np.concatenate(bands), self.resolution_m * pool, origin_x, origin_y)
+        grid = _tiles_to_grid(self.levels[0], self.tables[particle], r0, r1, c0, c1, archive_index, archive_tiles,
+                              pool, scale)
+        return OccupancyGrid(grid, self.resolution_m * pool, origin_x, origin_y)

@@ -110,3 +110,78 @@ def test_pooling_keeps_the_largest_known_value_of_each_block() -> None:
     pooled = OccupancyGrid(values, 0.05, 1.0, -2.0).pooled(2)
     assert pooled.log_odds.tolist() == [[-0.5, 1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]
     assert (pooled.resolution_m, pooled.origin_x_m, pooled.origin_y_m) == (0.1, 1.0, -2.0)
+
+
+def _scattered_scans(grids: ParticleGrids, rng: np.random.Generator, centre: tuple[float, float], scans: int) -> None:
+    """Scans of 60 beams (returns and no-returns) from poses scattered around ``centre`` [m]."""
+    angles = np.linspace(-np.pi, np.pi, 60, endpoint=False)
+    for _ in range(scans):
+        poses = np.column_stack([centre[0] + rng.normal(0, 1.0, grids.n_particles),
+                                 centre[1] + rng.normal(0, 1.0, grids.n_particles),
+                                 rng.uniform(-np.pi, np.pi, grids.n_particles)])
+        ranges = rng.uniform(1.0, 6.0, len(angles))
+        ends = np.column_stack([ranges * np.cos(angles), ranges * np.sin(angles)])
+        insert_scan(grids, poses, np.zeros(2), ends, rng.random(len(angles)) < 0.8, 0.9, -0.4, -5.0, 5.0)
+
+
+def test_pooled_maps_from_tiles_equal_pooling_the_full_map() -> None:
+    """A map drawn from the tiles at any pool factor equals the full-resolution map (live tiles plus
+    the archive's forgotten ones) pooled afterwards, bit for bit, also where a live and an archived
+    value cancel to 0 (unknown)."""
+    from slam_engine.result import OccupancyGrid
+
+    rng = np.random.default_rng(7)
+    grids = ParticleGrids(3, 0.05)
+    _scattered_scans(grids, rng, (0.0, 0.0), 6)
+    grids.clock_m = 50.0
+    _scattered_scans(grids, rng, (40.0, -10.0), 6)
+    assert grids.forget_stale(grids.clock_m - 30.0, 1, -500, 500) > 0  # the first place is archived
+    archived = len(grids.archive)
+    grids.clock_m = 60.0
+    _scattered_scans(grids, rng, (0.0, 0.0), 3)  # back there: live tiles over the archived ones
+    assert len(grids.archive) == archived and archived > 0
+    # a live value that cancels its archived one: the sum 0 is unknown, as in the full map
+    cancelled = 0
+    for (ty, tx), kept in grids.archive.items():
+        live = grids.tables[1, ty - grids.tile_y0, tx - grids.tile_x0]
+        if live >= 0 and grids.refcount[live] == 1 and np.any(kept != 0):
+            iy, ix = np.argwhere(kept != 0)[0]
+            grids.levels[0][live, iy, ix] = -kept[iy, ix]
+            cancelled += 1
+    assert cancelled > 0
+    full = grids.occupancy_grid(1)
+    # the full map assembled here tile by tile: live plus archived stored values, / 100 as float32
+    r0 = int(np.floor(full.origin_y_m / grids.tile_size_m + 0.5)) - grids.tile_y0
+    c0 = int(np.floor(full.origin_x_m / grids.tile_size_m + 0.5)) - grids.tile_x0
+    stored = np.zeros(full.shape, np.int32)
+    for (r, c), t in np.ndenumerate(grids.tables[1]):
+        if t >= 0:
+            stored[(r - r0) * TILE:(r - r0 + 1) * TILE, (c - c0) * TILE:(c - c0 + 1) * TILE] += grids.levels[0][t]
+    for (ty, tx), kept in grids.archive.items():
+        r, c = ty - grids.tile_y0 - r0, tx - grids.tile_x0 - c0
+        stored[r * TILE:(r + 1) * TILE, c * TILE:(c + 1) * TILE] += kept
+    np.testing.assert_array_equal(full.log_odds, stored.astype(np.float32) / np.float32(100.0))
+    assert np.any(full.log_odds > 0) and np.any(full.log_odds < 0)
+    for pool in range(1, 8):
+        pooled = grids.occupancy_grid(1, pool=pool)
+        expected = OccupancyGrid(full.log_odds, full.resolution_m, full.origin_x_m, full.origin_y_m).pooled(pool)
+        assert pooled.log_odds.shape == expected.log_odds.shape
+        np.testing.assert_array_equal(pooled.log_odds.view(np.uint32), expected.log_odds.view(np.uint32))
+        assert (pooled.resolution_m, pooled.origin_x_m, pooled.origin_y_m) == (
+            expected.resolution_m, expected.origin_x_m, expected.origin_y_m)
+
+
+def test_archive_grows_without_moving_the_tiles_it_holds() -> None:
+    grids = ParticleGrids(1, 0.05)
+    rng = np.random.default_rng(1)
+    views = []
+    for k in range(6):  # each place is forgotten once the drive is 30 m further on
+        grids.clock_m = 40.0 * k
+        _scattered_scans(grids, rng, (40.0 * k, 0.0), 2)
+        grids.forget_stale(grids.clock_m - 30.0, 0, -500, 500)
+        views.append({key: tile.copy() for key, tile in grids.archive.items()})
+    assert len(grids.archive) > 16  # the stack grew at least once
+    for key, tile in views[1].items():  # tiles archived early still hold their values
+        np.testing.assert_array_equal(grids.archive[key], tile)
+    grids.keep_only(None)
+    assert grids.archive == {} and grids.memory_bytes() < 10**6
