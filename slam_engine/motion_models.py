@@ -7,6 +7,7 @@ Increments are ``[dx_m, dy_m, dtheta_rad]`` in the vehicle frame at the start of
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -83,9 +84,26 @@ def lowpass_alpha(dt_s: float, cutoff_hz: float | None) -> float:
 
 def odometry_increments(odom_from: np.ndarray, odom_to: np.ndarray) -> np.ndarray:
     """(..., 3) ``[rot1_rad, trans_m, rot2_rad]`` between two odometry poses. Motion whose direction
-    points backwards gets a negative ``trans`` (so reversing is not a half turn)."""
+    points backwards gets a negative ``trans`` (so reversing is not a half turn). For one pair of
+    poses the (read-only) result is remembered: a filter step asks for the same pairs up to nine times."""
     odom_from = np.asarray(odom_from, dtype=np.float64)
     odom_to = np.asarray(odom_to, dtype=np.float64)
+    if odom_from.shape == (3,) and odom_to.shape == (3,):
+        return _pair_increments(odom_from.tobytes() + odom_to.tobytes())
+    return _increments(odom_from, odom_to)
+
+
+@functools.lru_cache(maxsize=16)
+def _pair_increments(poses: bytes) -> np.ndarray:
+    """:func:`odometry_increments` of one pair of poses, given as the bytes of their six float64 values."""
+    pair = np.frombuffer(poses, np.float64).reshape(2, 3)
+    increments = _increments(pair[0], pair[1])
+    increments.flags.writeable = False
+    return increments
+
+
+def _increments(odom_from: np.ndarray, odom_to: np.ndarray) -> np.ndarray:
+    """:func:`odometry_increments` of float64 arrays."""
     dx = odom_to[..., 0] - odom_from[..., 0]
     dy = odom_to[..., 1] - odom_from[..., 1]
     trans = np.hypot(dx, dy)

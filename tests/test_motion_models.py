@@ -124,3 +124,23 @@ def test_missing_calibration_and_missing_odometry_are_config_errors() -> None:
         dead_reckoning(log)
     with pytest.raises(ConfigError, match="no odometry source"):
         dead_reckoning(DriveLog(vehicle=_vehicle()))
+
+
+def test_increments_of_one_pair_equal_the_batched_ones_and_are_not_mixed_up() -> None:
+    """One pair's increments are remembered (a filter step asks for the same pairs repeatedly): each
+    pair still gets its own, the same values as computing them in a batch, and they cannot be altered."""
+    rng = np.random.default_rng(4)
+    starts = rng.uniform(-5, 5, (50, 3))
+    ends = starts + rng.normal(0, 0.3, (50, 3))
+    ends[::7] = starts[::7]  # standing still
+    batched = odometry_increments(starts, ends)
+    for _ in range(2):  # the second pass reads what the first remembered
+        for start, end, expected in zip(starts, ends, batched, strict=True):
+            got = odometry_increments(start, end)
+            np.testing.assert_array_equal(got, expected)
+            assert not got.flags.writeable
+    # a pose changed in place after a call gives the new pose's increments
+    pose = np.zeros(3)
+    first = odometry_increments(np.zeros(3), pose).copy()
+    pose[0] = 1.0
+    assert odometry_increments(np.zeros(3), pose)[1] == 1.0 and first[1] == 0.0
