@@ -54,9 +54,7 @@ def animation_frames(snapshots: list[MapSnapshot], final_grid: OccupancyGrid, fi
     width, height = max(1, round((right - left) / pixel_m)), max(1, round((top - bottom) / pixel_m))
     final = MapSnapshot(scan_index=-1, t_s=0.0, grid=final_grid, trajectory=final_trajectory)
     for snapshot in [*snapshots, final]:
-        kept = snapshot.grid  # a kept snapshot's grid decompresses at every read: read it once
-        grid = OccupancyGrid(kept.log_odds, kept.resolution_m, kept.origin_x_m, kept.origin_y_m)
-        grid = grid.pooled(max(1, math.floor(pixel_m / grid.resolution_m + 1e-9)))
+        grid = snapshot.grid.pooled(max(1, math.floor(pixel_m / snapshot.grid.resolution_m + 1e-9)))
         image = occupancy_image(grid)
         scale = grid.resolution_m / pixel_m
         if abs(scale - 1.0) > 1e-9:
