@@ -148,6 +148,25 @@ def _tiles_to_grid(levels0, table, r0, r1, c0, c1, archive_index, archive_tiles,
     tile = levels0.shape[1]
     h = (r1 - r0) * tile
     w = (c1 - c0) * tile
+    if pool == 1:  # each cell as it is: written straight into the float32 grid
+        full = np.zeros((h, w), np.float32)
+        for r in range(r0, r1):
+            for c in range(c0, c1):
+                t = table[r, c]
+                a = archive_index[r, c]
+                if t < 0 and a < 0:
+                    continue
+                for i in range(tile):
+                    row = full[(r - r0) * tile + i]
+                    for j in range(tile):
+                        stored = np.int32(0)
+                        if t >= 0:
+                            stored += np.int32(levels0[t, i, j])
+                        if a >= 0:
+                            stored += np.int32(archive_tiles[a, i, j])
+                        if stored != 0:
+                            row[(c - c0) * tile + j] = np.float32(stored) / scale
+        return full
     unknown = np.iinfo(np.int32).min
     best = np.full(((h + pool - 1) // pool, (w + pool - 1) // pool), unknown, np.int32)
     block_of = np.empty(tile, np.int64)
