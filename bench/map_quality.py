@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from slam_engine.drive_log import DriveLog
 from slam_engine.result import OccupancyGrid, Trajectory
@@ -115,6 +114,9 @@ def half_agreement(endpoints: np.ndarray, resolution_m: float = AGREEMENT_RESOLU
     every = every[np.isfinite(every[:, 0])]
     if half == 0 or every.shape[0] == 0:
         return {"half_agreement": float("nan"), "half_mean_offset_m": float("nan"), "half_overlap_cells": 0}
+    # imported here: the bench's worker imports this module before the run it measures (about 6 MB)
+    from scipy.spatial import cKDTree
+
     origin = every.min(axis=0) - 2 * resolution_m
     hits = [_hit_cells(part, origin, resolution_m, min_hits) for part in (first, second)]
     reach_cells = window_m / resolution_m + 1.0  # farther neighbours are outside the window anyway

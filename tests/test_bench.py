@@ -264,6 +264,17 @@ def test_half_agreement_equals_the_distance_transform_definition():
     assert overlapping >= 20  # most trials compare real overlaps, not two NaNs
 
 
+def test_scoring_libraries_are_not_loaded_before_the_measured_run():
+    """The worker imports the map numbers before the run whose peak memory it reports: what only the
+    scoring needs (scipy.spatial, about 6 MB) loads when the scoring runs."""
+    import subprocess
+    import sys
+
+    code = "import sys, bench.worker, bench.map_quality; print('scipy.spatial' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120)
+    assert out.stdout.strip() == "False"
+
+
 def test_map_numbers_ignore_empty_map_around_the_walls():
     """A wall on the grid's border, and the same wall inside a much larger empty map: same numbers."""
     wall = np.zeros((6, 30))
