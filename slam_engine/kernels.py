@@ -25,12 +25,12 @@ KERNEL_MODULES = ("slam_engine.grid", "slam_engine.map_pooling", "slam_engine.ra
                   "slam_engine.backend.correlative", "slam_engine.backend.submaps", "slam_engine.backend.polygon_fill",
                   "slam_engine.backend.travel_graph")
 # Kernels a run calls from Python (the others are compiled into these).
-ENTRY_KERNELS = ("grid._privatize", "grid._tiles_to_grid", "map_pooling.pool_known_max", "raycast.collect_touched_tiles",
-                 "raycast.integrate_rays", "raycast._integrate_particle", "raycast.clear_marks",
-                 "scan_matcher.match_particles",
-                 "scan_matcher.score_particles", "correlative._rotated_cells", "correlative.branch_and_bound",
-                 "correlative._refine", "correlative._refine_many", "submaps._blurred_hits",
-                 "polygon_fill.fill_polygons", "travel_graph.shortest_distances")
+ENTRY_KERNELS = ("grid._privatize", "grid._tiles_to_grid", "map_pooling.pool_known_max",
+                 "raycast.collect_touched_tiles", "raycast.integrate_rays", "raycast._integrate_particle",
+                 "raycast.clear_marks", "scan_matcher.match_particles", "scan_matcher.score_particles",
+                 "correlative._rotated_cells", "correlative.branch_and_bound", "correlative._refine",
+                 "correlative._refine_many", "submaps._blurred_hits", "polygon_fill.fill_polygons",
+                 "travel_graph.shortest_distances")
 
 
 def kernels() -> dict[str, Any]:
