@@ -148,46 +148,36 @@ def _tiles_to_grid(levels0, table, r0, r1, c0, c1, archive_index, archive_tiles,
     tile = levels0.shape[1]
     h = (r1 - r0) * tile
     w = (c1 - c0) * tile
-    if pool == 1:  # each cell as it is: written straight into the float32 grid
-        full = np.zeros((h, w), np.float32)
-        for r in range(r0, r1):
-            for c in range(c0, c1):
-                t = table[r, c]
-                a = archive_index[r, c]
-                if t < 0 and a < 0:
-                    continue
-                for i in range(tile):
-                    row = full[(r - r0) * tile + i]
-                    for j in range(tile):
-                        stored = np.int32(0)
-                        if t >= 0:
-                            stored += np.int32(levels0[t, i, j])
-                        if a >= 0:
-                            stored += np.int32(archive_tiles[a, i, j])
-                        if stored != 0:
-                            row[(c - c0) * tile + j] = np.float32(stored) / scale
-        return full
+    pooled = pool > 1
     unknown = np.iinfo(np.int32).min
-    best = np.full(((h + pool - 1) // pool, (w + pool - 1) // pool), unknown, np.int32)
-    block_of = np.empty(tile, np.int64)
+    # pooled: the largest stored value of each block; else the cells themselves, written as they come
+    best = np.full(((h + pool - 1) // pool, (w + pool - 1) // pool) if pooled else (1, 1), unknown, np.int32)
+    full = np.zeros((1, 1) if pooled else (h, w), np.float32)
+    column_of = np.empty(tile, np.int64)  # the output column of each cell column of a tile
     for c in range(c0, c1):
         for j in range(tile):
-            block_of[j] = ((c - c0) * tile + j) // pool
+            column_of[j] = ((c - c0) * tile + j) // pool
         for r in range(r0, r1):
             t = table[r, c]
             a = archive_index[r, c]
             if t < 0 and a < 0:
                 continue
             for i in range(tile):
-                row = best[((r - r0) * tile + i) // pool]
+                out_row = ((r - r0) * tile + i) // pool
                 for j in range(tile):
                     stored = np.int32(0)
                     if t >= 0:
                         stored += np.int32(levels0[t, i, j])
                     if a >= 0:
                         stored += np.int32(archive_tiles[a, i, j])
-                    if stored != 0 and stored > row[block_of[j]]:
-                        row[block_of[j]] = stored
+                    if stored == 0:
+                        continue
+                    if not pooled:
+                        full[out_row, column_of[j]] = np.float32(stored) / scale
+                    elif stored > best[out_row, column_of[j]]:
+                        best[out_row, column_of[j]] = stored
+    if not pooled:
+        return full
     out = np.zeros(best.shape, np.float32)
     for i in range(best.shape[0]):
         for j in range(best.shape[1]):
