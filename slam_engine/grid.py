@@ -373,14 +373,16 @@ class ParticleGrids:
                    + self.tables.nbytes + self._mark.nbytes + self._touched.nbytes + self.touched_at.nbytes
                    + self.archive_tiles.nbytes)
 
+    def _archived_positions(self) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and columns (of the tables) of the archived tiles, in slot order."""
+        keys = np.array(list(self.archive_slots), np.int64).reshape(-1, 2)
+        return keys[:, 0] - self.tile_y0, keys[:, 1] - self.tile_x0
+
     def _observed_tiles(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
         """Rows and columns (of the tables) of the tiles of ``particle``'s map and of the archive."""
         rows, cols = np.nonzero(self.tables[particle] >= 0)
-        if self.archive_slots:
-            keys = np.array(list(self.archive_slots), np.int64)
-            rows = np.concatenate([rows, keys[:, 0] - self.tile_y0])
-            cols = np.concatenate([cols, keys[:, 1] - self.tile_x0])
-        return rows, cols
+        archived_rows, archived_cols = self._archived_positions()
+        return np.concatenate([rows, archived_rows]), np.concatenate([cols, archived_cols])
 
     def observed_shape(self, particle: int) -> tuple[int, int]:
         """(rows, cols) of :meth:`occupancy_grid` of ``particle`` at full resolution (without making it)."""
@@ -401,12 +403,10 @@ class ParticleGrids:
         origin_x = float((self.tile_x0 + c0) * self.tile_size_m)
         origin_y = float((self.tile_y0 + r0) * self.tile_size_m)
         pool = max(1, int(pool))
-        archive_index = np.full(self.tables.shape[1:], -1, np.int32)
-        for (ty, tx), slot in self.archive_slots.items():
-            archive_index[ty - self.tile_y0, tx - self.tile_x0] = slot
-        archive_tiles = self.archive_tiles if len(self.archive_tiles) else np.zeros((1, TILE, TILE), POOL_DTYPE)
+        archive_index = np.full(self.tables.shape[1:], -1, np.int32)  # slots are numbered in insertion order
+        archive_index[self._archived_positions()] = np.arange(len(self.archive_slots), dtype=np.int32)
         # the same float32 values as converting the whole int16 grid, then dividing
         scale = np.float32(1.0 / LOG_ODDS_UNIT)
-        grid = _tiles_to_grid(self.levels[0], self.tables[particle], r0, r1, c0, c1, archive_index, archive_tiles,
-                              pool, scale)
+        grid = _tiles_to_grid(self.levels[0], self.tables[particle], r0, r1, c0, c1, archive_index,
+                              self.archive_tiles, pool, scale)
         return OccupancyGrid(grid, self.resolution_m * pool, origin_x, origin_y)
