@@ -378,10 +378,12 @@ class ParticleGrids:
         keys = np.array(list(self.archive_slots), np.int64).reshape(-1, 2)
         return keys[:, 0] - self.tile_y0, keys[:, 1] - self.tile_x0
 
-    def _observed_tiles(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
-        """Rows and columns (of the tables) of the tiles of ``particle``'s map and of the archive."""
+    def _observed_tiles(self, particle: int, archived: tuple[np.ndarray, np.ndarray] | None = None
+                        ) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and columns (of the tables) of the tiles of ``particle``'s map and of the archive
+        (``archived``: :meth:`_archived_positions`, when the caller has them already)."""
         rows, cols = np.nonzero(self.tables[particle] >= 0)
-        archived_rows, archived_cols = self._archived_positions()
+        archived_rows, archived_cols = self._archived_positions() if archived is None else archived
         return np.concatenate([rows, archived_rows]), np.concatenate([cols, archived_cols])
 
     def observed_shape(self, particle: int) -> tuple[int, int]:
@@ -396,7 +398,8 @@ class ParticleGrids:
         float32 grid cropped to its observed tiles; with ``pool`` > 1, that grid pooled by ``pool``
         (:meth:`OccupancyGrid.pooled`), built from the tiles (:func:`_tiles_to_grid`) so that the
         full-resolution grid never exists."""
-        rows, cols = self._observed_tiles(particle)
+        archived = self._archived_positions()
+        rows, cols = self._observed_tiles(particle, archived)
         if len(rows) == 0:
             return OccupancyGrid(np.zeros((1, 1), np.float32), self.resolution_m, 0.0, 0.0)
         r0, r1, c0, c1 = int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1
@@ -404,7 +407,7 @@ class ParticleGrids:
         origin_y = float((self.tile_y0 + r0) * self.tile_size_m)
         pool = max(1, int(pool))
         archive_index = np.full(self.tables.shape[1:], -1, np.int32)  # slots are numbered in insertion order
-        archive_index[self._archived_positions()] = np.arange(len(self.archive_slots), dtype=np.int32)
+        archive_index[archived] = np.arange(len(self.archive_slots), dtype=np.int32)
         # the same float32 values as converting the whole int16 grid, then dividing
         scale = np.float32(1.0 / LOG_ODDS_UNIT)
         grid = _tiles_to_grid(self.levels[0], self.tables[particle], r0, r1, c0, c1, archive_index,
