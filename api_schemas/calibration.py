@@ -1,5 +1,5 @@
 """Vehicle and LiDAR calibration as JSON: what a streaming session needs, since streamed messages
-carry none. Mirrors slam_engine.drive_log.VehicleModel and LidarModel (metres, radians)."""
+carry none. Mirrors slam_engine.model.drive_log.VehicleModel and LidarModel (metres, radians)."""
 
 from __future__ import annotations
 

@@ -36,7 +36,7 @@ from bench.cli import parse_seeds
 from bench.engine_profile import BENCHMARK, overrides_from_pairs
 
 if TYPE_CHECKING:
-    from slam_engine.result import Trajectory
+    from slam_engine.model.result import Trajectory
 
 # an accepted closure this far from the ground truth's relation is counted as false [m, rad]
 FALSE_CLOSURE_M = 0.4
@@ -72,9 +72,9 @@ def replay(recording: Path, overrides: dict) -> dict:
     and, where the log has relations, the key frames' relation errors."""
     from slam_engine.backend.loop_closer import close_loops
     from slam_engine.config import SlamConfig, merge_settings
-    from slam_engine.evaluation import files_beside_log, read_ground_truth, read_relations, relation_errors
-    from slam_engine.particle_filter import engine_threads
-    from slam_engine.result import Trajectory
+    from slam_engine.evaluation.metrics import files_beside_log, read_ground_truth, read_relations, relation_errors
+    from slam_engine.frontend.particle_filter import engine_threads
+    from slam_engine.model.result import Trajectory
 
     data = np.load(recording)
     config = SlamConfig.model_validate_json(str(data["config"]))
@@ -103,8 +103,8 @@ def false_closures(closures: list, key_frame_t_s: np.ndarray, truth: Trajectory,
     """Accepted closures whose matched pose of the key frame in its anchor's frame is more than
     ``max_m`` / ``max_rad`` off the ground truth's (a heading closure: in heading alone; key frames
     without a true pose are skipped)."""
-    from slam_engine.evaluation import match_times
-    from slam_engine.poses import relative, wrap_angle
+    from slam_engine.evaluation.metrics import match_times
+    from slam_engine.model.poses import relative, wrap_angle
 
     index = match_times(truth.t_s, key_frame_t_s)
     out = []

@@ -7,7 +7,7 @@ import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from slam_engine.evaluation import files_beside_log
+from slam_engine.evaluation.metrics import files_beside_log
 
 REPO_ROOT = Path(__file__).resolve().parent.parent  # a source checkout, or site-packages when installed
 SOURCE_CHECKOUT = (REPO_ROOT / "pyproject.toml").exists()
@@ -55,7 +55,7 @@ def _stem(path: Path) -> str:
 
 def case_for_log(log_path: Path) -> BenchCase:
     """A case for one log file (or log folder), with its relations and ground truth when they exist
-    (:func:`slam_engine.evaluation.files_beside_log`)."""
+    (:func:`slam_engine.evaluation.metrics.files_beside_log`)."""
     log_path = Path(log_path).resolve()
     name = _stem(log_path)
     relations, truth = files_beside_log(log_path)

@@ -5,7 +5,7 @@ belong to that run alone.
 [--heading-error 1.3,0.02]`` (the last distorts the odometry: :mod:`bench.odometry_bias`)
 
 Logs: ``intel``, ``freiburg`` (relation errors against the benchmark ground truth), ``exp2``,
-``malaga`` (maps only: half agreement, :mod:`bench.map_quality`), ``sim:<rig>`` (simulated drive, ATE
+``malaga`` (maps only: half agreement, :mod:`bench.agreement`), ``sim:<rig>`` (simulated drive, ATE
 against its exact ground truth, and the local relation error between consecutive scans, dead
 reckoning's beside both); every run with its estimated LiDAR time offset. Prints one line per run
 and a summary per log: median / worst accuracy, median CPU s (``time.process_time`` of the SLAM
@@ -54,7 +54,7 @@ def run_one(name: str, seed: int, particles: int, overrides: dict, heading_error
     import numpy as np
 
     from slam_engine.config import SlamConfig
-    from slam_engine.evaluation import absolute_trajectory_error, read_relations, relation_errors
+    from slam_engine.evaluation.metrics import absolute_trajectory_error, read_relations, relation_errors
     from slam_engine.pipeline import run_slam
 
     root = datasets_root()
@@ -88,13 +88,13 @@ def run_one(name: str, seed: int, particles: int, overrides: dict, heading_error
         record["loop_rot_deg"] = rel.loop.rot_mean_deg
         record["local_m"], record["loop_m"] = rel.local.trans_mean_m, rel.loop.trans_mean_m
     if name in MAPS_ONLY:
-        from bench.map_quality import half_agreement, scan_endpoints_world
+        from bench.agreement import half_agreement, scan_endpoints_world
 
         record["half_agreement"] = half_agreement(scan_endpoints_world(log, result.trajectory,
                                                                        config.grid.max_range_m))["half_agreement"]
     record["time_offset_s"] = result.input_summary.get("time_offset", {}).get("estimated_s")
     if truth is not None:
-        from slam_engine.evaluation import Relations
+        from slam_engine.evaluation.metrics import Relations
         from slam_engine.simulation import relations
 
         record["ate_m"] = absolute_trajectory_error(result.trajectory, truth)
@@ -103,7 +103,7 @@ def run_one(name: str, seed: int, particles: int, overrides: dict, heading_error
         rel = Relations(t1_s=true_rel[:, 0], t2_s=true_rel[:, 1], motion=true_rel[:, 2:])
         record["local_m"] = relation_errors(result.trajectory, rel).local.trans_mean_m
         record["dr_local_m"] = relation_errors(result.dead_reckoning, rel).local.trans_mean_m
-    from slam_engine.memory_estimate import peak_resident_bytes
+    from slam_engine.evaluation.memory_estimate import peak_resident_bytes
 
     record["peak_mb"] = peak_resident_bytes() / 2**20
     return record

@@ -12,8 +12,8 @@ import dataclasses
 
 import numpy as np
 
-from slam_engine.drive_log import DriveLog, OdometryStream
-from slam_engine.poses import compose, relative
+from slam_engine.model.drive_log import DriveLog, OdometryStream
+from slam_engine.model.poses import compose, relative
 
 
 def with_heading_error(log: DriveLog, scale: float, drift_rad_per_m: float = 0.0) -> DriveLog:

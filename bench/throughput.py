@@ -71,7 +71,7 @@ def workers(count: int, env: dict[str, str], folder: Path) -> Iterator[list[subp
         for i in range(count):
             with (folder / f"worker{i}.log").open("wb") as log:
                 processes.append(subprocess.Popen(
-                    [sys.executable, "-m", "service.cli", "worker", "--concurrency", "1",
+                    [sys.executable, "-m", "lidarmap.cli", "worker", "--concurrency", "1",
                      "--hostname", f"bench{i}@%h", "--loglevel", "warning"],
                     cwd=REPO_ROOT, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True))
         yield processes

@@ -49,7 +49,7 @@ def finite_or_none(value):
 
 def score(trajectory, relations, ground_truth) -> dict:
     """Relation metrics and ATE of one trajectory (None where there is nothing to score against)."""
-    from slam_engine.evaluation import absolute_trajectory_error, relation_errors
+    from slam_engine.evaluation.metrics import absolute_trajectory_error, relation_errors
 
     scores: dict = {"relations": None, "ate_m": None}
     if relations is not None:
@@ -64,7 +64,7 @@ def score(trajectory, relations, ground_truth) -> dict:
 
 def dead_reckoning_agreement(log, dead_reckoning, config) -> dict | None:
     """Half agreement of the scans placed with dead reckoning (the baseline for the SLAM map's)."""
-    from bench.map_quality import half_agreement, scan_endpoints_world
+    from bench.agreement import half_agreement, scan_endpoints_world
 
     if log.scans is None or log.lidar is None or not len(log.scans) or not len(dead_reckoning):
         return None
@@ -74,19 +74,18 @@ def dead_reckoning_agreement(log, dead_reckoning, config) -> dict | None:
 
 def run_job(job: dict) -> dict:
     """Run one (case, seed) job and return its JSON-ready record (see module docstring)."""
-    from bench.map_quality import map_quality
-    from slam_engine.config import SlamConfig
-    from slam_engine.evaluation import align_rigid_2d, read_ground_truth, read_relations
-    from slam_engine.memory_estimate import peak_resident_bytes
+    from bench.agreement import map_quality
+    from slam_engine.config import SlamConfig, merge_settings, shortcut_overrides
+    from slam_engine.evaluation.memory_estimate import peak_resident_bytes
+    from slam_engine.evaluation.metrics import align_rigid_2d, read_ground_truth, read_relations
+    from slam_engine.model.result import Trajectory
     from slam_engine.products import write_products
     from slam_engine.products.animation import snapshot_interval
     from slam_engine.products.rendering import occupancy_with_trajectories
-    from slam_engine.result import Trajectory
 
     case, seed = job["case"], int(job["seed"])
-    overrides = dict(job.get("config") or {}, seed=seed)
-    if job.get("particles") is not None:
-        overrides["particles"] = int(job["particles"])
+    shortcuts = shortcut_overrides({"seed": seed, "particles": job.get("particles")})
+    overrides = merge_settings(job.get("config") or {}, shortcuts)
     import_s = time.perf_counter() - STARTED_S
     started = time.perf_counter()
     log = resolve(job.get("loader") or DEFAULT_LOADER)(case["log_path"])
@@ -100,7 +99,7 @@ def run_job(job: dict) -> dict:
     run_slam = resolve(job.get("runner") or DEFAULT_RUNNER)
     peak_before_slam_mb = peak_resident_bytes() / 2**20  # this process's own (not ru_maxrss: see there)
     started = time.perf_counter()
-    result = run_slam(log, config, rng=np.random.default_rng(seed))
+    result = run_slam(log, config)
     wall_s = time.perf_counter() - started
     out_dir = Path(job["out_dir"])
     started = time.perf_counter()
@@ -117,7 +116,7 @@ def run_job(job: dict) -> dict:
     truth_in_map = None
     if ground_truth is not None and len(result.trajectory) >= 2:
         # Ground truth drawn over the map: rigidly aligned onto the estimate (its frame may differ).
-        from slam_engine.evaluation import match_times
+        from slam_engine.evaluation.metrics import match_times
 
         index = match_times(result.trajectory.t_s, ground_truth.t_s)
         if int((index >= 0).sum()) >= 2:
@@ -157,13 +156,13 @@ def main(argv: list[str]) -> int:
         return 2
     job = json.loads(Path(argv[0]).read_text())
     record = run_job(job)
-    from slam_engine.memory_estimate import peak_resident_bytes
+    from slam_engine.evaluation.memory_estimate import peak_resident_bytes
 
     record["peak_process_mb"] = peak_resident_bytes() / 2**20  # the whole process, scoring included
     Path(argv[1]).write_text(json.dumps(record, indent=1))
     import gc
 
-    gc.freeze()  # exits as `lidarmap run` does (service.cli.freeze_for_exit): no collections at teardown
+    gc.freeze()  # exits as `lidarmap run` does (lidarmap.cli.freeze_for_exit): no collections at teardown
     return 0
 
 

@@ -83,7 +83,7 @@ class HeadingCalibrationConfig(_Section):
 
 class OdometryConfig(_Section):
     """How scans are paired with the odometry: the time offset between the LiDAR's stamps and the
-    odometry's clock (estimated online from the matched turns, :mod:`slam_engine.time_offset`) and the
+    odometry's clock (estimated online from the matched turns, :mod:`slam_engine.frontend.time_offset`) and the
     de-skew of scans swept while the vehicle moved."""
 
     time_offset_s: Literal["auto"] | Annotated[float, Field(ge=-1.0, le=1.0)] = Field(
@@ -315,6 +315,45 @@ class SlamConfig(_Section):
     texture: TextureConfig = TextureConfig()
     snapshot_every_scans: int = Field(0, ge=0, le=100000, description="Keep a map snapshot every n "
                                       "processed scans (0 = none); used for animations.")
+
+
+# The settings users set most, by one flat name (API fields, CLI options, bench flags): name -> its place
+# in SlamConfig. The one table of them; every caller lays them over a config with shortcut_overrides.
+SHORTCUTS: dict[str, tuple[str, ...]] = {
+    "particles": ("particles",),
+    "seed": ("seed",),
+    "resolution_m": ("grid", "resolution_m"),
+    "max_range_m": ("grid", "max_range_m"),
+    "linear_update_m": ("scheduling", "linear_update_m"),
+    "angular_update_rad": ("scheduling", "angular_update_rad"),
+    "snapshot_every_scans": ("snapshot_every_scans",),
+}
+
+
+def shortcut_overrides(values: Mapping[str, Any]) -> dict[str, Any]:
+    """Nested settings from flat :data:`SHORTCUTS` values (``{"resolution_m": 0.1}`` ->
+    ``{"grid": {"resolution_m": 0.1}}``); None values are left out. Other names raise KeyError."""
+    nested: dict[str, Any] = {}
+    for name, value in values.items():
+        if value is None:
+            continue
+        *sections, key = SHORTCUTS[name]
+        place = nested
+        for section in sections:
+            place = place.setdefault(section, {})
+        place[key] = value
+    return nested
+
+
+def shortcut_values(config: SlamConfig) -> dict[str, Any]:
+    """The :data:`SHORTCUTS` settings of ``config``, by their flat names."""
+    values = {}
+    for name, path in SHORTCUTS.items():
+        value: Any = config
+        for key in path:
+            value = getattr(value, key)
+        values[name] = value
+    return values
 
 
 def merge_settings(base: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:

@@ -21,9 +21,9 @@ import threading
 from collections.abc import Callable, Iterator
 from typing import Any
 
-KERNEL_MODULES = ("slam_engine.grid", "slam_engine.map_pooling", "slam_engine.raycast", "slam_engine.scan_matcher",
-                  "slam_engine.backend.correlative", "slam_engine.backend.submaps", "slam_engine.backend.polygon_fill",
-                  "slam_engine.backend.travel_graph")
+KERNEL_MODULES = ("slam_engine.frontend.grid", "slam_engine.frontend.map_pooling", "slam_engine.frontend.raycast",
+                  "slam_engine.frontend.scan_matcher", "slam_engine.backend.correlative", "slam_engine.backend.submaps",
+                  "slam_engine.backend.polygon_fill", "slam_engine.backend.travel_graph")
 # Kernels a run calls from Python (the others are compiled into these).
 ENTRY_KERNELS = ("grid._privatize", "grid._tiles_to_grid", "map_pooling.pool_known_max",
                  "raycast.collect_touched_tiles", "raycast.integrate_rays", "raycast._integrate_particle",
@@ -66,10 +66,10 @@ def warm_up() -> dict[str, list[str]]:
     import numpy as np
 
     from slam_engine.config import SlamConfig
-    from slam_engine.grid import ParticleGrids
+    from slam_engine.frontend.grid import ParticleGrids
+    from slam_engine.frontend.scan_matcher import ScanMatcher
+    from slam_engine.model.result import OccupancyGrid
     from slam_engine.pipeline import run_slam
-    from slam_engine.result import OccupancyGrid
-    from slam_engine.scan_matcher import ScanMatcher
     from slam_engine.simulation import simulate
 
     drive = simulate("office", seed=0, rig="robot", max_duration_s=6.0)

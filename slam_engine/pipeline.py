@@ -23,14 +23,14 @@ from slam_engine.backend.map_alignment import align_to_map
 from slam_engine.backend.map_builder import render_occupancy
 from slam_engine.backend.odometry_smoothing import smooth_with_odometry
 from slam_engine.config import SlamConfig
-from slam_engine.drive_log import DriveLog
 from slam_engine.errors import ConfigError
-from slam_engine.memory_estimate import peak_resident_bytes
-from slam_engine.messages import ScanMessage
-from slam_engine.odometry import dead_reckoning, odometry_source
-from slam_engine.odometry_noise import estimate_noise
-from slam_engine.particle_filter import SlamFilter, engine_threads
-from slam_engine.result import MapSnapshot, OccupancyGrid, ScanStats, SlamResult, TextureMap, Trajectory
+from slam_engine.evaluation.memory_estimate import peak_resident_bytes
+from slam_engine.frontend.odometry import dead_reckoning, odometry_source
+from slam_engine.frontend.odometry_noise import estimate_noise
+from slam_engine.frontend.particle_filter import SlamFilter, engine_threads
+from slam_engine.model.drive_log import DriveLog
+from slam_engine.model.messages import ScanMessage
+from slam_engine.model.result import MapSnapshot, OccupancyGrid, ScanStats, SlamResult, TextureMap, Trajectory
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from slam_engine.drive_log import DriveLog, OdometryStream, ScanStream
+from slam_engine.model.drive_log import DriveLog, OdometryStream, ScanStream
 
 
 def first_scans(log: DriveLog, n: int) -> DriveLog:

@@ -1,4 +1,5 @@
-"""The layering rules: the engine knows nothing of the web, the schemas nothing but pydantic."""
+"""The layering rules, downwards only: the engine knows nothing of the web, the command line or the
+benchmark; the service nothing of the command line or the benchmark; the schemas nothing but pydantic."""
 
 from __future__ import annotations
 
@@ -10,7 +11,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 FORBIDDEN = {
-    "slam_engine": {"service", "api_schemas", "fastapi", "starlette", "uvicorn", "celery", "redis"},
+    "slam_engine": {"service", "api_schemas", "lidarmap", "bench",
+                    "fastapi", "starlette", "uvicorn", "celery", "redis"},
+    "service": {"lidarmap", "bench"},
 }
 STDLIB = set(sys.stdlib_module_names)
 
@@ -31,7 +34,7 @@ def imported_top_modules(package: str) -> dict[str, set[str]]:
 
 
 @pytest.mark.parametrize("package", sorted(FORBIDDEN))
-def test_engine_imports_no_web_code(package: str) -> None:
+def test_layers_import_only_downwards(package: str) -> None:
     files = imported_top_modules(package)
     assert files, f"{package} has no Python files"
     offenders = {f: sorted(n & FORBIDDEN[package]) for f, n in files.items() if n & FORBIDDEN[package]}

@@ -24,8 +24,6 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
-
 from service.jobs.context import JobContext, JobFailed
 from service.jobs.outputs import LiveMap, job_session, write_job_products
 from service.jobs.settings import engine_config
@@ -38,12 +36,12 @@ from service.storage.stream_log import (
     vehicle_from_calibration,
 )
 from slam_engine.config import SlamConfig
-from slam_engine.drive_log import DriveLog
 from slam_engine.errors import LogFormatError
-from slam_engine.messages import EncoderMessage, Message, ScanMessage
-from slam_engine.odometry import OdometryIntegrator, odometry_source
-from slam_engine.particle_filter import SlamFilter
-from slam_engine.result import MapSnapshot, SlamResult
+from slam_engine.frontend.odometry import OdometryIntegrator, odometry_source
+from slam_engine.frontend.particle_filter import SlamFilter
+from slam_engine.model.drive_log import DriveLog
+from slam_engine.model.messages import EncoderMessage, Message, ScanMessage
+from slam_engine.model.result import MapSnapshot, SlamResult
 
 POLL_S = 0.2  # how often a job that has caught up looks for the next chunk (and for a cancel)
 ODOMETRY_TYPES = ("encoder", "odometry")
@@ -55,7 +53,7 @@ class LiveRun:
 
     The filter is created at the first chunk that carries odometry (encoder or odometry
     messages), whose messages pick the odometry source by the rule a whole log uses
-    (:func:`~slam_engine.odometry.odometry_source`); messages before it wait and are then replayed.
+    (:func:`~slam_engine.frontend.odometry.odometry_source`); messages before it wait and are then replayed.
     The integrator listens to the gyro from the start: until a gyro message arrives that is the
     same as ignoring it, so a stream with a gyro and one without both match a whole-log run.
     """
@@ -110,7 +108,7 @@ class LiveRun:
             OdometryIntegrator(self.vehicle, source, use_gyro=False)  # ConfigError: no track width for the heading
         integrator = OdometryIntegrator(self.vehicle, source, use_gyro=True)
         assert self.lidar is not None  # run_live_job refuses a calibration without 'lidar'
-        return SlamFilter(self.lidar, integrator, self.config, np.random.default_rng(self.config.seed))
+        return SlamFilter(self.lidar, integrator, self.config)
 
     def latest_snapshot(self) -> MapSnapshot | None:
         """The newest of the filter's periodic snapshots (``snapshot_every_scans``)."""
@@ -133,7 +131,7 @@ class LiveRun:
 
         log = drive_log_from_messages(self.calibration, self.messages)
         if self.slam is None or log.scans is None:  # no odometry (an error) or no scans: as a regular job
-            return run_slam(log, self.config, rng=np.random.default_rng(self.config.seed)), log
+            return run_slam(log, self.config), log
         self.slam.finish()
         return filter_result(self.slam, log, self.config, started_s), log
 

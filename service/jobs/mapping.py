@@ -15,8 +15,6 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from api_schemas.jobs import JobSource
 from service.jobs.context import JobContext
 from service.jobs.estimate import check_job_memory
@@ -26,8 +24,8 @@ from service.jobs.products import COMPILING_FILE
 from service.jobs.settings import engine_config
 from service.storage.chunks import read_chunk_messages, stream_state
 from service.storage.stream_log import drive_log_from_messages
-from slam_engine.drive_log import DriveLog
 from slam_engine.errors import LogFormatError
+from slam_engine.model.drive_log import DriveLog
 
 
 def load_input(ctx: JobContext) -> tuple[DriveLog, dict[str, Any]]:
@@ -118,7 +116,7 @@ def _run_mapping_job(ctx: JobContext) -> None:
         ctx.progress(progress.scans_done, progress.scans_total)
         live.update(progress.latest_snapshot)
 
-    result = run_slam(log, config, rng=np.random.default_rng(config.seed), progress=on_progress)
+    result = run_slam(log, config, progress=on_progress)
     total = len(log.scans) if log.scans is not None else 0
     ctx.progress(total, total, force=True)
     write_job_products(ctx, result, log)

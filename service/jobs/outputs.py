@@ -10,11 +10,11 @@ from service.jobs.context import JobContext
 from service.jobs.products import GRID_FILE, TEXTURE_FILE, save_grid, save_texture
 from service.storage.data_dir import write_atomic
 from service.storage.rows import SessionRow
-from slam_engine.drive_log import DriveLog
 from slam_engine.errors import LogFormatError
+from slam_engine.model.drive_log import DriveLog
+from slam_engine.model.result import MapSnapshot, SlamResult
 from slam_engine.products import write_trajectory_json
 from slam_engine.products.rendering import occupancy_image, png_bytes
-from slam_engine.result import MapSnapshot, SlamResult
 
 
 def job_session(ctx: JobContext) -> SessionRow:

@@ -15,8 +15,8 @@ from api_schemas.jobs import JobStatus
 from service.errors import NotFound, NotReady
 from service.storage.data_dir import DataDir
 from service.storage.rows import JobRow
+from slam_engine.model.result import OccupancyGrid, TextureMap
 from slam_engine.products.files import atomic_path
-from slam_engine.result import OccupancyGrid, TextureMap
 
 MEDIA_TYPES = {  # every file product a job can list; each is served at GET /v1/jobs/{id}/{name}
     "trajectory.json": "application/json", "trajectory.tum": "text/plain",

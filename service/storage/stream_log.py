@@ -14,7 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from slam_engine.drive_log import (
+from slam_engine.errors import LogFormatError
+from slam_engine.formats.drivelog import lidar_from_json, lidar_to_json, vehicle_from_json, vehicle_to_json
+from slam_engine.model.drive_log import (
     DriveLog,
     EncoderStream,
     GyroStream,
@@ -23,9 +25,7 @@ from slam_engine.drive_log import (
     ScanStream,
     VehicleModel,
 )
-from slam_engine.errors import LogFormatError
-from slam_engine.formats.drivelog import lidar_from_json, lidar_to_json, vehicle_from_json, vehicle_to_json
-from slam_engine.messages import EncoderMessage, GyroMessage, Message, OdometryMessage, ScanMessage
+from slam_engine.model.messages import EncoderMessage, GyroMessage, Message, OdometryMessage, ScanMessage
 
 # DriveLog.messages() puts messages with equal stamps in this order (odometry sources before scans)
 MESSAGE_ORDER = {"encoder": 0, "gyro": 1, "odometry": 2, "scan": 3}

@@ -38,7 +38,7 @@ from slam_engine.backend.pose_graph import PoseGraph
 from slam_engine.backend.submaps import Submap, SubmapGrids, split_into_submaps
 from slam_engine.backend.travel_graph import adjacency, shortest_distances
 from slam_engine.config import LoopClosingConfig
-from slam_engine.poses import compose, place_each, place_points, relative, wrap_angle
+from slam_engine.model.poses import compose, place_each, place_points, relative, wrap_angle
 
 # how much drift an accepted closure leaves between the key frames it joins, in metres of travel
 CLOSURE_TRAVEL_M = 1.0

@@ -11,7 +11,7 @@ The fits and the graph's poses are then combined by least squares
 (:func:`slam_engine.backend.odometry_smoothing.smooth_with_odometry`): each key frame held at its fit,
 consecutive ones tied by the graph's increments. How precise a fit is, is measured on the scans
 themselves (:func:`fit_noise`: each scan's even and odd end points fitted apart); the difference
-between the fits and the graph's poses (:func:`slam_engine.odometry_noise.estimate_noise`) holds
+between the fits and the graph's poses (:func:`slam_engine.frontend.odometry_noise.estimate_noise`) holds
 that noise, the graph poses' own and their drift, so what is left of it is the graph's. (Measuring
 both from the difference alone cannot tell whose the white noise is: it trusted the graph and
 left a 2 cm jitter in place.)
@@ -32,8 +32,14 @@ import numpy as np
 from slam_engine.backend.correlative import refine_poses
 from slam_engine.backend.odometry_smoothing import smooth_with_odometry
 from slam_engine.backend.submaps import match_grid_from_points
-from slam_engine.odometry_noise import MAD_TO_SD, MATCH_SD_FLOOR, ODOMETRY_SD_FLOOR, NoiseEstimate, estimate_noise
-from slam_engine.poses import place_points, point_bounds, wrap_angle
+from slam_engine.frontend.odometry_noise import (
+    MAD_TO_SD,
+    MATCH_SD_FLOOR,
+    ODOMETRY_SD_FLOOR,
+    NoiseEstimate,
+    estimate_noise,
+)
+from slam_engine.model.poses import place_points, point_bounds, wrap_angle
 
 # a key frame needs this many end points to be fitted (fewer: it keeps its pose)
 MIN_POINTS = 30

@@ -7,10 +7,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from slam_engine.config import GridConfig
-from slam_engine.grid import ParticleGrids
-from slam_engine.lidar_points import ProjectedScan
-from slam_engine.raycast import insert_scan
-from slam_engine.result import OccupancyGrid
+from slam_engine.frontend.grid import ParticleGrids
+from slam_engine.frontend.lidar_points import ProjectedScan
+from slam_engine.frontend.raycast import insert_scan
+from slam_engine.model.result import OccupancyGrid
 
 
 def render_occupancy(scans: Sequence[ProjectedScan], poses: np.ndarray, origin_v: np.ndarray, grid: GridConfig

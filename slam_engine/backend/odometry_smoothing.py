@@ -4,7 +4,7 @@ The front end places every key frame by a scan match: globally consistent, but e
 match's own white noise (centimetres outdoors at long range). A fibre-optic gyro with good wheel
 encoders is far more precise than that from one key frame to the next, and the match noise would
 replace its precision. How precise each source is, is measured on the log itself
-(:func:`slam_engine.odometry_noise.estimate_noise`). The final poses then solve a small
+(:func:`slam_engine.frontend.odometry_noise.estimate_noise`). The final poses then solve a small
 pose graph: each key frame held at its optimised pose with sd_match, consecutive key frames tied by
 the odometry increment with sd_odometry. Where odometry is the worse source (wheels alone, rough
 odometry) the fit says so and the poses stay as they were; where it is the better one, the
@@ -16,8 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from slam_engine.backend.pose_graph import poses_of
-from slam_engine.odometry_noise import NoiseEstimate
-from slam_engine.poses import relative
+from slam_engine.frontend.odometry_noise import NoiseEstimate
+from slam_engine.model.poses import relative
 
 
 def smooth_with_odometry(poses: np.ndarray, odometry: np.ndarray, noise: NoiseEstimate) -> np.ndarray:

@@ -24,7 +24,7 @@ import numpy as np
 
 from slam_engine.backend.correlative import MatchGrid
 from slam_engine.backend.polygon_fill import fill_polygons
-from slam_engine.poses import compose, place_points, point_bounds, relative
+from slam_engine.model.poses import compose, place_points, point_bounds, relative
 
 # weights of the blur around each end point's cell (a Gaussian of about 0.8 cells): matches a cell
 # off still score, but less; the cell itself has weight 1

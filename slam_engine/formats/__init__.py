@@ -18,8 +18,8 @@ from types import ModuleType
 
 import numpy as np
 
-from slam_engine.drive_log import DriveLog
 from slam_engine.errors import LogFormatError, UnknownFormatError
+from slam_engine.model.drive_log import DriveLog
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ symmetric about the front). The file holds no scan timing; the URG-04LX's specif
 scans per second, 1024 steps per rotation, so consecutive beams are 0.1 / 1024 s apart and a scan's
 682 beams are swept in 67 ms, counter-clockwise (``time_increment_s``, for de-skew). The stamp's
 place in the sweep, and the lag of the scans behind the wheel ticks (about 0.15 s on exp2), are not
-known: the engine estimates them (:mod:`slam_engine.time_offset`).
+known: the engine estimates them (:mod:`slam_engine.frontend.time_offset`).
 
 Ticks per revolution: BreezySLAM turns ticks into wheel angles as ``ticks * 180 / 2000`` degrees
 (read alone: 4000 ticks per revolution), but its pose change is ``r * (phi_l + phi_r)`` forward and
@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from slam_engine.drive_log import DriveLog, EncoderStream, LidarModel, MotionModelKind, ScanStream, VehicleModel
 from slam_engine.errors import LogFormatError
 from slam_engine.formats._checks import clean_ranges, head_lines, is_number, open_text, time_order
+from slam_engine.model.drive_log import DriveLog, EncoderStream, LidarModel, MotionModelKind, ScanStream, VehicleModel
 
 FIELDS = 707
 BEAMS = 682

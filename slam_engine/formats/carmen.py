@@ -28,11 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
-from slam_engine.drive_log import DriveLog, LidarModel, MotionModelKind, OdometryStream, ScanStream, VehicleModel
 from slam_engine.errors import LogFormatError
 from slam_engine.formats._checks import clean_ranges, head_lines, is_number, open_text, time_order
-from slam_engine.odometry import odometry_poses
-from slam_engine.poses import compose, interpolate, is_planar_4x4, planar_from_4x4, relative, to_matrix_4x4
+from slam_engine.frontend.odometry import odometry_poses
+from slam_engine.model.drive_log import DriveLog, LidarModel, MotionModelKind, OdometryStream, ScanStream, VehicleModel
+from slam_engine.model.poses import compose, interpolate, is_planar_4x4, planar_from_4x4, relative, to_matrix_4x4
 
 DEFAULT_NO_RETURN_M = 80.0
 # A single range value filling this share of all beams, at >= SATURATION_MIN_M, is a no-return code.

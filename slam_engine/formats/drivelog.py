@@ -20,7 +20,9 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from slam_engine.drive_log import (
+from slam_engine.errors import LogFormatError
+from slam_engine.formats._checks import clean_ranges, time_order
+from slam_engine.model.drive_log import (
     DriveLog,
     EncoderStream,
     GyroStream,
@@ -30,8 +32,6 @@ from slam_engine.drive_log import (
     ScanStream,
     VehicleModel,
 )
-from slam_engine.errors import LogFormatError
-from slam_engine.formats._checks import clean_ranges, time_order
 
 FORMAT_NAME = "lidarmap-drivelog"
 FORMAT_VERSION = 1

@@ -21,7 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from slam_engine.drive_log import (
+from slam_engine.errors import LogFormatError
+from slam_engine.formats._checks import clean_ranges, time_order
+from slam_engine.model.drive_log import (
     DriveLog,
     EncoderStream,
     GyroStream,
@@ -31,8 +33,6 @@ from slam_engine.drive_log import (
     StereoStream,
     VehicleModel,
 )
-from slam_engine.errors import LogFormatError
-from slam_engine.formats._checks import clean_ranges, time_order
 
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 

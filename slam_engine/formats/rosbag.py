@@ -18,7 +18,10 @@ from typing import Any
 
 import numpy as np
 
-from slam_engine.drive_log import (
+from slam_engine.errors import LogFormatError
+from slam_engine.formats._checks import time_order
+from slam_engine.frontend.odometry import odometry_poses
+from slam_engine.model.drive_log import (
     DriveLog,
     GyroStream,
     LidarModel,
@@ -27,9 +30,6 @@ from slam_engine.drive_log import (
     ScanStream,
     VehicleModel,
 )
-from slam_engine.errors import LogFormatError
-from slam_engine.formats._checks import time_order
-from slam_engine.odometry import odometry_poses
 
 SCAN = "sensor_msgs/msg/LaserScan"
 ODOMETRY = "nav_msgs/msg/Odometry"

@@ -29,7 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from slam_engine.drive_log import (
+from slam_engine.errors import LogFormatError
+from slam_engine.formats._checks import clean_ranges, time_order
+from slam_engine.frontend.odometry import integrate_yaw_rate, side_distances_m
+from slam_engine.model.drive_log import (
     DriveLog,
     EncoderStream,
     GyroStream,
@@ -39,9 +42,6 @@ from slam_engine.drive_log import (
     ScanStream,
     VehicleModel,
 )
-from slam_engine.errors import LogFormatError
-from slam_engine.formats._checks import clean_ranges, time_order
-from slam_engine.odometry import integrate_yaw_rate, side_distances_m
 from slam_engine.texture.calibration import thor_kinect_calibration
 
 # Effective track width [m] (skid included). Fitting the wheel-distance difference to the ECE276A .npz

@@ -1,4 +1,4 @@
-"""Map products: files written from a :class:`~slam_engine.result.SlamResult` (the engine itself
+"""Map products: files written from a :class:`~slam_engine.model.result.SlamResult` (the engine itself
 writes no files; this package is the one place that does) and map tiles rendered on demand.
 
 One module per product: trajectory files, PNG renderings, GeoTIFF, ROS map, tiles, animation,

@@ -2,7 +2,7 @@
 the engine) plus the final map, all on one canvas covering every snapshot, with the trajectory so
 far in red.
 
-The run keeps its snapshots small (:meth:`~slam_engine.result.MapSnapshot.reduced`: maps pooled to
+The run keeps its snapshots small (:meth:`~slam_engine.model.result.MapSnapshot.reduced`: maps pooled to
 at most 800 cells a side, what a frame shows anyway), so frames are drawn from small maps; frames
 are palette images with a fixed palette, so the GIF encoder has no colours to quantize.
 """
@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
+from slam_engine.model.result import MapSnapshot, OccupancyGrid, Trajectory
 from slam_engine.products.files import atomic_path
 from slam_engine.products.rendering import TRAJECTORY_RGB, UNKNOWN_GRAY, occupancy_image
-from slam_engine.result import MapSnapshot, OccupancyGrid, Trajectory
 
 FRAME_DURATION_MS = 120
 LAST_FRAME_DURATION_MS = 2000

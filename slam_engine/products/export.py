@@ -21,6 +21,7 @@ from pathlib import Path
 
 from PIL import Image
 
+from slam_engine.model.result import SlamResult, Trajectory
 from slam_engine.products.animation import write_animation_gif
 from slam_engine.products.files import atomic_path
 from slam_engine.products.georeference import GeoOrigin, Georeference
@@ -34,7 +35,6 @@ from slam_engine.products.rendering import (
 from slam_engine.products.ros_map import write_ros_map
 from slam_engine.products.run_report import build_run_report, to_jsonable, write_run_json
 from slam_engine.products.trajectory_files import write_trajectory_json, write_trajectory_tum
-from slam_engine.result import SlamResult, Trajectory
 
 MAP_FRAME = "map: local metric frame of the run (x, y in m, theta in rad), origin at the first pose"
 

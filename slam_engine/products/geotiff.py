@@ -20,10 +20,10 @@ import numpy as np
 import tifffile
 
 from slam_engine.errors import ConfigError
+from slam_engine.model.result import OccupancyGrid, TextureMap
 from slam_engine.products.files import atomic_path
 from slam_engine.products.georeference import Georeference, NorthUpRaster, north_up_raster
 from slam_engine.products.rendering import OccupancyRasters, occupancy_north_up, probability_band, texture_north_up
-from slam_engine.result import OccupancyGrid, TextureMap
 
 NODATA = -1
 OCCUPANCY_KINDS = ("probability", "percent")

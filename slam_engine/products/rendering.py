@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from PIL import Image, ImageDraw
 
-from slam_engine.result import OccupancyGrid, TextureMap, Trajectory
+from slam_engine.model.result import OccupancyGrid, TextureMap, Trajectory
 
 OCCUPIED_THRESHOLD = 0.65  # probability above which a cell counts as occupied (also map.yaml)
 FREE_THRESHOLD = 0.196  # probability below which a cell counts as free (also map.yaml)

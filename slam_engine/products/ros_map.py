@@ -19,6 +19,7 @@ import yaml
 from PIL import Image
 
 from slam_engine.errors import ConfigError
+from slam_engine.model.result import OccupancyGrid
 from slam_engine.products.files import atomic_path, write_text_atomic
 from slam_engine.products.rendering import (
     FREE_THRESHOLD,
@@ -29,7 +30,6 @@ from slam_engine.products.rendering import (
     OccupancyRasters,
     occupancy_north_up,
 )
-from slam_engine.result import OccupancyGrid
 
 ROS_MODES = ("trinary", "scale")
 _OCCUPIED, _FREE, _UNKNOWN = ROS_OCCUPIED, ROS_FREE, ROS_UNKNOWN

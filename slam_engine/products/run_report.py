@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from slam_engine.model.result import SlamResult
 from slam_engine.products.files import write_text_atomic
 from slam_engine.products.rendering import OccupancyRasters, occupancy_rasters
-from slam_engine.result import SlamResult
 
 FORMAT_NAME = "lidarmap-run"
 
@@ -75,7 +75,7 @@ def build_run_report(result: SlamResult, input_summary: dict | None = None, geor
         "memory": {"peak_bytes": int(result.peak_memory_bytes)},
         # the back end: submaps, closures found, accepted and rejected (with why), each one's correction
         "loop_closing": result.input_summary.get("loop_closing"),
-        # a scan stamped t was measured at t + offset on the odometry's clock (slam_engine.time_offset)
+        # a scan stamped t was measured at t + offset on the odometry's clock (slam_engine.frontend.time_offset)
         "time_offset": result.input_summary.get("time_offset"),
         "filter": {
             "resample_count": int(np.count_nonzero(stats.resampled)),

@@ -30,9 +30,9 @@ import numpy as np
 from PIL import Image
 
 from slam_engine.errors import ConfigError, TileOutOfRangeError
+from slam_engine.model.result import OccupancyGrid, TextureMap
 from slam_engine.products.georeference import Georeference, _transformer
 from slam_engine.products.rendering import occupancy_gray, png_bytes, pool_occupancy, pool_texture
-from slam_engine.result import OccupancyGrid, TextureMap
 
 TILE_SIZE = 256
 SCHEMES = ("simple", "webmercator")

@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from slam_engine.errors import TrajectoryFormatError
+from slam_engine.model.result import Trajectory
 from slam_engine.products.files import atomic_path, write_text_atomic
-from slam_engine.result import Trajectory
 
 JSON_FORMAT_NAME = "lidarmap-trajectory"
 JSON_VERSION = 2  # version 1 named the pose fields t, x, y, theta

@@ -20,11 +20,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from slam_engine.drive_log import DriveLog, ScanStream
 from slam_engine.errors import ConfigError, LogFormatError
 from slam_engine.formats import write_log
-from slam_engine.poses import relative, wrap_angle
-from slam_engine.result import Trajectory
+from slam_engine.model.drive_log import DriveLog, ScanStream
+from slam_engine.model.poses import relative, wrap_angle
+from slam_engine.model.result import Trajectory
 from slam_engine.simulation.motion import Motion, drive_route
 from slam_engine.simulation.rigs import FORMAT_RIGS, RIGS, Rig
 from slam_engine.simulation.sensors import (

@@ -18,8 +18,8 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from slam_engine.drive_log import RgbdCalibration, RgbdStream, StereoCalibration, StereoStream
-from slam_engine.result import Trajectory
+from slam_engine.model.drive_log import RgbdCalibration, RgbdStream, StereoCalibration, StereoStream
+from slam_engine.model.result import Trajectory
 from slam_engine.texture.calibration import homogeneous
 from slam_engine.texture.images import mosaic
 from slam_engine.texture.rgbd import (

@@ -7,9 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam_engine.drive_log import LidarModel, MotionModelKind, RgbdCalibration, StereoCalibration, VehicleModel
 from slam_engine.formats.breezyslam import MINES_ROVER, urg_04lx
 from slam_engine.formats.thor import EFFECTIVE_TRACK_M, THOR_VEHICLE, UTM_30LX
+from slam_engine.model.drive_log import LidarModel, MotionModelKind, RgbdCalibration, StereoCalibration, VehicleModel
 from slam_engine.texture.calibration import ece276a_car_stereo_calibration, thor_kinect_calibration
 
 # UCSD ECE276A car calibration (param/Vehicle2Lidar.txt, Vehicle2FOG.txt), vehicle <- sensor.

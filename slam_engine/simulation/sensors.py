@@ -9,19 +9,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam_engine.drive_log import (
+from slam_engine.errors import ConfigError
+from slam_engine.frontend.time_offset import beam_time_offsets_s
+from slam_engine.model.drive_log import (
     EncoderStream,
     GyroStream,
     MotionModelKind,
     OdometryStream,
     ScanStream,
 )
-from slam_engine.errors import ConfigError
-from slam_engine.poses import wrap_angle
+from slam_engine.model.poses import wrap_angle
 from slam_engine.simulation.motion import Motion
 from slam_engine.simulation.rigs import Rig
 from slam_engine.simulation.world import World
-from slam_engine.time_offset import beam_time_offsets_s
 
 
 def sample_times(motion: Motion, rate_hz: float, t0_s: float, rng: np.random.Generator,

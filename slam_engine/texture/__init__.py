@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam_engine.config import SlamConfig, TextureConfig
-from slam_engine.drive_log import DriveLog
-from slam_engine.poses import to_matrix_4x4
-from slam_engine.result import OccupancyGrid, TextureMap, Trajectory
+from slam_engine.model.drive_log import DriveLog
+from slam_engine.model.poses import to_matrix_4x4
+from slam_engine.model.result import OccupancyGrid, TextureMap, Trajectory
 from slam_engine.texture.images import read_frame
 from slam_engine.texture.projection import (
     estimate_ground_z,

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam_engine.evaluation import align_rigid_2d, match_times
-from slam_engine.result import TextureMap, Trajectory
+from slam_engine.evaluation.metrics import align_rigid_2d, match_times
+from slam_engine.model.result import TextureMap, Trajectory
 
 FloorRgb = Callable[[np.ndarray, np.ndarray], np.ndarray]
 _LUMINANCE = np.array([0.299, 0.587, 0.114])

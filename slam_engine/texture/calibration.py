@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from slam_engine.drive_log import RgbdCalibration, StereoCalibration
 from slam_engine.errors import LogFormatError
+from slam_engine.model.drive_log import RgbdCalibration, StereoCalibration
 
 # Rotation taking optical-frame coordinates (z forward, x right, y down) into the camera's body
 # frame (x forward, y left, z up).

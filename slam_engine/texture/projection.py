@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam_engine.poses import interpolate
-from slam_engine.result import Trajectory
+from slam_engine.model.poses import interpolate
+from slam_engine.model.result import Trajectory
 
 
 def interpolate_poses(trajectory: Trajectory, t_s: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Poses (N, 3) [x_m, y_m, theta_rad] at times ``t_s`` (:func:`slam_engine.poses.interpolate`) and
+    """Poses (N, 3) [x_m, y_m, theta_rad] at times ``t_s`` (:func:`slam_engine.model.poses.interpolate`) and
     a (N,) bool mask of the times within ``max_gap_s`` of the trajectory's span (outside it the
     nearest end pose is returned)."""
     t_s = np.asarray(t_s, dtype=np.float64)

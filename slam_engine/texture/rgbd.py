@@ -20,8 +20,8 @@ from __future__ import annotations
 import numpy as np
 
 from slam_engine.config import TextureConfig
-from slam_engine.drive_log import RgbdCalibration
 from slam_engine.errors import LogFormatError
+from slam_engine.model.drive_log import RgbdCalibration
 from slam_engine.texture.images import to_uint8
 from slam_engine.texture.stereo import FramePoints, back_project
 

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam_engine.config import TextureConfig
-from slam_engine.drive_log import StereoCalibration
 from slam_engine.errors import LogFormatError
+from slam_engine.model.drive_log import StereoCalibration
 from slam_engine.texture.calibration import homogeneous
 from slam_engine.texture.images import demosaic, to_uint8
 

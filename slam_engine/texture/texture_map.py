@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam_engine.result import OccupancyGrid, TextureMap
+from slam_engine.model.result import OccupancyGrid, TextureMap
 
 CELL_MODES = ("mean", "latest")
 

@@ -22,8 +22,8 @@ DEAD_RECKONING_INTEL_M = 6.74  # mean relation error of intel's odometry (benchm
 def test_upload_map_and_fetch_every_product(tmp_path, dataset) -> None:
     import rasterio
 
-    from slam_engine.evaluation import read_relations, relation_errors
-    from slam_engine.result import Trajectory
+    from slam_engine.evaluation.metrics import read_relations, relation_errors
+    from slam_engine.model.result import Trajectory
 
     intel = dataset("benchmark/intel.clf")
     relations = read_relations(dataset("benchmark/intel.relations"))

@@ -24,9 +24,9 @@ from conftest import require_dataset
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from slam_engine.drive_log import DriveLog, ScanStream
 from slam_engine.errors import LogFormatError
 from slam_engine.formats import list_formats, load_log, write_log
+from slam_engine.model.drive_log import DriveLog, ScanStream
 
 FORMATS = [info.name for info in list_formats()]
 FILE_NAMES = ["log.clf", "log.log", "log.clf.gz", "log.dat", "log.drivelog", "log.zip", "log.mcap", "log.db3",

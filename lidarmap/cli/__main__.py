@@ -1,0 +1,3 @@
+from lidarmap.cli import main
+
+main()

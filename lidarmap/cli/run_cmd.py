@@ -1,0 +1,189 @@
+"""``lidarmap run LOG --out DIR``: SLAM on a drive log, every map product into DIR.
+
+A relations file beside the log (``NAME.relations``, or the one ``*.relations`` in its folder) and a
+ground-truth file (``NAME.gt.txt`` / ``ground_truth.txt``) are used automatically for run.json's
+accuracy figures (``slam_engine.evaluation.metrics.files_beside_log``, as the benchmark finds them). A
+simulated log's ``ground_texture.json`` adds the texture's colour error and placement against the
+simulator's floor (``accuracy.texture``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from lidarmap.cli.errors import bad_input_exits
+from slam_engine.config import SlamConfig, shortcut_overrides
+from slam_engine.config import load_config as load_slam_config
+from slam_engine.errors import ConfigError
+
+SNAPSHOT_FRAMES = 40  # = slam_engine.products.animation.ANIMATION_FRAMES (for the help text; not imported here)
+
+
+def load_config(path: Path | None, particles: int | None = None, seed: int | None = None,
+                resolution_m: float | None = None, snapshot_every: int | None = None) -> SlamConfig:
+    """SlamConfig from a YAML/JSON file (or defaults), then the command-line overrides; validated."""
+    shortcuts = {"particles": particles, "seed": seed, "resolution_m": resolution_m,
+                 "snapshot_every_scans": snapshot_every}
+    return load_slam_config(path, shortcut_overrides(shortcuts))
+
+
+def prepare_out_dir(out: Path, force: bool) -> None:
+    """Refuse an existing, non-empty output folder unless ``force`` (then its product files are replaced)."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: --out is a file, not a folder")
+    if out.exists() and any(out.iterdir()) and not force:
+        raise ConfigError(f"{out}: output folder exists and is not empty (--force writes into it, replacing "
+                          "the products it holds)")
+
+
+def geo_origin(lat: float | None, lon: float | None, heading: float | None):
+    """GeoOrigin from --lat --lon --heading (all three or none)."""
+    from slam_engine.products import GeoOrigin
+
+    given = [v is not None for v in (lat, lon, heading)]
+    if not any(given):
+        return None
+    if not all(given):
+        raise ConfigError("--lat, --lon and --heading go together: give all three (heading in degrees "
+                          "clockwise from north) or none")
+    assert lat is not None and lon is not None and heading is not None
+    return GeoOrigin(latitude_deg=lat, longitude_deg=lon, heading_deg=heading)
+
+
+def run_with_progress(drive_log, config):
+    """run_slam with a rich progress bar (scans, scans/s, ETA) on stderr."""
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        ProgressColumn,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+    from rich.text import Text
+
+    from slam_engine.pipeline import run_slam
+
+    class ScanRateColumn(ProgressColumn):
+        def render(self, task) -> Text:
+            return Text("" if task.speed is None else f"{task.speed:.1f} scans/s", style="progress.data.speed")
+
+    columns = (TextColumn("SLAM"), BarColumn(), MofNCompleteColumn(), TextColumn("scans"), ScanRateColumn(),
+               TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn())
+    with Progress(*columns, console=Console(stderr=True), transient=False) as bar:
+        task = bar.add_task("slam", total=None)
+
+        def on_progress(p) -> None:
+            bar.update(task, completed=p.scans_done, total=p.scans_total)
+
+        return run_slam(drive_log, config, progress=on_progress,
+                        live_previews=False)  # the bar shows counts only: no preview maps
+
+
+def texture_figures(result, truth, floor) -> dict | None:
+    """Colour error and placement of the run's texture against a simulated floor (None when the
+    run made no texture, or there is no floor or ground truth to compare with)."""
+    if result.texture is None or truth is None or floor is None:
+        return None
+    from slam_engine.texture.accuracy import map_to_truth_frame, texture_accuracy
+
+    try:
+        rotation, translation = map_to_truth_frame(result.trajectory, truth)
+    except ValueError as error:
+        return {"error": str(error)}
+    return texture_accuracy(result.texture, floor, rotation, translation).as_dict()
+
+
+def print_summary(result, written: dict[str, Path], out: Path) -> None:
+    """Products written, speed, and accuracy when known (stdout)."""
+    import json
+
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    table = Table("product", "bytes", title=f"products in {out}")
+    for name, path in sorted(written.items()):
+        table.add_row(name, f"{path.stat().st_size:,}")
+    console.print(table)
+    run = json.loads(written["run.json"].read_text())
+    timings = run["timings"]
+    rate = timings["scans_per_s"]
+    console.print(f"{timings['scans']} scans in {timings['wall_time_s']:.1f} s"
+                  + (f" ({rate:.1f} scans/s)" if rate else "")
+                  + f"; map {run['map']['width_cells']} x {run['map']['height_cells']} cells of "
+                  f"{run['map']['resolution_m']} m")
+    accuracy = run.get("accuracy") or {}
+    if "relations" in accuracy:
+        stats = accuracy["relations"]["all"]
+        console.print(f"relation error: {_fmt(stats['trans_mean_m'], '.3f')} +- {_fmt(stats['trans_std_m'], '.3f')}"
+                      f" m, {_fmt(stats['rot_mean_deg'], '.2f')} +- {_fmt(stats['rot_std_deg'], '.2f')} deg "
+                      f"({stats['n_relations']} relations, {stats['n_failed']} failed)")
+    if accuracy.get("ate_m") is not None:
+        console.print(f"absolute trajectory error: {accuracy['ate_m']:.3f} m")
+    texture = accuracy.get("texture") or {}
+    if "colour_error_mean" in texture:
+        console.print(f"texture: colour error {texture['colour_error_mean']:.1f} of 255 over "
+                      f"{texture['observed_cells']} cells, placed {texture['placement_offset_m']:.2f} m off")
+
+
+def _fmt(value: float | None, spec: str) -> str:
+    return "n/a" if value is None else format(value, spec)
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def run(
+        log: Path = typer.Argument(..., metavar="LOG", help="Drive log: a file or a folder (see lidarmap formats)."),
+        out: Path = typer.Option(..., "--out", "-o", help="Folder for the products (created)."),
+        format: str = typer.Option("auto", "--format", "-f", help="Log format, or auto to detect it."),
+        particles: int | None = typer.Option(None, help="Number of particles (overrides the config)."),
+        seed: int | None = typer.Option(None, help="Random seed (overrides the config)."),
+        resolution_m: float | None = typer.Option(None, "--resolution-m", "--resolution",
+                                                  help="Grid cell size [m] (overrides the config)."),
+        config_file: Path | None = typer.Option(None, "--config", "-c", help="SlamConfig as YAML or JSON "
+                                                "(lidarmap config prints the defaults)."),
+        relations: Path | None = typer.Option(None, help="Relations file for accuracy figures "
+                                              "(default: NAME.relations beside the log)."),
+        ground_truth: Path | None = typer.Option(None, "--ground-truth", help="Ground truth 't x y theta' "
+                                                 "(default: NAME.gt.txt or ground_truth.txt beside the log)."),
+        lat: float | None = typer.Option(None, help="Start latitude [deg, WGS 84]: GeoTIFFs in UTM."),
+        lon: float | None = typer.Option(None, help="Start longitude [deg, WGS 84]."),
+        heading: float | None = typer.Option(None, help="Start heading [deg clockwise from north]."),
+        snapshot_every: int | None = typer.Option(None, help="Animation frame every N processed scans "
+                                                  f"(default: about {SNAPSHOT_FRAMES} frames; 0 = none)."),
+        force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty --out folder."),
+        verbose: bool = typer.Option(False, "--verbose", "-v", help="Show tracebacks."),
+    ) -> None:
+        """Build the map of a drive log and write every product (PNG, GeoTIFF, ROS map, trajectories,
+        animation, run.json) into --out."""
+        from slam_engine.evaluation import metrics as evaluation
+        from slam_engine.formats import load_log
+        from slam_engine.products import write_products
+        from slam_engine.simulation import floor_beside_log
+
+        with bad_input_exits(verbose):
+            geo = geo_origin(lat, lon, heading)
+            prepare_out_dir(out, force)
+            slam_config = load_config(config_file, particles, seed, resolution_m, snapshot_every)
+            relations_beside, truth_beside = evaluation.files_beside_log(log)
+            relations = relations or relations_beside
+            ground_truth = ground_truth or truth_beside
+            # Read the side files before the long run, so a bad one fails in seconds.
+            relation_table = None if relations is None else evaluation.read_relations(relations)
+            truth = None if ground_truth is None else evaluation.read_ground_truth(ground_truth)
+            drive_log = load_log(log, format)
+            if snapshot_every is None and slam_config.snapshot_every_scans == 0 and drive_log.scans is not None:
+                from slam_engine.products.animation import snapshot_interval
+
+                every = snapshot_interval(len(drive_log.scans))
+                slam_config = slam_config.model_copy(update={"snapshot_every_scans": every})
+            floor = floor_beside_log(log)
+            result = run_with_progress(drive_log, slam_config)
+            written = write_products(result, out, geo=geo, relations=relation_table, ground_truth=truth,
+                                     log=drive_log, texture_accuracy=texture_figures(result, truth, floor))
+            print_summary(result, written, out)

@@ -1,0 +1,88 @@
+"""``lidarmap submit LOG --server URL --out DIR``: map a log on a running service (lidarmap.client)
+and download every product, with a progress bar."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from lidarmap.cli.errors import BAD_INPUT_EXIT_CODE, one_line
+from lidarmap.cli.run_cmd import prepare_out_dir
+from slam_engine.errors import ConfigError
+
+JOB_FAILED_EXIT_CODE = 1
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def submit(
+        log: Path = typer.Argument(..., metavar="LOG", help="Drive log: a file, or a folder (sent as a zip)."),
+        server: str = typer.Option(..., "--server", "-s", envvar="LIDARMAP_SERVER",
+                                   help="The service's base URL, e.g. http://127.0.0.1:8000."),
+        out: Path = typer.Option(..., "--out", "-o", help="Folder for the products (created)."),
+        particles: int | None = typer.Option(None, help="Number of particles (default: the service's)."),
+        seed: int | None = typer.Option(None, help="Random seed."),
+        resolution_m: float | None = typer.Option(None, "--resolution-m", "--resolution", help="Grid cell size [m]."),
+        format: str = typer.Option("auto", "--format", "-f", help="Log format, or auto to detect it."),
+        api_key: str | None = typer.Option(None, envvar="LIDARMAP_API_KEY", help="API key, when the service "
+                                           "needs one."),
+        timeout: float | None = typer.Option(None, min=1.0, help="Give up waiting after this long [s]."),
+        force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty --out folder."),
+    ) -> None:
+        """Upload a drive log to a running service, map it, wait with progress, download every product."""
+        import httpx
+        from pydantic import ValidationError
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        from api_schemas.jobs import JobCreate, JobPublic, JobStatus
+        from lidarmap.client import ApiError, LidarmapClient
+        from service.jobs.settings import JobSettings, resolve
+
+        def fail(message: str, code: int = BAD_INPUT_EXIT_CODE) -> typer.Exit:
+            typer.echo(f"error: {' '.join(message.split())}", err=True)
+            return typer.Exit(code)
+
+        try:
+            prepare_out_dir(out, force)
+        except ConfigError as error:
+            raise fail(str(error)) from None
+        if not log.exists():
+            raise fail(f"{log}: no such file or folder")
+        given = {"particles": particles, "seed": seed, "resolution_m": resolution_m}
+        try:  # settings out of the engine's bounds fail here, before anything is uploaded
+            settings = JobCreate(**{k: v for k, v in given.items() if v is not None})
+            resolve(JobSettings.model_validate(settings.model_dump(exclude_unset=True)))
+        except ValidationError as error:
+            raise fail(one_line(error)) from None
+        except ConfigError as error:
+            raise fail(str(error)) from None
+        try:
+            with LidarmapClient(server, api_key=api_key) as api:
+                session = api.create_session(log.name[:200] or "log")
+                uploaded = api.upload_log(session.id, log, format=format)
+                typer.echo(f"uploaded {uploaded.filename} ({uploaded.summary.format}, "
+                           f"{uploaded.summary.streams.get('scans', 0)} scans) to session {session.id}", err=True)
+                job = api.start_job(session.id, settings)
+                columns = (TextColumn("SLAM on the service"), BarColumn(), MofNCompleteColumn(),
+                           TextColumn("scans"), TextColumn("ETA"), TimeRemainingColumn())
+                with Progress(*columns, console=Console(stderr=True)) as bar:
+                    task = bar.add_task("job", total=None)
+
+                    def show(state: JobPublic) -> None:
+                        bar.update(task, completed=state.scans_done, total=state.scans_total)
+
+                    job = api.wait(job.id, on_progress=show, timeout_s=timeout)
+                if job.status is not JobStatus.SUCCEEDED:
+                    raise fail(f"job {job.id} {job.status.value}: {job.error}", JOB_FAILED_EXIT_CODE)
+                written = api.download_products(job.id, out)
+        except ApiError as error:
+            raise fail(f"{server}: {error.message} (HTTP {error.status})") from None
+        except httpx.HTTPError as error:
+            raise fail(f"{server}: {error or type(error).__name__}") from None
+        except TimeoutError as error:
+            raise fail(str(error), JOB_FAILED_EXIT_CODE) from None
+        for _name, path in sorted(written.items()):
+            typer.echo(f"{path}  {path.stat().st_size:,} bytes")
+        typer.echo(f"job {job.id}: {job.scans_done} scans, {len(written)} products in {out}")

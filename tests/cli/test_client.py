@@ -1,0 +1,148 @@
+"""lidarmap.client and ``lidarmap submit`` against a real running service: uvicorn in its own process
+on 127.0.0.1, a free port, its own data folder."""
+
+from __future__ import annotations
+
+import io
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+from PIL import Image
+from typer.testing import CliRunner
+
+from api_schemas.jobs import JobCreate, JobStatus
+from lidarmap.cli import app
+from lidarmap.client import ApiError, LidarmapClient
+
+ROOT = Path(__file__).resolve().parents[2]
+ROOM_JOB = "viewer_job_functions:synthetic_room"  # every product of a known room, no SLAM (fast)
+STARTUP_LIMIT_S = 120.0  # a bound on the wait for the server's /healthz, not a speed target
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_service(data_dir: Path, job_function: str | None) -> Iterator[str]:
+    port = free_port()
+    path = [str(ROOT), str(ROOT / "tests"), str(ROOT / "tests" / "service")]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(path)}
+    args = [sys.executable, str(ROOT / "tests" / "service" / "live_server.py"), str(data_dir), str(port)]
+    server = subprocess.Popen(args + ([job_function] if job_function else []), env=env)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + STARTUP_LIMIT_S
+        while True:
+            assert server.poll() is None, f"the service exited with {server.returncode}"
+            try:
+                if httpx.get(f"{url}/healthz", timeout=2.0).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline, f"the service did not answer /healthz in {STARTUP_LIMIT_S} s"
+            time.sleep(0.1)
+        yield url
+    finally:
+        server.terminate()
+        try:
+            server.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            server.wait()
+
+
+@pytest.fixture(scope="module")
+def room_service(tmp_path_factory) -> Iterator[str]:
+    yield from start_service(tmp_path_factory.mktemp("room-service"), ROOM_JOB)
+
+
+@pytest.fixture(scope="module")
+def small_log(tmp_path_factory) -> Path:
+    from slam_engine.simulation import simulate, write_simulated
+
+    drive = simulate("office", seed=3, rig="carmen-robot", max_duration_s=20.0)
+    return write_simulated(drive, "carmen", tmp_path_factory.mktemp("sim"))
+
+
+def test_client_uploads_starts_waits_and_downloads(room_service: str, small_log: Path, tmp_path: Path) -> None:
+    with LidarmapClient(room_service) as api:
+        session = api.create_session("client test")
+        uploaded = api.upload_log(session.id, small_log)
+        assert uploaded.summary.format == "carmen" and uploaded.size_bytes == small_log.stat().st_size
+        job = api.start_job(session.id, JobCreate(particles=6, seed=20))  # the room job: 6 steps of 20 ms
+        assert job.status in (JobStatus.QUEUED, JobStatus.RUNNING) and job.config["particles"] == 6
+        seen: list[tuple[str, int]] = []
+        done = api.wait(job.id, on_progress=lambda j: seen.append((j.status.value, j.scans_done)), poll_s=0.01)
+        assert done.status is JobStatus.SUCCEEDED and done.scans_done == 6
+        assert seen[-1] == ("succeeded", 6) and [n for _, n in seen] == sorted(n for _, n in seen)
+
+        files = api.download_products(job.id, tmp_path / "products")
+        assert set(files) == {name for name in done.products if not name.startswith("tiles/")}
+        assert {"occupancy.png", "trajectory.json", "run.json", "map.yaml"} <= set(files)
+        for name, path in files.items():
+            assert path.read_bytes() == httpx.get(f"{room_service}/v1/jobs/{job.id}/{name}").content, name
+        assert not list((tmp_path / "products").glob("*.part"))
+
+        trajectory = api.trajectory(job.id)
+        assert trajectory.count == 6 and trajectory.poses[0].x_m == pytest.approx(1.5)
+        scheme = api.tile_scheme(job.id)
+        tile = Image.open(io.BytesIO(api.tile(job.id, scheme.min_zoom, 0, 0)))
+        assert tile.size == (256, 256)
+
+        with pytest.raises(ApiError) as missing:
+            api.job("no-such-job")
+        assert missing.value.status == 404 and "no-such-job" in missing.value.message
+        with pytest.raises(ApiError) as bad_log:
+            api.start_job(session.id, JobCreate(log_id="not-an-upload"))
+        assert bad_log.value.status == 404 and bad_log.value.detail == {"field": "log_id"}
+
+
+def test_submit_maps_a_log_on_the_service_and_downloads_every_product(room_service: str, small_log: Path,
+                                                                       tmp_path: Path) -> None:
+    runner = CliRunner()
+    out = tmp_path / "out"
+    result = runner.invoke(app, ["submit", str(small_log), "--server", room_service, "--out", str(out),
+                                 "--particles", "3", "--seed", "1"])
+    assert result.exit_code == 0, result.output
+    job_id = result.stdout.strip().splitlines()[-1].split()[1].rstrip(":")
+    job = httpx.get(f"{room_service}/v1/jobs/{job_id}").json()
+    assert job["status"] == "succeeded" and job["config"]["particles"] == 3
+    listed = {name for name in job["products"] if not name.startswith("tiles/")}
+    assert {p.name for p in out.iterdir()} == listed
+    assert (out / "run.json").read_bytes() == httpx.get(f"{room_service}/v1/jobs/{job_id}/run.json").content
+
+    again = runner.invoke(app, ["submit", str(small_log), "--server", room_service, "--out", str(out)])
+    assert again.exit_code == 2 and again.stderr.strip().splitlines() == [
+        f"error: {out}: output folder exists and is not empty (--force writes into it, replacing the products it "
+        "holds)"]
+    bad = runner.invoke(app, ["submit", str(small_log), "--server", room_service, "--out", str(tmp_path / "o2"),
+                              "--particles", "0"])
+    assert bad.exit_code == 2 and bad.stderr.strip().splitlines() == [
+        "error: job settings: bad config: particles: Input should be greater than or equal to 1"]
+    assert not (tmp_path / "o2").exists()
+    unreachable = runner.invoke(app, ["submit", str(small_log), "--server", f"http://127.0.0.1:{free_port()}",
+                                      "--out", str(tmp_path / "o3")])
+    assert unreachable.exit_code == 2 and unreachable.stderr.startswith("error: http://127.0.0.1:")
+
+
+@pytest.mark.slow
+def test_submit_with_the_real_engine(small_log: Path, tmp_path: Path) -> None:
+    """The same through the real mapping job: the downloaded trajectory has one pose per scan."""
+    from slam_engine.products import read_trajectory
+
+    for url in start_service(tmp_path / "data", None):
+        out = tmp_path / "out"
+        result = CliRunner().invoke(app, ["submit", str(small_log), "--server", url, "--out", str(out),
+                                          "--particles", "3", "--resolution", "0.1", "--timeout", "600"])
+        assert result.exit_code == 0, result.output
+        assert len(read_trajectory(out / "trajectory.json")) == 100  # the simulated log's scans
+        assert {"occupancy.png", "occupancy_trajectory.png", "map.pgm", "run.json"} <= {p.name for p in out.iterdir()}

@@ -1,0 +1,147 @@
+"""CARMEN logs: the real benchmark and Malaga logs, the new-format records, round trips, bad input."""
+
+from __future__ import annotations
+
+import gzip
+
+import numpy as np
+import pytest
+
+from slam_engine.errors import LogFormatError, UnknownFormatError
+from slam_engine.formats import detect_format, list_formats, load_log, write_log
+from slam_engine.model.drive_log import MotionModelKind
+
+
+@pytest.mark.parametrize(("name", "scans", "beams", "increment_deg", "inf_share"), [
+    ("benchmark/intel.clf", 910, 180, 1.0, (0.02, 0.03)),
+    ("benchmark/freiburg-079.clf", 4791, 360, 0.5, (0.015, 0.03)),
+])
+def test_benchmark_logs_load_with_their_geometry(dataset, name, scans, beams, increment_deg, inf_share) -> None:
+    path = dataset(name)
+    assert detect_format(path) == "carmen"
+    log = load_log(path)
+    assert log.vehicle.kind == MotionModelKind.ODOMETRY
+    assert len(log.scans) == scans and len(log.odometry) == scans
+    assert log.scans.ranges_m.shape == (scans, beams)
+    assert log.lidar.num_beams == beams
+    assert np.degrees(log.lidar.angle_min_rad) == pytest.approx(-90.0)
+    assert np.degrees(log.lidar.angle_increment_rad) == pytest.approx(increment_deg)
+    np.testing.assert_allclose(log.lidar.T_vehicle_from_lidar, np.eye(4))
+    share = np.isinf(log.scans.ranges_m).mean()
+    assert inf_share[0] < share < inf_share[1]  # the 81.83 / 81.91 m no-return readings
+    assert np.all(log.scans.ranges_m[np.isfinite(log.scans.ranges_m)] < 40.0)
+    assert np.all(np.diff(log.scans.t_s) > 0)
+    assert log.warnings == []
+
+
+def test_intel_first_record_values(dataset) -> None:
+    log = load_log(dataset("benchmark/intel.clf"))
+    assert log.scans.t_s[0] == pytest.approx(32.9068)
+    assert log.scans.ranges_m[0, :3] == pytest.approx([1.09, 1.08, 1.08])
+    assert log.odometry.poses[0] == pytest.approx([0.600266, -0.032033, -0.354665])
+
+
+def test_malaga_laser_offset_and_361_beams(dataset) -> None:
+    path = next(dataset("malaga").glob("*.clf"))
+    log = load_log(path)
+    assert len(log.scans) == 225 and log.lidar.num_beams == 361
+    assert np.degrees(log.lidar.beam_angles_rad[[0, 180, 360]]) == pytest.approx([-90.0, 0.0, 90.0])
+    assert log.lidar.T_vehicle_from_lidar[:3, 3] == pytest.approx([0.78, 0.0, 0.0])
+    finite = log.scans.ranges_m[np.isfinite(log.scans.ranges_m)]
+    assert finite.min() > 0.78 and finite.max() < 60.0
+    assert np.isinf(log.scans.ranges_m).mean() == pytest.approx(0.115, abs=0.005)
+    assert log.time_span_s()[1] - log.time_span_s()[0] == pytest.approx(59.07, abs=0.01)
+    steps = np.hypot(*np.diff(log.odometry.poses[:, :2], axis=0).T)
+    assert steps.sum() == pytest.approx(76.4, abs=0.1)  # PROVENANCE: dead-reckoned path 76.4 m
+
+
+def test_carmen_round_trip_keeps_streams_within_text_precision(dataset, tmp_path) -> None:
+    log = load_log(dataset("benchmark/intel.clf"))
+    written = write_log(log, "carmen", tmp_path)
+    again = load_log(written)
+    np.testing.assert_allclose(again.scans.t_s, log.scans.t_s, atol=1e-6)
+    np.testing.assert_array_equal(np.isinf(again.scans.ranges_m), np.isinf(log.scans.ranges_m))
+    finite = np.isfinite(log.scans.ranges_m)
+    np.testing.assert_allclose(again.scans.ranges_m[finite], log.scans.ranges_m[finite], atol=5e-4)
+    np.testing.assert_allclose(again.odometry.poses, log.odometry.poses, atol=1e-6)
+    assert again.lidar.angle_increment_rad == pytest.approx(log.lidar.angle_increment_rad)
+
+
+def test_gzipped_log_and_robotlaser_without_odom_lines(tmp_path) -> None:
+    ranges = " ".join(["1.0"] * 9 + ["30.0"])
+    lines = ["PARAM robot_frontlaser_offset 0.25 host 0"]
+    for k in range(3):
+        t = 10.0 + 0.1 * k
+        lines.append(f"ROBOTLASER1 0 -0.785398 1.570796 0.174533 30.0 0.01 0 10 {ranges} 0 "
+                     f"{0.25 + 0.1 * k} 0 0 {0.1 * k} 0 0 0 0 0 0 0 {t} host {t}")
+    path = tmp_path / "small.clf.gz"
+    path.write_bytes(gzip.compress(("\n".join(lines) + "\n").encode()))
+    assert detect_format(path) == "carmen"
+    log = load_log(path)
+    assert log.lidar.num_beams == 10
+    assert np.degrees(log.lidar.angle_min_rad) == pytest.approx(-45.0)
+    assert np.degrees(log.lidar.angle_increment_rad) == pytest.approx(10.0)
+    assert np.isinf(log.scans.ranges_m[:, 9]).all() and (log.scans.ranges_m[:, :9] == 1.0).all()
+    assert log.lidar.T_vehicle_from_lidar[0, 3] == pytest.approx(0.25)
+    assert log.odometry.poses[:, 0] == pytest.approx([0.0, 0.1, 0.2])
+    assert any("robot poses" in w for w in log.warnings)
+
+
+FLASER = "FLASER 4 1.0 2.0 3.0 4.0 0 0 0 0 0 0 {t} host {t}"
+
+
+def write_clf(tmp_path, *lines: str):
+    path = tmp_path / "bad.clf"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_truncated_line_names_the_line(tmp_path) -> None:
+    path = write_clf(tmp_path, FLASER.format(t=1.0), "FLASER 4 1.0 2.0 3.0")
+    with pytest.raises(LogFormatError, match="line 2.*fields, expected 15"):
+        load_log(path)
+
+
+def test_nan_and_negative_ranges_are_refused(tmp_path) -> None:
+    path = write_clf(tmp_path, FLASER.format(t=1.0), FLASER.format(t=2.0).replace("2.0 3.0", "nan 3.0", 1))
+    with pytest.raises(LogFormatError, match="line 2: range is NaN"):
+        load_log(path)
+    path = write_clf(tmp_path, FLASER.format(t=1.0).replace("3.0", "-3.0", 1))
+    with pytest.raises(LogFormatError, match="line 1: negative range -3.0 at beam 2"):
+        load_log(path)
+
+
+def test_a_few_shuffled_stamps_are_sorted_with_a_warning(tmp_path) -> None:
+    stamps = [float(k) for k in range(20)]
+    stamps[5], stamps[6] = stamps[6], stamps[5]
+    path = write_clf(tmp_path, *[FLASER.format(t=t) for t in stamps] + [FLASER.format(t=19.0)])
+    log = load_log(path)
+    assert np.all(np.diff(log.scans.t_s) > 0) and len(log.scans) == 20
+    assert any("out of time order" in w for w in log.warnings)
+    assert any("repeat an earlier timestamp" in w for w in log.warnings)
+
+
+def test_mostly_backward_stamps_are_refused(tmp_path) -> None:
+    path = write_clf(tmp_path, *[FLASER.format(t=t) for t in (5.0, 4.0, 3.0, 2.0, 1.0)])
+    with pytest.raises(LogFormatError, match="not in time order"):
+        load_log(path)
+
+
+def test_unknown_record_and_unknown_content(tmp_path) -> None:
+    path = write_clf(tmp_path, FLASER.format(t=1.0), "WOBBLE 1 2 3")
+    with pytest.raises(LogFormatError, match="line 2: unknown CARMEN record type 'WOBBLE'"):
+        load_log(path, format="carmen")
+    other = tmp_path / "notes.txt"
+    other.write_text("hello world\n")
+    with pytest.raises(UnknownFormatError):
+        load_log(other)
+    with pytest.raises(UnknownFormatError, match="unknown format 'nope'"):
+        load_log(other, format="nope")
+    with pytest.raises(LogFormatError, match="no such file"):
+        load_log(tmp_path / "missing.clf")
+
+
+def test_registry_lists_every_format() -> None:
+    names = [f.name for f in list_formats()]
+    assert names == ["carmen", "breezyslam", "thor", "ece276a-car", "rosbag", "drivelog"]
+    assert all(f.can_write for f in list_formats())

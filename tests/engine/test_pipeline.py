@@ -1,0 +1,140 @@
+"""run_slam on small synthetic logs: one pose per scan, determinism, progress and cancelling,
+logs without scans or without odometry."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slam_engine.config import SlamConfig
+from slam_engine.errors import Cancelled, ConfigError
+from slam_engine.model.drive_log import DriveLog, LidarModel, MotionModelKind, OdometryStream, ScanStream, VehicleModel
+from slam_engine.model.poses import compose, relative
+from slam_engine.pipeline import RunProgress, run_slam
+
+sys.path.insert(0, str(Path(__file__).parent.parent))
+from test_scan_matcher import room_scan  # noqa: E402
+
+N_BEAMS = 360
+
+
+def room_log(n_scans: int = 40, odometry_bias: float = 0.0) -> tuple[DriveLog, np.ndarray]:
+    """A robot driving a loop in the synthetic room; odometry over-reports turning by ``odometry_bias``."""
+    t = np.arange(n_scans, dtype=float)
+    phase = 2 * np.pi * t / n_scans
+    truth = np.stack([1.8 * np.cos(phase) - 0.5, 1.2 * np.sin(phase) - 0.5, phase + np.pi / 2], axis=1)
+    odom = [truth[0]]
+    for k in range(1, n_scans):
+        step = relative(truth[k - 1], truth[k])
+        step[2] *= 1.0 + odometry_bias
+        odom.append(compose(odom[-1], step))
+    ranges = np.array([np.hypot(*room_scan(p, N_BEAMS).T) for p in truth], np.float32)
+    lidar = LidarModel(num_beams=N_BEAMS, angle_min_rad=-np.pi, angle_increment_rad=2 * np.pi / N_BEAMS,
+                       range_min_m=0.05, range_max_m=30.0)
+    log = DriveLog(vehicle=VehicleModel(kind=MotionModelKind.ODOMETRY), lidar=lidar,
+                   scans=ScanStream(t_s=t, ranges_m=ranges), odometry=OdometryStream(t_s=t, poses=np.array(odom)))
+    return log, truth
+
+
+def test_biased_odometry_is_corrected_and_every_scan_gets_a_pose() -> None:
+    log, truth = room_log(odometry_bias=0.08)
+    result = run_slam(log, SlamConfig(particles=8))
+    assert len(result.trajectory) == len(log.scans) == len(result.dead_reckoning)
+    np.testing.assert_array_equal(result.trajectory.t_s, log.scans.t_s)
+    expected = relative(truth[0], truth)
+    slam_err = np.hypot(*(result.trajectory.poses[:, :2] - expected[:, :2]).T).max()
+    dr_err = np.hypot(*(result.dead_reckoning.poses[:, :2] - expected[:, :2]).T).max()
+    assert dr_err > 0.5
+    assert slam_err < 0.06 and slam_err < dr_err / 10
+
+
+def test_same_seed_same_map_and_progress_is_reported() -> None:
+    log, _ = room_log(n_scans=15, odometry_bias=0.05)
+    seen: list[RunProgress] = []
+    a = run_slam(log, SlamConfig(particles=5, seed=3), progress=seen.append)
+    b = run_slam(log, SlamConfig(particles=5, seed=3))
+    np.testing.assert_array_equal(a.grid.log_odds, b.grid.log_odds)
+    np.testing.assert_array_equal(a.trajectory.poses, b.trajectory.poses)
+    assert seen[-1].scans_done == seen[-1].scans_total == 15
+    assert [p.scans_done for p in seen[:3]] == [1, 2, 3]
+
+
+def test_snapshots_every_n_processed_scans() -> None:
+    log, _ = room_log(n_scans=20)
+    result = run_slam(log, SlamConfig(particles=3, snapshot_every_scans=5))
+    assert len(result.snapshots) == 4
+    assert [len(s.trajectory) for s in result.snapshots] == [5, 10, 15, 20]
+
+
+def test_progress_callback_can_cancel() -> None:
+    log, _ = room_log(n_scans=15)
+
+    def stop_after_three(p: RunProgress) -> None:
+        if p.scans_done >= 3:
+            raise Cancelled("stopped by the user")
+
+    with pytest.raises(Cancelled):
+        run_slam(log, SlamConfig(particles=3), progress=stop_after_three)
+
+
+def test_log_without_scans_gives_dead_reckoning_with_a_warning() -> None:
+    log, _ = room_log(n_scans=5)
+    log.scans = None
+    result = run_slam(log, SlamConfig(particles=3))
+    assert any("no LiDAR scans" in w for w in result.warnings)
+    np.testing.assert_array_equal(result.trajectory.poses, result.dead_reckoning.poses)
+    assert len(result.trajectory) == 5
+
+
+def test_log_without_odometry_is_a_config_error() -> None:
+    log, _ = room_log(n_scans=5)
+    log.odometry = None
+    with pytest.raises(ConfigError, match="no odometry source"):
+        run_slam(log, SlamConfig(particles=3))
+
+
+def test_clones_after_resampling_share_one_insertion_with_identical_results(monkeypatch) -> None:
+    """Inserting the scan once per ancestor after resampling (clones share that map) gives bit-identical
+    trajectories and maps to inserting it into every particle."""
+    from slam_engine.frontend.particle_filter import SlamFilter
+
+    log, _ = room_log(odometry_bias=0.1)
+    config = SlamConfig(particles=12, seed=3, resample_threshold=0.99)
+    calls: list[int | None] = []
+    original = SlamFilter._insert
+
+    def counting(self, projected, clones_of):
+        calls.append(None if clones_of is None else len(np.unique(clones_of)))
+        original(self, projected, clones_of)
+
+    monkeypatch.setattr(SlamFilter, "_insert", counting)
+    shared = run_slam(log, config)
+    assert any(c is not None and c < config.particles for c in calls)  # clones existed and were shared
+    monkeypatch.setattr(SlamFilter, "_insert", lambda self, projected, clones_of: original(self, projected, None))
+    unshared = run_slam(log, config)
+    np.testing.assert_array_equal(shared.trajectory.poses, unshared.trajectory.poses)
+    np.testing.assert_array_equal(shared.grid.log_odds, unshared.grid.log_odds)
+
+
+def test_snapshots_without_live_previews_are_the_same_frames() -> None:
+    """Without live previews every snapshot is built at an animation frame's size (a few tile rows at
+    a time) instead of at preview size and pooled later: the frames are identical."""
+    from slam_engine.model.result import SNAPSHOT_MAX_SIDE_CELLS
+    from slam_engine.simulation import simulate
+
+    drive = simulate("office", seed=0, rig="carmen-robot", max_duration_s=80.0, cameras=False)
+    config = SlamConfig(particles=4, seed=0, snapshot_every_scans=40, loop_closing={"enabled": False})
+    live = run_slam(drive.log, config, progress=lambda p: None)
+    frames = run_slam(drive.log, config, live_previews=False)
+    assert len(live.snapshots) == len(frames.snapshots) >= 5
+    pooled = 0
+    for a, b in zip(live.snapshots, frames.snapshots, strict=True):
+        assert max(b.grid.shape) <= SNAPSHOT_MAX_SIDE_CELLS
+        assert (a.grid.resolution_m, a.grid.origin_x_m, a.grid.origin_y_m) == \
+            (b.grid.resolution_m, b.grid.origin_x_m, b.grid.origin_y_m)
+        np.testing.assert_array_equal(a.grid.log_odds, b.grid.log_odds)
+        pooled += b.grid.resolution_m > config.grid.resolution_m
+    assert pooled >= 1  # the later maps are larger than a frame: pooled, the same either way

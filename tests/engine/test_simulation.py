@@ -1,0 +1,143 @@
+"""The simulator: determinism, scans consistent with the world and the ground truth, sensor errors
+of a realistic size, a loop closure in the relations, the floor texture, the CLI."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from slam_engine.errors import ConfigError
+from slam_engine.formats import load_log
+from slam_engine.frontend.odometry import odometry_track
+from slam_engine.model.poses import relative
+from slam_engine.simulation import relations, simulate, write_simulated
+from slam_engine.simulation.world import office
+
+
+@pytest.fixture(scope="module")
+def office_drive():
+    return simulate(scenario="office", seed=0, rig="robot")
+
+
+def point_to_segments_m(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """Distance of each point to the nearest wall segment."""
+    p, e = segments[:, :2], segments[:, 2:] - segments[:, :2]
+    w = points[:, None, :] - p[None]
+    u = np.clip((w * e[None]).sum(-1) / (e * e).sum(-1)[None], 0, 1)
+    return np.hypot(*(w - u[..., None] * e[None]).transpose(2, 0, 1)).min(axis=1)
+
+
+def test_same_seed_same_drive_other_seed_other_noise() -> None:
+    a = simulate(seed=5, rig="robot", max_duration_s=5.0)
+    b = simulate(seed=5, rig="robot", max_duration_s=5.0)
+    c = simulate(seed=6, rig="robot", max_duration_s=5.0)
+    np.testing.assert_array_equal(a.log.scans.ranges_m, b.log.scans.ranges_m)
+    np.testing.assert_array_equal(a.log.encoders.ticks, b.log.encoders.ticks)
+    assert not np.array_equal(a.log.scans.ranges_m, c.log.scans.ranges_m)
+
+
+def test_full_office_drive_is_a_loop_of_known_size(office_drive) -> None:
+    log, truth = office_drive.log, office_drive.ground_truth
+    assert 90.0 < office_drive.motion.duration_s < 110.0
+    assert office_drive.motion.s_m[-1] == pytest.approx(56.7, abs=0.5)
+    assert 450 < len(log.scans) < 550 and len(truth) == len(log.scans)
+    np.testing.assert_array_equal(truth.t_s, log.scans.t_s)
+    rel = relations(truth, np.random.default_rng(0))
+    loops = rel[rel[:, 1] - rel[:, 0] > 20.0]
+    assert len(loops) > 50  # the robot re-enters the first room on the same heading
+
+
+def test_scans_hit_the_walls_where_ground_truth_says(office_drive) -> None:
+    log, truth = office_drive.log, office_drive.ground_truth
+    lidar = log.lidar
+    T = lidar.T_vehicle_from_lidar
+    angles = lidar.beam_angles_rad
+    distances = []
+    for k in range(0, len(log.scans), 25):
+        r = log.scans.ranges_m[k]
+        ok = np.isfinite(r)
+        local = np.column_stack([r[ok] * np.cos(angles[ok]), r[ok] * np.sin(angles[ok])]) + T[:2, 3]
+        x, y, th = truth.poses[k]
+        c, s = np.cos(th), np.sin(th)
+        world = np.column_stack([x + c * local[:, 0] - s * local[:, 1], y + s * local[:, 0] + c * local[:, 1]])
+        distances.append(point_to_segments_m(world, office_drive.world.segments))
+    distances = np.concatenate(distances)
+    assert np.quantile(distances, 0.99) < 0.04  # 1 cm range noise
+    share_inf = np.isinf(log.scans.ranges_m).mean()
+    assert 0.005 < share_inf < 0.05  # 1 % dropouts plus beams out of range
+
+
+def test_wheel_and_gyro_errors_are_realistic(office_drive) -> None:
+    log, truth = office_drive.log, office_drive.ground_truth
+    odometry = odometry_track(log)  # encoders + gyro
+    length = np.hypot(*np.diff(odometry.poses[:, :2], axis=0).T).sum()
+    assert length == pytest.approx(office_drive.motion.s_m[-1], rel=0.02)  # ~0.2 % scale error
+    at_scans = np.column_stack([np.interp(truth.t_s, odometry.t_s, odometry.poses[:, i]) for i in range(2)])
+    start_offset = truth.poses[0, :2]
+    error = np.hypot(*(at_scans[-1] + start_offset - truth.poses[-1, :2]))
+    assert 0.05 < error < 3.0  # drifts, but not absurdly
+    wheels_only = odometry_track(replace(log, gyro=None))
+    heading_error = abs(np.unwrap(wheels_only.poses[:, 2])[-1] - (office_drive.motion.theta_rad[-1]
+                                                                    - office_drive.motion.theta_rad[0]))
+    assert heading_error > np.radians(2.0)  # wheel scale error and slip bend the heading
+
+
+def test_relations_are_true_relative_motions(office_drive) -> None:
+    truth = office_drive.ground_truth
+    rel = relations(truth, np.random.default_rng(1), max_loop=10)
+    index = {t: i for i, t in enumerate(truth.t_s)}
+    i, j = index[rel[-1, 0]], index[rel[-1, 1]]
+    np.testing.assert_allclose(rel[-1, 2:], relative(truth.poses[[i]], truth.poses[[j]])[0])
+
+
+def test_written_folder_has_truth_relations_and_loads(tmp_path) -> None:
+    drive = simulate(seed=0, rig="carmen-robot", max_duration_s=6.0)
+    write_simulated(drive, "carmen", tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ground_truth.txt", "log.clf", "office.relations"]
+    rows = np.loadtxt(tmp_path / "office.relations")
+    assert rows.shape[1] == 8 and np.all(rows[:, 4:7] == 0)
+    assert len(load_log(tmp_path).scans) == len(drive.ground_truth)
+
+
+def test_floor_texture_is_deterministic_and_varied() -> None:
+    world = office()
+    x, y = np.meshgrid(np.linspace(0, 3, 150), np.linspace(0, 3, 150))
+    rgb = world.floor_rgb(x.ravel(), y.ravel())
+    assert rgb.shape == (150 * 150, 3) and rgb.dtype == np.uint8
+    np.testing.assert_array_equal(rgb, world.floor_rgb(x.ravel(), y.ravel()))
+    assert rgb.astype(float).std(axis=0).min() > 15
+    assert (rgb == 45).all(axis=1).mean() > 0.01  # grout lines between tiles
+
+
+def test_car_on_campus_uses_the_tilted_lidar() -> None:
+    drive = simulate(seed=0, rig="car", scenario=None, max_duration_s=5.0, cameras=False)
+    assert drive.scenario == "campus"
+    assert drive.log.lidar.num_beams == 286
+    assert np.isfinite(drive.log.scans.ranges_m).mean() > 0.5
+
+
+def test_bad_simulation_requests() -> None:
+    with pytest.raises(ConfigError, match="unknown rig"):
+        simulate(rig="tank")
+    with pytest.raises(ConfigError, match="unknown scenario"):
+        simulate(scenario="moon")
+
+
+def test_cli_simulate_and_formats(tmp_path) -> None:
+    from lidarmap.cli import app
+
+    runner = CliRunner()
+    out = tmp_path / "sim"
+    result = runner.invoke(app, ["simulate", "--format", "breezyslam", "--out", str(out), "--seed", "3",
+                                 "--duration", "4"])
+    assert result.exit_code == 0, result.output
+    assert len(load_log(out).scans) == len(np.loadtxt(out / "ground_truth.txt"))
+    result = runner.invoke(app, ["simulate", "--format", "breezyslam", "--out", str(out)])
+    assert result.exit_code == 2 and "not empty" in result.output
+    result = runner.invoke(app, ["formats"])
+    assert result.exit_code == 0 and "ece276a-car" in result.output
+    result = runner.invoke(app, ["formats", "--schema"])
+    assert result.exit_code == 0 and '"DriveLogManifest"' in result.output
