@@ -151,10 +151,51 @@ class MatcherConfig(_Section):
                                      "correlated; fewer = smoother weights).")
     min_score: float = Field(0.3, ge=0.0, le=1.0, description="Below this normalised score the "
                              "odometry proposal is used instead of the match.")
-    local_map_m: float = Field(30.0, ge=0.0, le=100000.0, description="Particles match against their local map: "
+    local_map_m: float = Field(8.0, ge=0.0, le=100000.0, description="Particles match against their local map: "
                                "map tiles no scan touched in this much travel [m] are forgotten (kept for "
                                "previews), so that a place mapped long ago is not matched where the drift puts "
                                "it; the back end closes those loops. 0: keep the whole map.")
+
+
+class LocalizationConfig(_Section):
+    """Placing a drive, or another map, in a saved map (:mod:`slam_engine.multisession`): a global search
+    over the whole map with a stretch of the drive, confirmed by a second, disjoint stretch, then each
+    scan tracked against the map."""
+
+    stretch_m: float = Field(4.0, gt=0.0, le=100.0, description="Travel per stretch of the drive that is "
+                             "searched for over the whole map, its scans joined by the odometry [m].")
+    local_map_m: float = Field(8.0, gt=0.0, le=100.0, description="Each scan of the drive is first matched "
+                               "against its own scans of this much travel before it, which corrects the odometry "
+                               "between scans [m].")
+    search_resolution_m: float = Field(0.1, ge=0.02, le=1.0, description="Cell size of the global search's "
+                                       "grid [m] (the pose is then refined on the map's own cells).")
+    min_score: float = Field(0.65, ge=0.0, le=1.0, description="Lowest mean blurred hit value under a "
+                             "stretch's end points for a global placement (0-1).")
+    runner_up_ratio: float = Field(0.9, gt=0.0, le=1.0, description="A placement is ambiguous when a pose "
+                                   "farther than ambiguity_m scores at least this share of the best.")
+    ambiguity_m: float = Field(1.0, ge=0.0, le=100.0, description="See runner_up_ratio [m].")
+    ambiguity_rad: float = Field(0.15, ge=0.0, le=3.2, description="... or turned this much [rad].")
+    agree_m: float = Field(0.3, gt=0.0, le=10.0, description="The second stretch's placement agrees with the "
+                           "first (tracked to it) within this distance [m] ...")
+    agree_rad: float = Field(0.1, gt=0.0, le=3.2, description="... and this heading difference [rad].")
+    track_window_m: float = Field(0.5, gt=0.0, le=10.0, description="Each scan is searched for within this "
+                                  "distance of where the odometry puts it [m] ...")
+    track_window_rad: float = Field(0.3, gt=0.0, le=3.2, description="... and this turn [rad].")
+    track_min_score: float = Field(0.5, ge=0.0, le=1.0, description="A scan whose match scores below this is "
+                                   "placed by the odometry alone (confidence = its score) ...")
+    nudge_min_score: float = Field(0.3, ge=0.0, le=1.0, description="... unless it scores at least this and moves "
+                                   "the scan by no more than nudge_m / nudge_rad from where the odometry puts it.")
+    nudge_m: float = Field(0.1, ge=0.0, le=10.0, description="See nudge_min_score [m].")
+    nudge_rad: float = Field(0.05, ge=0.0, le=3.2, description="See nudge_min_score [rad].")
+    window_per_m: float = Field(0.05, ge=0.0, le=1.0, description="The tracking window grows by this much per "
+                                "metre travelled since the last scan that matched [m/m] ...")
+    window_rad_per_m: float = Field(0.02, ge=0.0, le=1.0, description="... and its turn by this [rad/m].")
+    lost_after_m: float = Field(10.0, gt=0.0, le=10000.0, description="No scan matched over this much travel: "
+                                "the drive is lost, and searched for over the whole map again [m].")
+    max_points: int = Field(250, ge=10, le=100000, description="A stretch is searched with at most this many "
+                            "end points.")
+    max_first_tries: int = Field(12, ge=1, le=10000, description="Stretches searched for the drive's first "
+                                 "placement, spread over the drive; none placed: the drive is refused.")
 
 
 class LoopClosingConfig(_Section):
@@ -311,6 +352,7 @@ class SlamConfig(_Section):
     matcher: MatcherConfig = MatcherConfig()
     scheduling: SchedulingConfig = SchedulingConfig()
     loop_closing: LoopClosingConfig = LoopClosingConfig()
+    localization: LocalizationConfig = LocalizationConfig()
     lidar_filter: LidarFilterConfig = LidarFilterConfig()
     texture: TextureConfig = TextureConfig()
     snapshot_every_scans: int = Field(0, ge=0, le=100000, description="Keep a map snapshot every n "

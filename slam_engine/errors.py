@@ -45,3 +45,8 @@ class TrajectoryFormatError(LogFormatError):
 
 class TileOutOfRangeError(SlamEngineError):
     """A map tile outside the pyramid: zoom level or x/y index out of bounds (HTTP 404)."""
+
+
+class MapBundleError(SlamEngineError):
+    """A map bundle cannot be read (not a bundle, damaged, or of another format version), or a drive or
+    map cannot be placed in it."""

@@ -13,7 +13,7 @@ import ctypes
 import ctypes.util
 import functools
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,13 +22,16 @@ from slam_engine.backend.loop_closer import close_loops
 from slam_engine.backend.map_alignment import align_to_map
 from slam_engine.backend.map_builder import render_occupancy
 from slam_engine.backend.odometry_smoothing import smooth_with_odometry
+from slam_engine.backend.pose_graph import Edge
 from slam_engine.config import SlamConfig
 from slam_engine.errors import ConfigError
 from slam_engine.evaluation.memory_estimate import peak_resident_bytes
+from slam_engine.frontend.lidar_points import ProjectedScan
 from slam_engine.frontend.odometry import dead_reckoning, odometry_source
 from slam_engine.frontend.odometry_noise import estimate_noise
 from slam_engine.frontend.particle_filter import SlamFilter, engine_threads
 from slam_engine.model.drive_log import DriveLog
+from slam_engine.model.map_bundle import MapBundle
 from slam_engine.model.messages import ScanMessage
 from slam_engine.model.result import MapSnapshot, OccupancyGrid, ScanStats, SlamResult, TextureMap, Trajectory
 
@@ -170,6 +173,8 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     else:  # the poses are the best particle's: its own map is the same grid
         grid = slam.best_grid()
     texture, texture_status = _ground_texture(log, trajectory, grid, config, warnings)
+    bundle = map_bundle(key_frames, slam.key_frame_times(), ~slam.key_frame_matched(), slam.product_scans(),
+                        slam.projector.origin_v, backend.edges, trajectory, config, log)
     return SlamResult(
         trajectory=trajectory,
         dead_reckoning=dead_reckoning(log),
@@ -188,7 +193,37 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
                        "time_offset": _time_offset_summary(slam, log, config),
                        "loop_closing": backend.summary(), "map_alignment": alignment,
                        "odometry_smoothing": smoothing},
+        bundle=bundle,
     )
+
+
+def map_bundle(poses: np.ndarray, t_s: np.ndarray, unverified: np.ndarray, scans: Sequence[ProjectedScan],
+               origin_v: np.ndarray, edges: list[Edge], trajectory: Trajectory, config: SlamConfig,
+               log: DriveLog | None = None, drive: int = 0) -> MapBundle:
+    """The :class:`MapBundle` of one drive: its key frames at their final ``poses`` (K, 3, map frame) and
+    times ``t_s``, their product ``scans`` (projected again here, one at a time, as the map took them),
+    the pose graph's ``edges`` and every scan's pose."""
+    offsets, ends_v, is_hit, free_from = MapBundle.pack_scans(list(scans))
+    n_edges = len(edges)
+    unverified = np.array(unverified, bool)
+    unverified[:1] = True  # a drive's first key frame: nothing ties it to what came before
+    lidar = None if log is None else log.lidar
+    sensors = {} if lidar is None else {"lidar": {
+        "name": lidar.name, "num_beams": lidar.num_beams, "angle_min_rad": lidar.angle_min_rad,
+        "angle_increment_rad": lidar.angle_increment_rad, "range_min_m": lidar.range_min_m,
+        "range_max_m": lidar.range_max_m, "T_vehicle_from_lidar": np.asarray(lidar.T_vehicle_from_lidar).tolist()}}
+    return MapBundle(
+        poses=np.asarray(poses, np.float64), t_s=np.asarray(t_s, np.float64),
+        drive=np.full(len(poses), drive, np.int32),
+        unverified=unverified, scan_offsets=offsets, ends_v=ends_v, is_hit=is_hit, free_from_m=free_from,
+        origin_v=np.asarray(origin_v, np.float64),
+        edges_ij=np.array([(e.i, e.j) for e in edges], np.int64).reshape(n_edges, 2),
+        edges_T_i_from_j=np.array([e.T_i_from_j for e in edges], np.float64).reshape(n_edges, 3),
+        edges_sigmas=np.array([e.sigmas for e in edges], np.float64).reshape(n_edges, 3),
+        edges_robust=np.array([e.robust for e in edges], bool),
+        trajectory_t_s=np.asarray(trajectory.t_s, np.float64), trajectory=np.asarray(trajectory.poses, np.float64),
+        trajectory_drive=np.full(len(trajectory), drive, np.int32), resolution_m=config.grid.resolution_m,
+        config=config.model_dump(mode="json"), sensors=sensors)
 
 
 def _keep_odometry_precision(poses: np.ndarray, odometry: list[np.ndarray], wheels: list[np.ndarray | None],

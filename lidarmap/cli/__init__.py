@@ -12,6 +12,7 @@ from lidarmap.cli import (
     config_cmd,
     evaluate_cmd,
     formats_cmd,
+    maps_cmd,
     run_cmd,
     serve,
     simulate_cmd,
@@ -52,6 +53,7 @@ def _root(
 
 serve.register(app)
 run_cmd.register(app)
+maps_cmd.register(app)
 submit_cmd.register(app)
 evaluate_cmd.register(app)
 config_cmd.register(app)

@@ -84,6 +84,27 @@ def run_with_progress(drive_log, config):
                         live_previews=False)  # the bar shows counts only: no preview maps
 
 
+def extend(saved, result, config: SlamConfig, out: Path, relations) -> dict[str, Path]:
+    """The drive of ``result`` (mapped on its own) joined with the ``saved`` map; its products into ``out``.
+    A drive that cannot be placed is kept in the new bundle as a disconnected part (said on stderr)."""
+    from slam_engine.model.poses import compose
+    from slam_engine.model.result import Trajectory
+    from slam_engine.multisession.joining import join
+    from slam_engine.products.multisession import write_joined_products
+
+    assert result.bundle is not None  # a mapping run always makes one
+    joined = join(saved, result.bundle, config)
+    placed = joined.placement.T_map_from_drive
+    dead_reckoning = None if placed is None else Trajectory(result.dead_reckoning.t_s,
+                                                            compose(placed, result.dead_reckoning.poses))
+    if not joined.connected:
+        typer.echo(f"warning: the drive could not be placed in the saved map (best score "
+                   f"{joined.placement.best_score:.3f}): it is kept in the new map bundle as a disconnected part, "
+                   "joined when a later drive links it; the map products show the saved map", err=True)
+    return write_joined_products(joined, config, out, relations=relations, base_result=result,
+                                 dead_reckoning=dead_reckoning)
+
+
 def texture_figures(result, truth, floor) -> dict | None:
     """Colour error and placement of the run's texture against a simulated floor (None when the
     run made no texture, or there is no floor or ground truth to compare with)."""
@@ -156,14 +177,18 @@ def register(app: typer.Typer) -> None:
         heading: float | None = typer.Option(None, help="Start heading [deg clockwise from north]."),
         snapshot_every: int | None = typer.Option(None, help="Animation frame every N processed scans "
                                                   f"(default: about {SNAPSHOT_FRAMES} frames; 0 = none)."),
+        map_dir: Path | None = typer.Option(None, "--map", "-m", help="Extend this saved map (a mapping run's "
+                                            "--out folder or its map_bundle.npz) with the drive."),
         force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty --out folder."),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Show tracebacks."),
     ) -> None:
         """Build the map of a drive log and write every product (PNG, GeoTIFF, ROS map, trajectories,
-        animation, run.json) into --out."""
+        animation, map bundle, run.json) into --out. With --map, the drive extends a saved map: it is
+        placed in it, loops between the drives are closed, and the products cover both."""
         from slam_engine.evaluation import metrics as evaluation
         from slam_engine.formats import load_log
         from slam_engine.products import write_products
+        from slam_engine.products.map_bundle import read_bundle
         from slam_engine.simulation import floor_beside_log
 
         with bad_input_exits(verbose):
@@ -183,7 +208,11 @@ def register(app: typer.Typer) -> None:
                 every = snapshot_interval(len(drive_log.scans))
                 slam_config = slam_config.model_copy(update={"snapshot_every_scans": every})
             floor = floor_beside_log(log)
+            saved = None if map_dir is None else read_bundle(map_dir)  # before the long run: fail in seconds
             result = run_with_progress(drive_log, slam_config)
-            written = write_products(result, out, geo=geo, relations=relation_table, ground_truth=truth,
-                                     log=drive_log, texture_accuracy=texture_figures(result, truth, floor))
+            if saved is not None:
+                written = extend(saved, result, slam_config, out, relation_table)
+            else:
+                written = write_products(result, out, geo=geo, relations=relation_table, ground_truth=truth,
+                                         log=drive_log, texture_accuracy=texture_figures(result, truth, floor))
             print_summary(result, written, out)

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from slam_engine.backend.correlative import CorrelativeMatch, MatchGrid, angular_step_rad, refine_pose, search
-from slam_engine.backend.pose_graph import PoseGraph
+from slam_engine.backend.pose_graph import Edge, PoseGraph
 from slam_engine.backend.submaps import Submap, SubmapGrids, split_into_submaps
 from slam_engine.backend.travel_graph import adjacency, shortest_distances
 from slam_engine.config import LoopClosingConfig
@@ -96,6 +96,7 @@ class LoopClosingResult:
     optimizations: int = 0
     submaps: int = 0
     unverified_steps: int = 0  # front-end steps not verified by a scan match (loose motion edges)
+    edges: list[Edge] = field(default_factory=list)  # the final pose graph's (motions and accepted closures)
 
     def summary(self) -> dict:
         accepted = [c for c in self.closures if c.accepted]
@@ -348,7 +349,7 @@ class LoopCloser:
             est = self.graph.optimize(self.graph.optimize(est, robust=False))
             optimizations += 2
         return LoopClosingResult(poses=est, closures=closures, optimizations=optimizations, submaps=len(self.submaps),
-                                 unverified_steps=int(self.unverified.sum()))
+                                 unverified_steps=int(self.unverified.sum()), edges=list(self.graph.edges))
 
     def _candidates(self, k: int, est: np.ndarray, window_m: float) -> list[tuple[int, float]]:
         """Finished submaps, far enough back along the drive, with a key frame within reach of k:

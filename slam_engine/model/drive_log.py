@@ -9,6 +9,7 @@ Frames: the vehicle frame has x forward, y left, z up, origin at the vehicle's r
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -255,6 +256,25 @@ class DriveLog:
             "lidar_beams": None if self.lidar is None else self.lidar.num_beams,
             "warnings": list(self.warnings),
         }
+
+    def between(self, start_s: float, end_s: float) -> DriveLog:
+        """The part of the drive with stamps in ``[start_s, end_s)`` [s]: its scans, wheel ticks, gyro and
+        odometry (camera streams are left out). Cumulative ticks and logged odometry keep their values:
+        only their increments are used, so the part starts wherever its own odometry says, as a drive
+        switched off and on again."""
+
+        def cut(stream, **arrays):
+            if stream is None:
+                return None
+            keep = (stream.t_s >= start_s) & (stream.t_s < end_s)
+            return dataclasses.replace(stream, t_s=stream.t_s[keep], **{k: v[keep] for k, v in arrays.items()})
+
+        return dataclasses.replace(
+            self, scans=None if self.scans is None else cut(self.scans, ranges_m=self.scans.ranges_m),
+            encoders=None if self.encoders is None else cut(self.encoders, ticks=self.encoders.ticks),
+            gyro=None if self.gyro is None else cut(self.gyro, yaw_rate_rad_s=self.gyro.yaw_rate_rad_s),
+            odometry=None if self.odometry is None else cut(self.odometry, poses=self.odometry.poses),
+            stereo=None, rgbd=None, warnings=list(self.warnings))
 
     def messages(self) -> Iterator[Message]:
         """All messages, merged into one time-ordered stream (stable for equal stamps:

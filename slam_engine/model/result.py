@@ -17,6 +17,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from slam_engine.config import SlamConfig
+    from slam_engine.model.map_bundle import MapBundle
 
 SNAPSHOT_MAX_SIDE_CELLS = 800  # a kept snapshot's map is pooled to at most this (what an animation frame shows)
 PREVIEW_MAX_SIDE_CELLS = 2048  # the newest snapshot's map (live previews) is pooled to at most about this
@@ -175,3 +176,4 @@ class SlamResult:
     peak_memory_bytes: int = 0
     warnings: list[str] = field(default_factory=list)
     input_summary: dict = field(default_factory=dict)
+    bundle: MapBundle | None = None  # what a later drive needs to localise in, extend or merge this map

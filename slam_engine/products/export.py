@@ -26,6 +26,7 @@ from slam_engine.products.animation import write_animation_gif
 from slam_engine.products.files import atomic_path
 from slam_engine.products.georeference import GeoOrigin, Georeference
 from slam_engine.products.geotiff import write_occupancy_geotiff, write_texture_geotiff
+from slam_engine.products.map_bundle import BUNDLE_FILE, write_bundle
 from slam_engine.products.rendering import (
     PNG_COMPRESS_LEVEL,
     occupancy_rasters,
@@ -52,7 +53,7 @@ def accuracy_figures(trajectory: Trajectory, relations=None, ground_truth=None) 
     absolute trajectory error against ``ground_truth`` (a path or a Trajectory), as plain JSON values."""
     if relations is None and ground_truth is None:
         return None
-    from slam_engine import evaluation
+    from slam_engine.evaluation import metrics as evaluation
 
     figures: dict = {}
     if relations is not None:
@@ -71,13 +72,14 @@ def accuracy_figures(trajectory: Trajectory, relations=None, ground_truth=None) 
 
 def write_products(result: SlamResult, out_dir: str | Path, geo: GeoOrigin | None = None,
                    relations=None, ground_truth=None, log=None,
-                   texture_accuracy: dict | None = None) -> dict[str, Path]:
+                   texture_accuracy: dict | None = None, extra_products: list[str] | None = None) -> dict[str, Path]:
     """Write every product of ``result`` into ``out_dir``; returns {file name: path}.
 
     ``geo`` places the GeoTIFFs in UTM (else the local map frame); ``relations`` / ``ground_truth``
     add accuracy figures to run.json, ``texture_accuracy`` (colour error and placement against a known
     floor, :mod:`slam_engine.texture.accuracy`) as its ``accuracy.texture``; ``log`` (the DriveLog)
-    fills run.json's input summary when the result carries none.
+    fills run.json's input summary when the result carries none; ``extra_products``: files the caller
+    writes beside these, listed in run.json too.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -109,6 +111,8 @@ def write_products(result: SlamResult, out_dir: str | Path, geo: GeoOrigin | Non
     if result.snapshots:
         written["animation.gif"] = write_animation_gif(result.snapshots, result.grid, result.trajectory,
                                                        out / "animation.gif")
+    if result.bundle is not None:
+        written[BUNDLE_FILE] = write_bundle(result.bundle, out / BUNDLE_FILE)
     input_summary = result.input_summary or (log.summary() if log is not None else {})
     accuracy = accuracy_figures(result.trajectory, relations, ground_truth)
     if texture_accuracy is not None:
@@ -116,6 +120,6 @@ def write_products(result: SlamResult, out_dir: str | Path, geo: GeoOrigin | Non
     report = build_run_report(result, input_summary=input_summary,
                               georeference=georef.describe(),
                               accuracy=accuracy,
-                              products=sorted([*written, "run.json"]), rasters=rasters)
+                              products=sorted([*written, *(extra_products or []), "run.json"]), rasters=rasters)
     written["run.json"] = write_run_json(report, out / "run.json")
     return written

@@ -19,7 +19,8 @@ def test_every_listed_product_downloads_under_its_name(tmp_path) -> None:
         assert done["status"] == "succeeded", done
         listed = set(done["products"])
         # what the engine writes, each under its file name (texture: the synthetic room has a floor texture)
-        assert listed == set(MEDIA_TYPES) - {"dead_reckoning.tum", "animation.gif"}, listed  # no snapshots
+        # no snapshots; no key frames (a drawn room, not a SLAM run): no map bundle
+        assert listed == set(MEDIA_TYPES) - {"dead_reckoning.tum", "animation.gif", "map_bundle.npz"}, listed
         job_dir = DataDir(tmp_path).job_dir(job["id"])
         for name in sorted(listed):
             url = f"/v1/jobs/{job['id']}/{name}"

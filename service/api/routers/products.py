@@ -144,6 +144,8 @@ PRODUCT_SUMMARIES = {
     "dead_reckoning.json": "Odometry alone, as the lidarmap JSON file.",
     "dead_reckoning.tum": "Odometry alone, in TUM format.",
     "run.json": "The run record file: configuration, timings, scan statistics, input summary, accuracy.",
+    "map_bundle.npz": "The map bundle: key frames, their scans and the pose graph, to localise a later drive in "
+                      "this map, extend it or merge it (`lidarmap localize/run --map/merge`; docs/map-bundle.md).",
 }
 assert set(PRODUCT_SUMMARIES) == set(MEDIA_TYPES), "every product the worker lists has a route"
 for _name, _summary in PRODUCT_SUMMARIES.items():

@@ -1,0 +1,111 @@
+"""``lidarmap localize`` and ``lidarmap merge``: use a saved map (the ``map_bundle.npz`` every mapping
+run writes) again. ``lidarmap run LOG --map DIR`` (extending a map) lives with ``run``
+(:mod:`lidarmap.cli.run_cmd`); the work itself is the engine's (:mod:`slam_engine.multisession`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from lidarmap.cli.errors import bad_input_exits
+from lidarmap.cli.run_cmd import load_config, prepare_out_dir
+
+REFUSED_EXIT_CODE = 1  # the drive (or map) was understood, but has no place in the saved map
+
+
+def parse_pose(text: str | None) -> tuple[float, float, float] | None:
+    """``X,Y,THETA`` [m, m, rad] -> a pose; None for None."""
+    from slam_engine.errors import ConfigError
+
+    if text is None:
+        return None
+    parts = text.split(",")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(abs(v) < 1e6 for v in values):
+        raise ConfigError(f"--start {text!r}: expected X,Y,THETA (metres, metres, radians), e.g. 1.5,-2,0.3")
+    return values[0], values[1], values[2]
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def localize(
+        log: Path = typer.Argument(..., metavar="LOG", help="Drive log to localise: a file or a folder."),
+        map_dir: Path = typer.Option(..., "--map", "-m", help="A saved map: a mapping run's --out folder or "
+                                     "its map_bundle.npz."),
+        out: Path = typer.Option(..., "--out", "-o", help="Folder for the products (created)."),
+        format: str = typer.Option("auto", "--format", "-f", help="Log format, or auto to detect it."),
+        start: str | None = typer.Option(None, help="Where the drive starts in the map, if known: X,Y,THETA "
+                                         "[m, m, rad] (a hint: it is searched near there and still confirmed)."),
+        config_file: Path | None = typer.Option(None, "--config", "-c", help="SlamConfig as YAML or JSON."),
+        relations: Path | None = typer.Option(None, help="Relations file for accuracy figures."),
+        force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty --out folder."),
+        verbose: bool = typer.Option(False, "--verbose", "-v", help="Show tracebacks."),
+    ) -> None:
+        """Localise a drive in a saved map, without being told where it starts: its trajectory in the
+        map's frame with a confidence per pose, when it was lost and found, and its scans drawn over the
+        map. A drive that is not in the map is refused (exit 1, run.json says localised: false)."""
+        import numpy as np
+
+        from slam_engine.formats import load_log
+        from slam_engine.multisession.localization import DriveScans, localize
+        from slam_engine.products.map_bundle import read_bundle
+        from slam_engine.products.multisession import localization_image, saved_map_grid, write_localization
+
+        with bad_input_exits(verbose):
+            prepare_out_dir(out, force)
+            hint = parse_pose(start)
+            config = load_config(config_file)
+            bundle = read_bundle(map_dir)
+            drive = DriveScans.from_log(load_log(log, format), config)
+            result = localize(bundle, drive, config, hint=None if hint is None else np.array(hint))
+            image = None
+            if result.localised:
+                assert result.trajectory is not None
+                image = localization_image(saved_map_grid(bundle, config), result.trajectory, drive.hits,
+                                           result.tracked)
+            write_localization(out, result.summary(), result.trajectory, result.confidence, image,
+                               relations=relations)
+        summary = result.summary()
+        if not result.localised:
+            typer.echo(f"refused: {log} has no place in the map {map_dir} (best score {summary['best_score']}, "
+                       f"{config.localization.min_score} needed, unambiguous and confirmed)", err=True)
+            raise typer.Exit(REFUSED_EXIT_CODE)
+        typer.echo(f"localised {summary['scans']} scans in {summary['wall_time_s']:.1f} s: {summary['scans_tracked']} "
+                   f"matched the map (mean confidence {summary['mean_confidence']}); products in {out}")
+
+    @app.command()
+    def merge(
+        first: Path = typer.Argument(..., metavar="MAP_A", help="The map to merge into (its frame is kept)."),
+        second: Path = typer.Argument(..., metavar="MAP_B", help="The map to merge with it."),
+        out: Path = typer.Option(..., "--out", "-o", help="Folder for the merged map's products (created)."),
+        config_file: Path | None = typer.Option(None, "--config", "-c", help="SlamConfig as YAML or JSON."),
+        relations: Path | None = typer.Option(None, help="Relations file for accuracy figures."),
+        force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty --out folder."),
+        verbose: bool = typer.Option(False, "--verbose", "-v", help="Show tracebacks."),
+    ) -> None:
+        """Merge two saved maps of one place into one optimised map (a global search between them, then one
+        pose graph); refused (exit 1) when they do not overlap."""
+        from slam_engine.errors import MapBundleError
+        from slam_engine.multisession.joining import join
+        from slam_engine.products.map_bundle import read_bundle
+        from slam_engine.products.multisession import write_joined_products
+
+        with bad_input_exits(verbose):
+            prepare_out_dir(out, force)
+            config = load_config(config_file)
+            joined = join(read_bundle(first), read_bundle(second), config)
+        if not joined.connected:
+            error = MapBundleError(f"the maps do not overlap: {second} could not be placed in {first} (best score "
+                                   f"{joined.placement.best_score:.3f}, {config.localization.min_score} needed, "
+                                   "unambiguous and confirmed)")
+            typer.echo(f"refused: {error}", err=True)
+            raise typer.Exit(REFUSED_EXIT_CODE)
+        with bad_input_exits(verbose):
+            written = write_joined_products(joined, config, out, relations)
+        typer.echo(f"merged: {len(joined.bundle)} key frames of {joined.bundle.drives} drives; products in {out} "
+                   f"({', '.join(sorted(written))})")
+

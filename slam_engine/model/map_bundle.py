@@ -1,0 +1,89 @@
+"""A map that outlives its drive: what a later drive needs to localise in it, extend it or merge it.
+
+Frames: every pose is ``[x_m, y_m, theta_rad]`` of the vehicle in the map frame (the first drive's);
+every point is in the vehicle frame of its key frame [m]. Key frames are the scans the front end
+processed; ``drive`` numbers the drives a map was built from (0 = the first, 1 = a drive that extended
+it, ...). File format and version: :mod:`slam_engine.products.map_bundle`, ``docs/map-bundle.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam_engine.frontend.lidar_points import ProjectedScan
+
+
+@dataclass
+class MapBundle:
+    """Key frames at their optimised poses with the scans that drew the map, the pose graph's
+    constraints and the per-scan trajectory of every drive.
+
+    - ``poses`` (K, 3) map frame; ``t_s`` (K,) [s]; ``drive`` (K,) int; ``unverified`` (K,) bool: the
+      motion into the key frame was not verified by a scan match (or the key frame starts a drive);
+    - ``scan_offsets`` (K + 1,): key frame k's rays are rows ``scan_offsets[k]:scan_offsets[k + 1]`` of
+      ``ends_v`` (N, 2) float32 [m, vehicle frame], ``is_hit`` (N,) bool (False: a ray that only clears
+      free space) and ``free_from_m`` (N,) float32 (where each ray starts clearing cells);
+    - ``origin_v`` (2,): the LiDAR's position in the vehicle frame [m], where every ray starts;
+    - ``edges_ij`` (E, 2) int, ``edges_T_i_from_j`` (E, 3), ``edges_sigmas`` (E, 3) [m, m, rad],
+      ``edges_robust`` (E,) bool: the pose graph (motions and accepted loop closures);
+    - ``trajectory_t_s`` (S,), ``trajectory`` (S, 3), ``trajectory_drive`` (S,): every scan's pose;
+    - ``resolution_m``: the grid's cell size; ``config``: the SlamConfig as JSON-ready settings;
+      ``sensors``: the LiDAR set-up (model, beams, range) as JSON-ready settings.
+    """
+
+    poses: np.ndarray
+    t_s: np.ndarray
+    drive: np.ndarray
+    unverified: np.ndarray
+    scan_offsets: np.ndarray
+    ends_v: np.ndarray
+    is_hit: np.ndarray
+    free_from_m: np.ndarray
+    origin_v: np.ndarray
+    edges_ij: np.ndarray
+    edges_T_i_from_j: np.ndarray  # noqa: N815  (a frame name, as T_vehicle_from_lidar)
+    edges_sigmas: np.ndarray
+    edges_robust: np.ndarray
+    trajectory_t_s: np.ndarray
+    trajectory: np.ndarray
+    trajectory_drive: np.ndarray
+    resolution_m: float
+    config: dict = field(default_factory=dict)
+    sensors: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(len(self.poses))
+
+    @property
+    def drives(self) -> int:
+        return int(self.drive.max()) + 1 if len(self.drive) else 0
+
+    def scan(self, k: int) -> ProjectedScan:
+        """Key frame k's rays as the map builder takes them."""
+        rows = slice(int(self.scan_offsets[k]), int(self.scan_offsets[k + 1]))
+        return ProjectedScan(self.ends_v[rows].astype(np.float64), self.is_hit[rows],
+                             self.free_from_m[rows].astype(np.float64))
+
+    def scans(self) -> list[ProjectedScan]:
+        return [self.scan(k) for k in range(len(self))]
+
+    def hits(self, k: int) -> np.ndarray:
+        """(H, 2) key frame k's returned end points [m, vehicle frame] (what matching uses)."""
+        rows = slice(int(self.scan_offsets[k]), int(self.scan_offsets[k + 1]))
+        return self.ends_v[rows][self.is_hit[rows]].astype(np.float64)
+
+    def all_hits(self) -> list[np.ndarray]:
+        return [self.hits(k) for k in range(len(self))]
+
+    @staticmethod
+    def pack_scans(scans: list[ProjectedScan]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(scan_offsets, ends_v, is_hit, free_from_m) of ``scans``, as a bundle stores them."""
+        counts = [len(s.ends_v) for s in scans]
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        if not scans:
+            return offsets, np.zeros((0, 2), np.float32), np.zeros(0, bool), np.zeros(0, np.float32)
+        return (offsets, np.concatenate([s.ends_v for s in scans]).astype(np.float32),
+                np.concatenate([s.is_hit for s in scans]).astype(bool),
+                np.concatenate([s.free_from_m for s in scans]).astype(np.float32))

@@ -1,0 +1,497 @@
+"""Localising a drive in a saved map, without being told where it starts.
+
+The map (:class:`~slam_engine.model.map_bundle.MapBundle`) is held as two blurred hit grids of its
+key frames' end points at their poses: a coarse one (``localization.search_resolution_m``) for the
+global search, the map's own cells for tracking and refinement. A *stretch* of the drive (its scans
+over ``stretch_m`` of travel, joined by the drive's own relative poses: odometry, or another map's
+key frames) is searched for over the whole map and every heading by branch and bound (Hess et al.
+2016, Cartographer's global localisation), then refined. The placement counts only when it scores at
+least ``min_score``, no pose elsewhere scores nearly as well, and the next, disjoint stretch, searched
+for on its own, lands where the scans tracked from the first placement put it. From there each scan is
+searched for in a small window around where the odometry puts it; ``lost_after_scans`` poor matches in
+a row and the drive is lost, and searched for over the whole map again. A drive that is never placed
+is refused (``localised`` False, with the best score found), not forced in.
+
+Frames: ``map``: the bundle's; the drive's own frame: its odometry (or its map's) frame. Poses
+``[x_m, y_m, theta_rad]``; points (N, 2) [m] in the vehicle frame.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam_engine.backend.correlative import MatchGrid, refine_pose, search
+from slam_engine.backend.submaps import match_grid_from_points
+from slam_engine.config import LocalizationConfig, SlamConfig
+from slam_engine.errors import ConfigError
+from slam_engine.model.drive_log import DriveLog
+from slam_engine.model.map_bundle import MapBundle
+from slam_engine.model.poses import compose, inverse, place_each, place_points, relative, wrap_angle
+from slam_engine.model.result import Trajectory
+
+MATCH_RANGE_M = 20.0  # end points farther than this are left out of matching (as the loop closer does)
+TRACK_POINTS = 250  # a tracked scan is matched with at most this many end points
+COARSE_LEVELS = 10  # the global grid's pyramid: blocks up to 512 cells (51 m at 0.1 m)
+JOIN_WINDOW_M = 0.3  # a drive's scans are matched to those before it within this of its odometry [m]
+JOIN_WINDOW_RAD = 0.3  # ... and this turn [rad]
+JOIN_MIN_SCORE = 0.3  # ... and kept where the odometry puts them when the match scores lower
+JOIN_AMBIGUITY_M, JOIN_AMBIGUITY_RAD = 0.1, 0.05  # a second match this far from the best [m], [rad] ...
+JOIN_RUNNER_UP = 0.95  # ... scoring this share of the best: ambiguous
+JOIN_LINE_HALF_WIDTH_M, JOIN_LINE_HALF_WIDTH_RAD = 0.1, 0.03  # along a line this wide: a corridor
+JOIN_POINTS = 3000  # the recent scans' end points a scan is matched against, at most
+JOIN_REBUILD_M, JOIN_REBUILD_RAD = 0.3, 0.2  # their grid is built anew after this much motion [m], [rad]
+JOIN_LEVELS = 4  # its pyramid: windows up to 15 cells a side
+MAX_TRACK_WINDOW_M = 1.5  # the widest window a scan is tracked in, however long untracked [m]
+MAX_TRACK_WINDOW_RAD = 0.6  # ... [rad]
+FINE_LEVELS = 6
+STRETCH_GROWTH = (1, 2, 4)  # an ambiguous stretch is searched for again this many times longer
+HINT_WINDOW_M, HINT_WINDOW_RAD = 2.0, 0.5  # a start pose given as a hint is searched within [m], [rad]
+# a lost drive is searched for near where its own motion carried it, in a window that grows REFIND_GROWTH
+# times as fast as the tracking window with the travel since a scan last matched (up to the largest) ...
+REFIND_GROWTH, MAX_REFIND_WINDOW_M = 2.0, 10.0
+GLOBAL_AFTER_M = 100.0  # ... and over the whole map once it went this far [m] without a match
+# the pose graph that smooths a localised drive: its scan-to-scan motions (sd grows with the step) ...
+MOTION_SD_M, MOTION_SD_PER_M = 0.01, 0.05  # [m], [m/m]
+MOTION_SD_RAD, MOTION_SD_RAD_PER_RAD, MOTION_SD_RAD_PER_M = 0.003, 0.05, 0.01  # [rad], [rad/rad], [rad/m]
+# ... and each matched scan's place in the map
+MAP_SD_M, MAP_SD_RAD = 0.05, 0.02  # the tracking grid's: windows up to 31 cells a side
+# a global search prunes below this share of min_score: a weaker placement is still reported as the best
+# score of a refused drive, and pruning at min_score itself would leave it unknown
+REPORT_SHARE = 0.9
+
+
+def thin(points: np.ndarray, budget: int) -> np.ndarray:
+    """Every n-th point so that at most ``budget`` remain."""
+    if len(points) > budget:
+        return points[:: int(math.ceil(len(points) / budget))]
+    return points
+
+
+@dataclass
+class MapIndex:
+    """A saved map as matching takes it: ``coarse`` for global searches, ``fine`` (the map's cells) for
+    tracking and refinement, both in the map frame."""
+
+    coarse: MatchGrid
+    fine: MatchGrid
+
+    @classmethod
+    def of_bundle(cls, bundle: MapBundle, config: LocalizationConfig) -> MapIndex:
+        hits = bundle.all_hits()
+        owner = np.repeat(np.arange(len(bundle)), [len(h) for h in hits])
+        points = np.concatenate(hits) if hits else np.zeros((0, 2))
+        if len(points) == 0:
+            raise ConfigError("the saved map holds no end points to localise against")
+        points_m = place_each(bundle.poses, points, owner)
+        coarse = match_grid_from_points(points_m, max(config.search_resolution_m, bundle.resolution_m), 1.0,
+                                        n_levels=COARSE_LEVELS)
+        fine = match_grid_from_points(points_m, bundle.resolution_m, 1.0, n_levels=FINE_LEVELS)
+        return cls(coarse, fine)
+
+    def centre_and_reach(self) -> tuple[np.ndarray, float]:
+        """The map's centre pose (heading 0) and the half width that covers the whole map [m]."""
+        assert self.coarse.bounds_m is not None  # match_grid_from_points sets it
+        lo, hi = self.coarse.bounds_m[:2], self.coarse.bounds_m[2:]
+        return np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, 0.0]), float(np.max(hi - lo)) / 2 + 1.0
+
+
+@dataclass
+class DriveScans:
+    """A drive as localisation takes it: ``t_s`` (S,) [s], ``poses`` (S, 3) in the drive's own frame
+    (odometry, or its map's key frames), ``hits`` (S lists of (B, 2) [m], vehicle frame)."""
+
+    t_s: np.ndarray
+    poses: np.ndarray
+    hits: list[np.ndarray]
+
+    def __post_init__(self) -> None:
+        steps = np.hypot(*np.diff(self.poses[:, :2], axis=0).T) if len(self.poses) > 1 else np.zeros(0)
+        self.travel_m = np.concatenate([[0.0], np.cumsum(steps)])
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @classmethod
+    def from_log(cls, log: DriveLog, config: SlamConfig) -> DriveScans:
+        """Every scan of ``log`` at its dead-reckoned pose, with its returned end points."""
+        from slam_engine.frontend.odometry import dead_reckoning
+        from slam_engine.frontend.particle_filter import make_projector
+
+        if log.scans is None or log.lidar is None or len(log.scans) == 0:
+            raise ConfigError("the log has no LiDAR scans: there is nothing to localise with")
+        odometry = dead_reckoning(log)
+        projector = make_projector(log.lidar, config, no_return_bounded=False)
+        hits = [projector.project(ranges).hits_v for ranges in log.scans.ranges_m]
+        drive = cls(np.asarray(odometry.t_s, np.float64), np.asarray(odometry.poses, np.float64), hits)
+        return drive.scan_matched(config.grid.resolution_m, config.localization.local_map_m)
+
+    @classmethod
+    def from_bundle(cls, bundle: MapBundle) -> DriveScans:
+        """Another map's key frames at their poses in that map (for merging two maps)."""
+        return cls(bundle.t_s.copy(), bundle.poses.copy(), bundle.all_hits())
+
+    def stretch_end(self, first: int, stretch_m: float) -> int:
+        """The last scan of the stretch that starts at ``first`` and spans ``stretch_m`` of travel."""
+        end = int(np.searchsorted(self.travel_m, self.travel_m[first] + stretch_m, side="left"))
+        return min(max(end, first), len(self) - 1)
+
+    def cloud(self, first: int, last: int, budget: int) -> np.ndarray:
+        """The end points of scans ``first..last`` in scan ``last``'s vehicle frame (N, 2) [m], joined by
+        the drive's relative poses and thinned to ``budget``."""
+        frames = np.arange(first, last + 1)
+        in_reach = [h[np.hypot(h[:, 0], h[:, 1]) <= MATCH_RANGE_M] for h in (self.hits[k] for k in frames)]
+        counts = [len(h) for h in in_reach]
+        if sum(counts) == 0:
+            return np.zeros((0, 2))
+        placed = place_each(relative(self.poses[last], self.poses[frames]), np.concatenate(in_reach),
+                            np.repeat(np.arange(len(frames)), counts))
+        return np.ascontiguousarray(thin(placed, budget))
+
+    def scan_matched(self, resolution_m: float, span_m: float) -> DriveScans:
+        """The drive with its relative poses corrected as a front end would: each scan matched (on
+        ``resolution_m`` cells) against the scans of the last ``span_m`` of travel before it, from where
+        the odometry puts it. A wheel odometry's turn errors (intel: 0.13 rad between scans at the 90th
+        percentile) would otherwise smear every stretch and every prediction."""
+        poses = [self.poses[0].copy()]
+        in_reach = [h[np.hypot(h[:, 0], h[:, 1]) <= MATCH_RANGE_M] for h in self.hits]
+        placed = [place_points(poses[0], in_reach[0])]
+        travel = [0.0]
+        grid, built_at = None, poses[0]
+        for k in range(1, len(self)):
+            predicted = compose(poses[-1], relative(self.poses[k - 1], self.poses[k]))
+            points = np.ascontiguousarray(thin(in_reach[k], TRACK_POINTS), np.float64)
+            moved = relative(built_at, poses[-1])
+            if grid is None or math.hypot(moved[0], moved[1]) >= JOIN_REBUILD_M or abs(moved[2]) >= JOIN_REBUILD_RAD:
+                first = int(np.searchsorted(travel, travel[-1] - span_m, side="left"))
+                recent = np.concatenate(placed[first:])
+                grid = (match_grid_from_points(thin(recent, JOIN_POINTS), resolution_m, 1.0, n_levels=JOIN_LEVELS)
+                        if len(recent) >= 20 else None)
+                built_at = poses[-1]
+            if len(points) >= 5 and grid is not None:
+                predicted = _joined(grid, points, predicted)
+            travel.append(travel[-1] + float(np.hypot(*(predicted[:2] - poses[-1][:2]))))
+            poses.append(predicted)
+            placed.append(place_points(predicted, in_reach[k]))
+        return DriveScans(self.t_s, np.array(poses), self.hits)
+
+
+@dataclass(frozen=True)
+class Near:
+    """Where a scan is thought to be in the map: a ``pose`` and how far off it may be (``window_m``,
+    ``window_rad``)."""
+
+    pose: np.ndarray
+    window_m: float
+    window_rad: float
+
+    def __iter__(self):  # unpacks as search() takes it: (initial pose, window_m, window_rad)
+        return iter((np.asarray(self.pose, np.float64), self.window_m, self.window_rad))
+
+    def moved(self, drive: DriveScans, first: int, last: int) -> Near:
+        """The same belief carried from scan ``first`` to scan ``last`` by the drive's own motion."""
+        return Near(compose(self.pose, relative(drive.poses[first], drive.poses[last])), self.window_m,
+                    self.window_rad)
+
+
+@dataclass
+class LocalizationResult:
+    """Where a drive was in a saved map: ``localised``; ``trajectory`` (its scans in the map frame, None
+    when refused) with each pose's ``confidence`` (its match score, 0-1) and whether it was ``tracked``
+    (matched) or carried by the odometry; ``events``: when it was found and lost; ``best_score``: the
+    best global placement score seen (also when refused); ``T_map_from_drive``: the drive's own frame in
+    the map at its first placement."""
+
+    localised: bool
+    best_score: float
+    trajectory: Trajectory | None = None
+    confidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tracked: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    events: list[dict] = field(default_factory=list)
+    T_map_from_drive: np.ndarray | None = None
+    global_searches: int = 0
+    wall_time_s: float = 0.0
+
+    def summary(self) -> dict:
+        tracked = self.tracked
+        return {
+            "localised": self.localised, "best_score": round(self.best_score, 4),
+            "scans": int(len(self.confidence)), "scans_tracked": int(tracked.sum()),
+            "mean_confidence": round(float(self.confidence.mean()), 4) if len(self.confidence) else None,
+            "events": self.events, "global_searches": self.global_searches,
+            "T_map_from_drive": None if self.T_map_from_drive is None else [round(float(v), 5)
+                                                                          for v in self.T_map_from_drive],
+            "wall_time_s": round(self.wall_time_s, 3),
+        }
+
+
+class Localizer:
+    """Places and tracks one drive in one saved map (see the module docstring)."""
+
+    def __init__(self, index: MapIndex, drive: DriveScans, config: LocalizationConfig, threads: int = 1):
+        self.index = index
+        self.drive = drive
+        self.config = config
+        self.threads = max(1, int(threads))
+        self.best_score = 0.0
+        self.global_searches = 0
+
+    # --- global placement -------------------------------------------------------------------
+    def place_stretch(self, first: int, last: int, near: Near | None = None) -> tuple[np.ndarray | None, bool]:
+        """Scan ``last``'s pose in the map from the stretch ``first..last`` searched over the whole map
+        (or ``near`` a map pose of scan ``last``), refined on the map's cells, and False; None when no pose
+        scores ``min_score``, and whether another one, elsewhere, scores nearly as well."""
+        c = self.config
+        cloud = self.drive.cloud(first, last, c.max_points)
+        if len(cloud) < 20:
+            return None, False
+        if near is None:
+            initial, window_m = self.index.centre_and_reach()
+            window_rad = math.pi
+        else:
+            initial, window_m, window_rad = near
+        self.global_searches += 1
+        floor = c.min_score * REPORT_SHARE
+        match = search(self.index.coarse, cloud, initial, window_m, window_rad, floor, ambiguity_m=c.ambiguity_m,
+                       ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio, runner_up_min_score=floor,
+                       threads=self.threads)
+        if match is None:
+            return None, False
+        self.best_score = max(self.best_score, match.score)
+        if match.score < c.min_score:
+            return None, False
+        if match.runner_up_score >= c.runner_up_ratio * match.score:
+            return None, True
+        return refine_pose(self.index.fine, cloud, match.pose), False
+
+    # --- tracking -----------------------------------------------------------------------------
+    def track(self, k: int, predicted: np.ndarray, untracked_m: float = 0.0) -> tuple[np.ndarray, float]:
+        """Scan k's pose near ``predicted`` (map frame) and its match score; the window widens with the
+        travel since a scan last matched (``untracked_m``)."""
+        points = np.ascontiguousarray(thin(self.drive.hits[k], TRACK_POINTS), np.float64)
+        if len(points) < 5:
+            return predicted, 0.0
+        c = self.config
+        window_m = min(c.track_window_m + c.window_per_m * untracked_m, MAX_TRACK_WINDOW_M)
+        window_rad = min(c.track_window_rad + c.window_rad_per_m * untracked_m, MAX_TRACK_WINDOW_RAD)
+        match = search(self.index.fine, points, predicted, window_m, window_rad, 0.0)
+        if match is None:
+            return predicted, 0.0
+        return refine_pose(self.index.fine, points, match.pose), match.score
+
+    def step(self, poses: np.ndarray, confidence: np.ndarray, tracked: np.ndarray, k: int, from_k: int,
+             untracked_m: float = 0.0) -> None:
+        """Place scan k from scan ``from_k``'s map pose and the drive's relative motion, tracked."""
+        predicted = compose(poses[from_k], relative(self.drive.poses[from_k], self.drive.poses[k]))
+        pose, score = self.track(k, predicted, untracked_m)
+        c = self.config
+        moved = pose - predicted
+        ok = score >= c.track_min_score or (score >= c.nudge_min_score and math.hypot(moved[0], moved[1]) <= c.nudge_m
+                                             and abs(float(wrap_angle(moved[2]))) <= c.nudge_rad)
+        poses[k] = pose if ok else predicted
+        confidence[k], tracked[k] = score, ok
+
+    def placed_stretch(self, first: int, near: Near | None = None) -> tuple[int, np.ndarray] | None:
+        """(last, map pose of scan ``last``) of the shortest stretch from ``first`` that places
+        unambiguously: ``stretch_m`` of travel, twice and four times that while the placement is
+        ambiguous (aces-rough's corridors: 4 m of them fit several places of the building almost as
+        well). ``near``: where scan ``first`` is thought to be, if known (else the whole map)."""
+        drive, previous = self.drive, -1
+        for growth in STRETCH_GROWTH:
+            last = drive.stretch_end(first, self.config.stretch_m * growth)
+            if last == previous:
+                return None  # the drive ends
+            previous = last
+            pose, ambiguous = self.place_stretch(first, last, None if near is None else near.moved(drive, first, last))
+            if pose is not None:
+                return last, pose
+            if not ambiguous:
+                return None
+        return None
+
+    def confirmed_placement(self, first: int, near: Near | None) -> tuple[int, int, np.ndarray] | None:
+        """(first, last, map pose of scan ``last``) of the stretch at ``first`` when a second, disjoint
+        stretch after it, searched for on its own, is placed where tracking from it leads; None
+        otherwise. ``near``: where scan ``first`` is thought to be (both searches stay near it)."""
+        c, drive = self.config, self.drive
+        placed = self.placed_stretch(first, near)
+        if placed is None or placed[0] + 1 >= len(drive):
+            return None  # not placed, or the drive is too short to confirm it
+        last, pose = placed
+        confirming = self.placed_stretch(last + 1, None if near is None else near.moved(drive, first, last + 1))
+        if confirming is None:
+            return None
+        second_last, second = confirming
+        poses = np.full((len(drive), 3), np.nan)
+        confidence, tracked = np.zeros(len(drive)), np.zeros(len(drive), bool)
+        poses[last] = pose
+        for k in range(last + 1, second_last + 1):
+            self.step(poses, confidence, tracked, k, k - 1)
+        gap = poses[second_last] - second
+        if math.hypot(gap[0], gap[1]) > c.agree_m or abs(float(wrap_angle(gap[2]))) > c.agree_rad:
+            return None
+        return first, last, pose
+
+    def first_tries(self) -> list[int]:
+        """The scans whose stretches are searched for the first placement, in order: every stretch's first
+        scan, or ``max_first_tries`` of them spread evenly over the drive (the first one always), so that
+        a drive that is not in the map is refused in bounded time wherever it starts."""
+        starts, k = [], 0
+        while k < len(self.drive):
+            starts.append(k)
+            k = self.drive.stretch_end(k, self.config.stretch_m) + 1
+        if len(starts) <= self.config.max_first_tries:
+            return starts
+        picks = np.linspace(0, len(starts) - 1, self.config.max_first_tries).round().astype(int)
+        return [starts[i] for i in sorted(set(picks.tolist()))]
+
+    def run(self, hint: np.ndarray | None = None) -> LocalizationResult:
+        """Localise the whole drive; ``hint``: the map pose of its first scan, if known (searched within
+        ``HINT_WINDOW_M`` / ``HINT_WINDOW_RAD`` of it, still confirmed)."""
+        started = time.perf_counter()
+        c, drive = self.config, self.drive
+        n = len(drive)
+        poses = np.full((n, 3), np.nan)
+        confidence, tracked = np.zeros(n), np.zeros(n, bool)
+        events: list[dict] = []
+        placement = None
+        for k in self.first_tries():  # the first placement
+            near = None if hint is None else Near(hint, HINT_WINDOW_M, HINT_WINDOW_RAD).moved(drive, 0, k)
+            placement = self.confirmed_placement(k, near)
+            if placement is not None:
+                break
+        if placement is None:
+            return LocalizationResult(False, self.best_score, events=events, global_searches=self.global_searches,
+                                      wall_time_s=time.perf_counter() - started)
+        _, last, pose = placement
+        poses[last] = pose
+        self.step(poses, confidence, tracked, last, last)
+        events.append({"event": "found", "t_s": round(float(drive.t_s[last]), 3), "scan": last})
+        travel = drive.travel_m
+        last_tracked = last
+        for j in range(last - 1, -1, -1):  # the scans before it, tracked backwards
+            self.step(poses, confidence, tracked, j, j + 1, float(travel[last_tracked] - travel[j + 1]))
+            last_tracked = j if tracked[j] else last_tracked
+        jumps = self._track_forward(poses, confidence, tracked, last + 1, events)
+        poses = self.smoothed(poses, tracked, jumps)
+        T_map_from_drive = _rigid_placement(poses[tracked], drive.poses[tracked])
+        return LocalizationResult(True, self.best_score, Trajectory(drive.t_s.copy(), poses), confidence, tracked,
+                                  events, T_map_from_drive, self.global_searches, time.perf_counter() - started)
+
+    def _track_forward(self, poses: np.ndarray, confidence: np.ndarray, tracked: np.ndarray, start: int,
+                       events: list[dict]) -> list[int]:
+        """Track every scan from ``start`` on. With no scan matched over ``lost_after_m`` of travel the
+        drive is lost: it is still carried by its own motion and tracked in a widening window, and each
+        stretch is also searched for over the whole map; a confirmed placement puts it there (a jump).
+        Returns the scans placed by a jump."""
+        c, drive = self.config, self.drive
+        travel = drive.travel_m
+        last_tracked = start - 1
+        lost = False
+        next_search = start
+        jumps: list[int] = []
+        k = start
+        while k < len(drive):
+            self.step(poses, confidence, tracked, k, k - 1, float(travel[k - 1] - travel[last_tracked]))
+            if tracked[k]:
+                last_tracked = k
+                if lost:
+                    lost = False
+                    events.append({"event": "found", "t_s": round(float(drive.t_s[k]), 3), "scan": k})
+            elif not lost and travel[k] - travel[last_tracked] > c.lost_after_m:
+                lost = True
+                events.append({"event": "lost", "t_s": round(float(drive.t_s[k]), 3), "scan": k})
+                next_search = k + 1
+            if lost and k >= next_search:
+                untracked_m = float(travel[k] - travel[last_tracked])
+                near = None if untracked_m > GLOBAL_AFTER_M else Near(
+                    poses[k], min(c.track_window_m + c.window_per_m * untracked_m * REFIND_GROWTH, MAX_REFIND_WINDOW_M),
+                    min(c.track_window_rad + c.window_rad_per_m * untracked_m * REFIND_GROWTH, math.pi))
+                placement = self.confirmed_placement(k, near)
+                next_search = drive.stretch_end(k, c.stretch_m) + 1
+                if placement is not None:
+                    _, at, pose = placement
+                    for j in range(k + 1, at + 1):  # carried to the placed scan, then placed there
+                        self.step(poses, confidence, tracked, j, j - 1, c.lost_after_m)
+                    poses[at] = pose
+                    self.step(poses, confidence, tracked, at, at)
+                    if near is None:
+                        jumps.append(at)
+                    lost, last_tracked, k = False, at, at
+                    events.append({"event": "found", "t_s": round(float(drive.t_s[at]), 3), "scan": at})
+            k += 1
+        return jumps
+
+    def smoothed(self, poses: np.ndarray, tracked: np.ndarray, jumps: list[int]) -> np.ndarray:
+        """The drive's poses from one pose graph: the drive's own scan-to-scan motions, and each matched
+        scan's place in the map (under a robust loss, so a wrong match lets go), as Cartographer's pure
+        localisation ties its local trajectory to the frozen map. A stretch the map does not cover (a
+        room the map never saw) is then held at both ends instead of dead-reckoned from one: intel-b in
+        intel-a's map, whose drive crosses the building's middle, which intel-a never entered. Motions
+        into the scans in ``jumps`` (placed anew after the drive was lost) are left loose."""
+        from slam_engine.backend.pose_graph import PoseGraph
+
+        n = len(poses)
+        if not tracked.any():
+            return poses
+        graph = PoseGraph(np.vstack([np.zeros(3), poses]), cauchy_scale=1.0)  # node 0: the map's origin
+        for k in range(1, n):
+            motion = relative(self.drive.poses[k - 1], self.drive.poses[k])
+            d = math.hypot(motion[0], motion[1])
+            sd_m = MOTION_SD_M + MOTION_SD_PER_M * d
+            sd_rad = MOTION_SD_RAD + MOTION_SD_RAD_PER_RAD * abs(float(motion[2])) + MOTION_SD_RAD_PER_M * d
+            if k in jumps:
+                sd_m, sd_rad = 10.0, 1.0
+            graph.add_edge(k, k + 1, motion, np.array([sd_m, sd_m, sd_rad]))
+        for matched in np.flatnonzero(tracked).tolist():
+            graph.add_edge(0, matched + 1, poses[matched], np.array([MAP_SD_M, MAP_SD_M, MAP_SD_RAD]), robust=True)
+        return graph.optimize(graph.optimize(robust=False))[1:]
+
+
+def _rigid_placement(map_poses: np.ndarray, drive_poses: np.ndarray) -> np.ndarray:
+    """The drive's frame in the map (3,) that best carries its matched scans' own poses onto their map
+    poses (least squares on positions; the heading as their mean turn)."""
+    from slam_engine.evaluation.metrics import align_rigid_2d
+
+    if len(map_poses) < 2:
+        return compose(map_poses[0], inverse(drive_poses[0]))
+    rotation, translation = align_rigid_2d(drive_poses[:, :2], map_poses[:, :2])
+    turn = math.atan2(rotation[1, 0], rotation[0, 0])
+    return np.array([translation[0], translation[1], turn])
+
+
+def _joined(grid: MatchGrid, points: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+    """Where ``points`` (a scan, vehicle frame) fit ``grid`` (the drive's recent scans) near ``predicted``:
+    the best match refined; along a corridor, where poses along a line fit as well (Olson's ambiguity
+    test, as the loop closer makes it), only across it and in heading, the odometry keeping its place
+    along the line; ``predicted`` itself where nothing fits or the match is ambiguous otherwise. With
+    aces-rough's scans a metre apart, taking the best match along its corridors put 10 % of the steps
+    0.2-0.35 m off (the window's edge); odometry alone is off by about 5 % of the step there."""
+    match = search(grid, points, predicted, JOIN_WINDOW_M, JOIN_WINDOW_RAD, JOIN_MIN_SCORE,
+                   ambiguity_m=JOIN_AMBIGUITY_M, ambiguity_rad=JOIN_AMBIGUITY_RAD, runner_up_share=JOIN_RUNNER_UP,
+                   line_half_width_m=JOIN_LINE_HALF_WIDTH_M, line_half_width_rad=JOIN_LINE_HALF_WIDTH_RAD)
+    if match is None:
+        return predicted
+    pose = refine_pose(grid, points, match.pose)
+    if match.runner_up_score <= 0.0:
+        return pose
+    if match.line_direction is None:
+        return predicted
+    u = match.line_direction
+    along = float((predicted[:2] - pose[:2]) @ u)
+    return np.array([pose[0] + along * u[0], pose[1] + along * u[1], pose[2]])
+
+
+def localize(bundle: MapBundle, drive: DriveScans, config: SlamConfig | None = None, hint: np.ndarray | None = None,
+             threads: int = 1) -> LocalizationResult:
+    """Localise ``drive`` in the map of ``bundle`` (see the module docstring); ``hint``: the map pose of
+    the drive's first scan, if known."""
+    config = SlamConfig() if config is None else config
+    started = time.perf_counter()
+    index = MapIndex.of_bundle(bundle, config.localization)
+    result = Localizer(index, drive, config.localization, threads).run(hint)
+    result.wall_time_s = time.perf_counter() - started
+    return result

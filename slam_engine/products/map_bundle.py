@@ -1,0 +1,99 @@
+"""The map bundle file (``map_bundle.npz``): a :class:`~slam_engine.model.map_bundle.MapBundle` as a
+NumPy ``.npz`` archive (a zip of ``.npy`` arrays, compressed; readable with ``numpy.load`` without
+pickles) with a JSON header. Layout and version history: ``docs/map-bundle.md``."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from slam_engine.errors import MapBundleError
+from slam_engine.model.map_bundle import MapBundle
+
+BUNDLE_FILE = "map_bundle.npz"
+BUNDLE_FORMAT = "lidarmap-map-bundle"
+BUNDLE_VERSION = 1
+ARRAYS = ("poses", "t_s", "drive", "unverified", "scan_offsets", "ends_v", "is_hit", "free_from_m", "origin_v",
+          "edges_ij", "edges_T_i_from_j", "edges_sigmas", "edges_robust", "trajectory_t_s", "trajectory",
+          "trajectory_drive")
+
+
+def write_bundle(bundle: MapBundle, path: str | Path) -> Path:
+    """Write ``bundle`` to ``path`` (a file, or a folder to hold ``map_bundle.npz``); returns the file."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / BUNDLE_FILE
+    header = {"format": BUNDLE_FORMAT, "version": BUNDLE_VERSION, "resolution_m": bundle.resolution_m,
+              "key_frames": len(bundle), "drives": bundle.drives, "config": bundle.config, "sensors": bundle.sensors}
+    arrays = {name: np.asarray(getattr(bundle, name)) for name in ARRAYS}
+    with path.open("wb") as f:
+        # numpy's stubs type **kwds like its allow_pickle flag (bool): the arrays are what it takes
+        np.savez_compressed(f, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)  # type: ignore[arg-type]
+    return path
+
+
+def read_bundle(path: str | Path) -> MapBundle:
+    """The bundle in ``path`` (the file, or a run's output folder holding ``map_bundle.npz``).
+    :class:`MapBundleError` names the file and what is wrong: missing, not a bundle, damaged, or of
+    another format version."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / BUNDLE_FILE
+    if not path.is_file():
+        raise MapBundleError(f"{path}: no map bundle here (a mapping run writes {BUNDLE_FILE} into its output "
+                             "folder)")
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            header = json.loads(bytes(archive["header"]).decode())
+            _check_header(path, header)
+            missing = [name for name in ARRAYS if name not in archive.files]
+            if missing:
+                raise MapBundleError(f"{path}: map bundle lacks {', '.join(missing)}")
+            arrays = {name: archive[name] for name in ARRAYS}
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise MapBundleError(f"{path}: not a readable map bundle ({type(error).__name__}: {error})") from None
+    bundle = MapBundle(**arrays, resolution_m=float(header["resolution_m"]), config=header.get("config") or {},
+                       sensors=header.get("sensors") or {})
+    _check_shapes(path, bundle)
+    return bundle
+
+
+def _check_header(path: Path, header: object) -> None:
+    if not isinstance(header, dict) or header.get("format") != BUNDLE_FORMAT:
+        raise MapBundleError(f"{path}: not a lidarmap map bundle")
+    version = header.get("version")
+    if version != BUNDLE_VERSION:
+        newer = isinstance(version, int) and version > BUNDLE_VERSION
+        raise MapBundleError(f"{path}: map bundle format version {version}; this lidarmap reads version "
+                             f"{BUNDLE_VERSION} (written by {'a newer' if newer else 'another'} lidarmap)")
+    resolution = header.get("resolution_m")
+    if not isinstance(resolution, int | float) or not 0.001 <= resolution <= 10.0:
+        raise MapBundleError(f"{path}: map bundle resolution_m {resolution!r} is not a cell size in [0.001, 10] m")
+
+
+def _check_shapes(path: Path, b: MapBundle) -> None:
+    """Every array's shape agrees with the key frames' and rays' counts, and the numbers are finite."""
+    k = len(b.poses)
+    n = len(b.ends_v)
+    expected = {"poses": (k, 3), "t_s": (k,), "drive": (k,), "unverified": (k,), "scan_offsets": (k + 1,),
+                "ends_v": (n, 2), "is_hit": (n,), "free_from_m": (n,), "origin_v": (2,),
+                "edges_ij": (len(b.edges_ij), 2), "edges_T_i_from_j": (len(b.edges_ij), 3),
+                "edges_sigmas": (len(b.edges_ij), 3), "edges_robust": (len(b.edges_ij),),
+                "trajectory_t_s": (len(b.trajectory),), "trajectory": (len(b.trajectory), 3),
+                "trajectory_drive": (len(b.trajectory),)}
+    for name, shape in expected.items():
+        if getattr(b, name).shape != shape:
+            raise MapBundleError(f"{path}: map bundle array {name} has shape {getattr(b, name).shape}, "
+                                 f"expected {shape}")
+    if k == 0:
+        raise MapBundleError(f"{path}: map bundle holds no key frames")
+    if b.scan_offsets[0] != 0 or b.scan_offsets[-1] != n or np.any(np.diff(b.scan_offsets) < 0):
+        raise MapBundleError(f"{path}: map bundle scan_offsets do not index its {n} rays")
+    if len(b.edges_ij) and (b.edges_ij.min() < 0 or b.edges_ij.max() >= k):
+        raise MapBundleError(f"{path}: map bundle edges name key frames outside 0..{k - 1}")
+    for name in ("poses", "t_s", "ends_v", "free_from_m", "trajectory", "edges_T_i_from_j", "edges_sigmas"):
+        if not np.all(np.isfinite(getattr(b, name))):
+            raise MapBundleError(f"{path}: map bundle array {name} holds values that are not finite")

@@ -1,0 +1,125 @@
+"""Products of the runs that use a saved map: a localisation (its trajectory in the map's frame with a
+confidence per pose, ``run.json``, and ``localization.png``: the drive's scans drawn over the saved map)
+and the drawing of a map built from several drives (``drives.png``: each drive's trajectory in its own
+colour over the joint map)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from slam_engine.backend.map_builder import render_occupancy
+from slam_engine.config import SlamConfig
+from slam_engine.model.map_bundle import MapBundle
+from slam_engine.model.poses import place_points
+from slam_engine.model.result import OccupancyGrid, ScanStats, SlamResult, Trajectory
+from slam_engine.products.export import accuracy_figures, write_products
+from slam_engine.products.files import atomic_path, write_text_atomic
+from slam_engine.products.rendering import PNG_COMPRESS_LEVEL, map_pixels, occupancy_rasters
+from slam_engine.products.run_report import to_jsonable
+from slam_engine.products.trajectory_files import write_trajectory_json, write_trajectory_tum
+
+SAVED_MAP_FRAME = "map: the saved map's frame (x, y in m, theta in rad), origin at its first drive's first pose"
+if TYPE_CHECKING:
+    from slam_engine.multisession.joining import JoinedMap
+
+# one colour per drive (the first map's drive first), cycled
+DRIVE_RGB = ((220, 30, 30), (30, 110, 230), (20, 160, 60), (230, 140, 0), (150, 60, 200), (0, 170, 170))
+MATCHED_RGB = (220, 30, 30)  # a localised scan's end points where the scan matched the map
+CARRIED_RGB = (30, 110, 230)  # ... where it was carried by the drive's own motion
+
+
+def saved_map_grid(bundle: MapBundle, config: SlamConfig) -> OccupancyGrid:
+    """The occupancy grid of a saved map, rendered from its key frames' scans at their poses."""
+    grid_config = config.grid.model_copy(update={"resolution_m": bundle.resolution_m})
+    return render_occupancy(bundle.scans(), bundle.poses, bundle.origin_v, grid_config)
+
+
+def drives_image(grid: OccupancyGrid, trajectory: Trajectory, drive: np.ndarray) -> Image.Image:
+    """The map with each drive's trajectory (``drive`` (N,) numbers its poses) in its own colour."""
+    image = Image.fromarray(occupancy_rasters(grid).gray).convert("RGB")
+    draw = ImageDraw.Draw(image)
+    for number in np.unique(drive):
+        poses = trajectory.poses[drive == number]
+        if len(poses) > 1:
+            draw.line([tuple(p) for p in map_pixels(grid, poses)], fill=DRIVE_RGB[int(number) % len(DRIVE_RGB)],
+                      width=2)
+    return image
+
+
+def localization_image(grid: OccupancyGrid, trajectory: Trajectory, hits: list[np.ndarray],
+                       tracked: np.ndarray) -> Image.Image:
+    """The saved map with the localised drive's end points (red where its scan matched the map, blue
+    where the drive's own motion carried it) and its trajectory (black)."""
+    image = Image.fromarray(occupancy_rasters(grid).gray).convert("RGB")
+    draw = ImageDraw.Draw(image)
+    for pose, points, matched in zip(trajectory.poses, hits, tracked, strict=True):
+        pixels = map_pixels(grid, np.column_stack([place_points(pose, points), np.zeros(len(points))]))
+        draw.point([tuple(p) for p in pixels], fill=MATCHED_RGB if matched else CARRIED_RGB)
+    if len(trajectory) > 1:
+        draw.line([tuple(p) for p in map_pixels(grid, trajectory.poses)], fill=(0, 0, 0), width=1)
+    return image
+
+
+def save_png(image: Image.Image, path: Path) -> Path:
+    with atomic_path(path) as tmp:
+        image.save(tmp, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
+    return path
+
+
+def write_localization(out_dir: str | Path, summary: dict, trajectory: Trajectory | None, confidence: np.ndarray,
+                       image: Image.Image | None, relations=None, ground_truth=None) -> dict[str, Path]:
+    """A localisation's products in ``out_dir``: ``trajectory.tum`` / ``trajectory.json`` (map frame),
+    ``confidence.json`` (each pose's match score, 0-1), ``localization.png`` and ``run.json`` (the
+    summary, with accuracy figures when ``relations`` / ``ground_truth`` are given). A refused drive
+    gets ``run.json`` only."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written: dict[str, Path] = {}
+    report: dict = {"format": "lidarmap-localization", "version": 1, "frame": SAVED_MAP_FRAME,
+                    "localization": to_jsonable(summary)}
+    if trajectory is not None:
+        written["trajectory.tum"] = write_trajectory_tum(trajectory, out / "trajectory.tum")
+        written["trajectory.json"] = write_trajectory_json(trajectory, out / "trajectory.json", frame=SAVED_MAP_FRAME)
+        confidence_doc = {"t_s": [round(float(t), 6) for t in trajectory.t_s],
+                          "confidence": [round(float(c), 4) for c in confidence]}
+        written["confidence.json"] = write_text_atomic(out / "confidence.json", json.dumps(confidence_doc) + "\n")
+        report["accuracy"] = accuracy_figures(trajectory, relations, ground_truth)
+    if image is not None:
+        written["localization.png"] = save_png(image, out / "localization.png")
+    report["products"] = sorted([*written, "run.json"])
+    written["run.json"] = write_text_atomic(out / "run.json", json.dumps(to_jsonable(report), indent=1) + "\n")
+    return written
+
+
+def write_joined_products(joined: JoinedMap, config: SlamConfig, out_dir: str | Path, relations=None,
+                          base_result: SlamResult | None = None, dead_reckoning: Trajectory | None = None
+                          ) -> dict[str, Path]:
+    """The products of a joint map (an extended or a merged one) in ``out_dir``: every product of a
+    mapping run over all its connected drives (``base_result``: the new drive's own run, whose statistics
+    and warnings run.json keeps; ``dead_reckoning``: its odometry in the joint map's frame), the new
+    ``map_bundle.npz`` and ``drives.png``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    order = np.argsort(joined.trajectory.t_s, kind="stable")
+    trajectory = Trajectory(joined.trajectory.t_s[order], joined.trajectory.poses[order])
+    summary = {"multisession": joined.summary, "key_frames": len(joined.bundle), "drives": joined.bundle.drives}
+    drawn = {"drives.png": save_png(drives_image(joined.grid, joined.trajectory, joined.trajectory_drive),
+                                    out / "drives.png")}
+    if base_result is None:
+        empty = np.zeros(0)
+        stats = ScanStats(empty, empty, np.zeros(0, bool), empty, np.zeros(0, bool), empty)
+        result = SlamResult(trajectory=trajectory, dead_reckoning=trajectory, grid=joined.grid, scan_stats=stats,
+                            config=config, wall_time_s=joined.wall_time_s, input_summary=summary,
+                            bundle=joined.bundle)
+    else:
+        result = dataclasses.replace(base_result, trajectory=trajectory, grid=joined.grid, bundle=joined.bundle,
+                                     texture=None, snapshots=[],
+                                     dead_reckoning=trajectory if dead_reckoning is None else dead_reckoning,
+                                     input_summary={**base_result.input_summary, **summary})
+    return {**drawn, **write_products(result, out, relations=relations, extra_products=sorted(drawn))}
