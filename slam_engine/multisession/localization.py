@@ -352,7 +352,7 @@ class Localizer:
         """Localise the whole drive; ``hint``: the map pose of its first scan, if known (searched within
         ``HINT_WINDOW_M`` / ``HINT_WINDOW_RAD`` of it, still confirmed)."""
         started = time.perf_counter()
-        c, drive = self.config, self.drive
+        drive = self.drive
         n = len(drive)
         poses = np.full((n, 3), np.nan)
         confidence, tracked = np.zeros(n), np.zeros(n, bool)
