@@ -22,6 +22,12 @@ class JobSource(StrEnum):
     STREAM = "stream"  # the streamed chunks 0..k received when the job starts (or, live, as they arrive)
 
 
+class JobMode(StrEnum):
+    MAP = "map"  # build a map of the input
+    LOCALIZE = "localize"  # place the input in the map of map_job_id (the map does not change)
+    EXTEND = "extend"  # map the input, place it in the map of map_job_id and make one map of both
+
+
 class JobCreate(BaseModel):
     """A job: what to map, and the engine settings (a SlamConfig: ``lidarmap config`` lists every one with
     its default, units and bounds). The service validates the settings with the engine's own bounds
@@ -53,6 +59,14 @@ class JobCreate(BaseModel):
                        "arrive (a gap waits for its chunk) until the stream is finished "
                        "(POST /v1/sessions/{id}/chunks/finish) or idle for idle_timeout_s. One live job per "
                        "session at a time; it holds a worker while it waits.")
+    mode: JobMode = Field(JobMode.MAP, description="'map' the input; 'localize' it in the saved map of "
+                          "map_job_id (its trajectory in that map's frame; refused, the job failing with the best "
+                          "score, when it is not in the map); 'extend' that map with it (one map of both drives, "
+                          "loops between them closed). Products of a localisation: trajectory, confidence.json, "
+                          "localization.png, run.json.")
+    map_job_id: str | None = Field(None, max_length=64, description="The finished job (a mapping or "
+                                   "extension job, or an uploaded map) whose map_bundle.npz the job starts from: "
+                                   "required for 'localize' and 'extend'.")
     idle_timeout_s: float = Field(600.0, ge=1.0, le=86_400.0, description="Live jobs: with no new chunk to map "
                                   "for this long [s], the job ends and writes the products of what it mapped "
                                   "(fails when it mapped nothing).")
@@ -62,6 +76,12 @@ class JobCreate(BaseModel):
         if self.live and (self.source is JobSource.LOG or self.log_id is not None):
             raise ValueError("a live job follows the session's stream: leave 'source' out (or 'stream') "
                              "and give no 'log_id'")
+        if (self.mode is JobMode.MAP) != (self.map_job_id is None):
+            raise ValueError("'map_job_id' names the saved map that 'localize' and 'extend' start from: give it "
+                             "with those modes, and only with them")
+        if self.live and self.mode is not JobMode.MAP:
+            raise ValueError("a live job maps its stream ('mode': 'map'); localise or extend with the finished "
+                             "stream instead")
         return self
 
 

@@ -27,10 +27,14 @@ def register(app: typer.Typer) -> None:
         format: str = typer.Option("auto", "--format", "-f", help="Log format, or auto to detect it."),
         api_key: str | None = typer.Option(None, envvar="LIDARMAP_API_KEY", help="API key, when the service "
                                            "needs one."),
+        mode: str = typer.Option("map", help="map, localize (in the saved map of --map-job) or extend (that map)."),
+        map_job: str | None = typer.Option(None, "--map-job", help="The finished job whose saved map a "
+                                           "localize or extend job starts from."),
         timeout: float | None = typer.Option(None, min=1.0, help="Give up waiting after this long [s]."),
         force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty --out folder."),
     ) -> None:
-        """Upload a drive log to a running service, map it, wait with progress, download every product."""
+        """Upload a drive log to a running service, map it (or localise it in, or extend with it, the saved map
+        of a finished job), wait with progress, download every product."""
         import httpx
         from pydantic import ValidationError
         from rich.console import Console
@@ -38,7 +42,7 @@ def register(app: typer.Typer) -> None:
 
         from api_schemas.jobs import JobCreate, JobPublic, JobStatus
         from lidarmap.client import ApiError, LidarmapClient
-        from service.jobs.settings import JobSettings, resolve
+        from slam_engine.config import shortcut_overrides, validate_config
 
         def fail(message: str, code: int = BAD_INPUT_EXIT_CODE) -> typer.Exit:
             typer.echo(f"error: {' '.join(message.split())}", err=True)
@@ -52,8 +56,8 @@ def register(app: typer.Typer) -> None:
             raise fail(f"{log}: no such file or folder")
         given = {"particles": particles, "seed": seed, "resolution_m": resolution_m}
         try:  # settings out of the engine's bounds fail here, before anything is uploaded
-            settings = JobCreate(**{k: v for k, v in given.items() if v is not None})
-            resolve(JobSettings.model_validate(settings.model_dump(exclude_unset=True)))
+            settings = JobCreate(**{k: v for k, v in given.items() if v is not None}, mode=mode, map_job_id=map_job)
+            validate_config(shortcut_overrides(given), "job settings")  # the engine's own bounds
         except ValidationError as error:
             raise fail(one_line(error)) from None
         except ConfigError as error:

@@ -15,12 +15,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from api_schemas.jobs import JobSource
+from api_schemas.jobs import JobMode, JobSource
 from service.jobs.context import JobContext
 from service.jobs.estimate import check_job_memory
 from service.jobs.live import run_live_job
 from service.jobs.outputs import LiveMap, job_session, write_job_products
 from service.jobs.products import COMPILING_FILE
+from service.jobs.saved_maps import job_mode, run_from_saved_map
 from service.jobs.settings import engine_config
 from service.storage.chunks import read_chunk_messages, stream_state
 from service.storage.stream_log import drive_log_from_messages
@@ -116,6 +117,9 @@ def _run_mapping_job(ctx: JobContext) -> None:
         ctx.progress(progress.scans_done, progress.scans_total)
         live.update(progress.latest_snapshot)
 
+    if job_mode(ctx.job.config) is not JobMode.MAP:
+        run_from_saved_map(ctx, log, on_progress)
+        return
     result = run_slam(log, config, progress=on_progress)
     total = len(log.scans) if log.scans is not None else 0
     ctx.progress(total, total, force=True)

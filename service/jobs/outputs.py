@@ -43,9 +43,10 @@ class LiveMap:
         write_trajectory_json(snapshot.trajectory, self.live_dir / "trajectory.json", frame="map (so far)")
 
 
-def write_job_products(ctx: JobContext, result: SlamResult, log: DriveLog) -> None:
-    """Write a finished run's products into the job's folder, list them in the store, drop the live
-    snapshot."""
+def write_job_products(ctx: JobContext, result: SlamResult, log: DriveLog, extra: dict[str, Path] | None = None
+                       ) -> None:
+    """Write a finished run's products into the job's folder, list them in the store (with ``extra``:
+    products the caller wrote there itself), drop the live snapshot."""
     from slam_engine.products import GeoOrigin, write_products, write_trajectory_tum
 
     peak = ctx.peak_memory_bytes()
@@ -56,7 +57,8 @@ def write_job_products(ctx: JobContext, result: SlamResult, log: DriveLog) -> No
     geo = None if session.geo is None else GeoOrigin(latitude_deg=session.geo["lat_deg"],
                                                      longitude_deg=session.geo["lon_deg"],
                                                      heading_deg=session.geo["heading_deg"])
-    files = write_products(result, out_dir / "products", geo=geo, log=log)
+    files = {**(extra or {}), **write_products(result, out_dir / "products", geo=geo, log=log,
+                                               extra_products=sorted(extra or {}))}
     files["dead_reckoning.tum"] = write_trajectory_tum(result.dead_reckoning,
                                                        out_dir / "products" / "dead_reckoning.tum")
     save_grid(result.grid, out_dir / GRID_FILE)

@@ -26,6 +26,7 @@ MEDIA_TYPES = {  # every file product a job can list; each is served at GET /v1/
     "map.pgm": "image/x-portable-graymap", "texture.png": "image/png", "texture.tif": "image/tiff",
     "animation.gif": "image/gif", "run.json": "application/json",
     "map_bundle.npz": "application/zip",  # the map for later drives: localise, extend, merge (docs/map-bundle.md)
+    "drives.png": "image/png", "localization.png": "image/png", "confidence.json": "application/json",
 }
 LIVE_FILES = {"occupancy.png": "occupancy.png", "grid.npz": "grid.npz", "trajectory.json": "trajectory.json"}
 GRID_FILE, TEXTURE_FILE = "grid.npz", "texture.npz"  # the service's own copies for tiles

@@ -13,6 +13,7 @@ from service.api.deps import MAX_OFFSET, DataDep, JobDep, OwnerDep, RunnerDep, S
 from service.errors import Conflict, InvalidInput, NotFound
 from service.jobs.estimate import check_job_memory, estimate_bytes
 from service.jobs.products import engine_compiling, live_product_names
+from service.jobs.saved_maps import saved_map_path
 from service.jobs.settings import JobSettings, resolve, stored_config
 from service.runners.base import JobRunner
 from service.storage.rows import SessionRow
@@ -29,7 +30,7 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=ERRORS)
 
 @session_jobs.post("", response_model=JobPublic, status_code=202, responses={409: {"model": ErrorResponse}})
 def create_job(body: JobSettings, session: SessionDep, store: StoreDep, runner: RunnerDep,
-               settings: SettingsDep) -> JobPublic:
+               settings: SettingsDep, data: DataDep) -> JobPublic:
     """Queue a mapping run over the session's newest (or the given) upload, or over its streamed
     chunks 0..k as they stand when the job starts. With ``live: true`` the job follows the stream
     instead, mapping chunks as they arrive until the stream is finished or idle (one live job per
@@ -42,6 +43,8 @@ def create_job(body: JobSettings, session: SessionDep, store: StoreDep, runner: 
         logs = [store.get_log(body.log_id, session.id)] if body.log_id else list(store.list_logs(session.id))
         scans = logs[0].summary.get("streams", {}).get("scans") if logs and logs[0] else None
     refuse_costly_job(slam, scans, settings.job_memory_limit())
+    if body.map_job_id is not None:
+        saved_map_path(store, data, session.owner, body.map_job_id)  # 404 / 409 now, not when the job runs
     if body.live:
         return _create_live_job(config, session, store, runner)
     source = body.source or (JobSource.LOG if session.logs else JobSource.STREAM)

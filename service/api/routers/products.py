@@ -146,6 +146,11 @@ PRODUCT_SUMMARIES = {
     "run.json": "The run record file: configuration, timings, scan statistics, input summary, accuracy.",
     "map_bundle.npz": "The map bundle: key frames, their scans and the pose graph, to localise a later drive in "
                       "this map, extend it or merge it (`lidarmap localize/run --map/merge`; docs/map-bundle.md).",
+    "drives.png": "An extended map with each drive's trajectory in its own colour (mode 'extend').",
+    "localization.png": "A localised drive's scans over the saved map: red where they matched it, blue where the "
+                        "drive's own motion carried them (mode 'localize').",
+    "confidence.json": "A localised drive's confidence per pose: its match score against the map, 0-1 "
+                       "(mode 'localize').",
 }
 assert set(PRODUCT_SUMMARIES) == set(MEDIA_TYPES), "every product the worker lists has a route"
 for _name, _summary in PRODUCT_SUMMARIES.items():

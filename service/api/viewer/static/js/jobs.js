@@ -14,6 +14,10 @@ export const DOWNLOADS = Object.freeze([
   ["animation.gif", "animation.gif", "animation.gif", "animation.gif"],
   ["texture.png", "texture.png", "texture.png", "texture.png"],
   ["run record (JSON)", "run", "run.json", "run.json"],
+  ["map bundle (to localise in, extend, merge)", "map_bundle.npz", "map_bundle.npz", "map_bundle.npz"],
+  ["drives.png", "drives.png", "drives.png", "drives.png"],
+  ["localization.png", "localization.png", "localization.png", "localization.png"],
+  ["confidence (JSON)", "confidence.json", "confidence.json", "confidence.json"],
 ]);
 
 function progressBar(job) {

@@ -3,6 +3,7 @@
 
 import * as L from "../vendor/leaflet/leaflet-src.esm.js";
 import { getBlob, getJson } from "./api.js";
+import { el } from "./format.js";
 
 // Tile scheme, as slam_engine.products.tiles.TileScheme defines it and GET /v1/jobs/{id}/tiles/{layer}
 // describes it: zoom `native_zoom` shows one tile pixel per grid cell, each zoom below halves the
@@ -28,6 +29,8 @@ const LAYER_NAMES = Object.freeze({
 const TRAJECTORY_STYLE = { color: "#e8590c", weight: 2.5, opacity: 0.95, className: "trajectory-slam" };
 const DEAD_RECKONING_STYLE = { color: "#1c7ed6", weight: 2, opacity: 0.85, dashArray: "6 5",
   className: "trajectory-dead-reckoning" };
+// an extension's saved-map drives, under the new drive's trajectory (TRAJECTORY_STYLE)
+const SAVED_DRIVES_STYLE = { color: "#2f9e44", weight: 2.5, opacity: 0.9, className: "trajectory-saved" };
 const POSE_STYLE = { radius: 5, color: "#fff", weight: 2, fillColor: "#e8590c", fillOpacity: 1,
   className: "trajectory-pose" };
 
@@ -115,10 +118,10 @@ const CursorPosition = L.Control.extend({
   },
 });
 
-async function posesOf(path) {
+async function posesOf(path, keep = () => true) {
   try {
     const trajectory = await getJson(path);
-    return trajectory.poses.map((pose) => [pose.y_m, pose.x_m]);
+    return trajectory.poses.filter((pose) => keep(pose.t_s)).map((pose) => [pose.y_m, pose.x_m]);
   } catch (error) {
     if (error.status === 404 || error.status === 409) return null; // not (yet) available
     throw error;
@@ -175,6 +178,10 @@ export class JobMap {
   async _update(job) {
     const version = `${job.status}-${job.scans_done}`;
     if (job.id !== this.jobId || (this.map && version === this.version)) return;
+    if (job.status === "succeeded" && job.products.includes("localization.png")) {
+      return this._showImage(job, "localization.png",
+        "The drive (red where its scans matched the saved map, blue where its own motion carried it) over the saved map");
+    }
     const hasTiles = job.status === "succeeded" || job.products.includes("tiles/occupancy");
     if (!this.map) this._setPlaceholder(hasTiles ? "Loading the map…" : this._waitingText(job));
     if (!hasTiles) return;
@@ -190,9 +197,13 @@ export class JobMap {
       ? await getJson(TILE_SCHEME.path(job.id, "texture")).catch(() => null) : null;
     // Trajectories while a job runs only when the service lists them among the products available now.
     const listed = (name) => job.status === "succeeded" || job.products.includes(name);
-    const [trajectory, deadReckoning] = await Promise.all([
-      listed("trajectory.json") ? posesOf(`/v1/jobs/${job.id}/trajectory`) : null,
-      listed("dead_reckoning.json") ? posesOf(`/v1/jobs/${job.id}/dead-reckoning`) : null]);
+    // An extension: the saved map's drives and the new drive (its log's time span) in two colours.
+    const span = job.config.mode === "extend" && job.input && job.input.summary && job.input.summary.time_span_s;
+    const isNew = (t) => !!span && t >= span[0] && t <= span[1];
+    const [trajectory, deadReckoning, savedDrives] = await Promise.all([
+      listed("trajectory.json") ? posesOf(`/v1/jobs/${job.id}/trajectory`, (t) => !span || isNew(t)) : null,
+      listed("dead_reckoning.json") ? posesOf(`/v1/jobs/${job.id}/dead-reckoning`) : null,
+      span && listed("trajectory.json") ? posesOf(`/v1/jobs/${job.id}/trajectory`, (t) => !isNew(t)) : null]);
     if (job.id !== this.jobId) return; // another job was selected meanwhile
     if (!this.map || !sameGeometry(this.scheme, scheme) || !!textureScheme !== !!this.layers.texture) {
       this._build(job.id, scheme, !!textureScheme, version, trajectory);
@@ -200,8 +211,21 @@ export class JobMap {
       this.layers.occupancy.refreshTiles(version);
       if (this.layers.texture) this.layers.texture.refreshTiles(version);
     }
-    this._setPaths(trajectory, deadReckoning);
+    this._setPaths(trajectory, deadReckoning, savedDrives);
     this.version = version;
+  }
+
+  /** A job whose product is a picture, not a map (a localisation): that picture in the map pane. */
+  async _showImage(job, product, caption) {
+    if (this.map) this._clear(null);
+    const key = `${job.id}:${product}`;
+    if (this.imageKey === key) return;
+    const blob = await getBlob(`/v1/jobs/${job.id}/${product}`);
+    if (job.id !== this.jobId) return;
+    this.imageKey = key;
+    const image = el("img", { src: URL.createObjectURL(blob), alt: caption, class: "product-image" });
+    this.placeholder.replaceChildren(image, el("div", { class: "muted" }, caption));
+    this.placeholder.hidden = false;
   }
 
   _waitingText(job) {
@@ -237,8 +261,9 @@ export class JobMap {
       trajectory: L.polyline([], TRAJECTORY_STYLE),
       pose: L.circleMarker([0, 0], POSE_STYLE),
       deadReckoning: L.polyline([], DEAD_RECKONING_STYLE),
+      savedDrives: L.polyline([], SAVED_DRIVES_STYLE),
     };
-    const trajectoryGroup = L.layerGroup([this.layers.trajectory]);
+    const trajectoryGroup = L.layerGroup([this.layers.savedDrives, this.layers.trajectory]);
     this.layers.trajectoryGroup = trajectoryGroup;
     const overlays = {
       [LAYER_NAMES.occupancy]: this.layers.occupancy,
@@ -265,8 +290,9 @@ export class JobMap {
     this._setPlaceholder(null);
   }
 
-  _setPaths(trajectory, deadReckoning) {
+  _setPaths(trajectory, deadReckoning, savedDrives) {
     this.layers.trajectory.setLatLngs(trajectory || []);
+    this.layers.savedDrives.setLatLngs(savedDrives || []);
     this.layers.deadReckoning.setLatLngs(deadReckoning || []);
     const group = this.layers.trajectoryGroup;
     if (trajectory && trajectory.length) {
@@ -278,6 +304,7 @@ export class JobMap {
   }
 
   _clear(text) {
+    this.imageKey = null;
     if (this.map) this.map.remove();
     this.map = null;
     this.scheme = null;
@@ -287,6 +314,7 @@ export class JobMap {
   }
 
   _setPlaceholder(text) {
+    if (text === null && this.imageKey) return; // a product picture stays shown
     this.placeholder.hidden = !text;
     this.placeholder.textContent = text || "";
   }

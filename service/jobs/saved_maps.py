@@ -1,0 +1,96 @@
+"""Jobs that start from a saved map ('localize' and 'extend'): which map, and what they write.
+
+The saved map is the ``map_bundle.npz`` product of a finished job of the same owner (a mapping or
+extension job, or an uploaded map); the work is the engine's (:mod:`slam_engine.multisession`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from api_schemas.jobs import JobMode, JobStatus
+from service.errors import Conflict, NotFound
+from service.jobs.context import JobContext
+from service.jobs.outputs import write_job_products
+from service.storage.data_dir import DataDir
+from service.storage.store import JobStore
+from slam_engine.errors import MapBundleError
+from slam_engine.model.drive_log import DriveLog
+
+BUNDLE = "map_bundle.npz"
+
+
+def saved_map_path(store: JobStore, data: DataDir, owner: str, map_job_id: str) -> Path:
+    """The map bundle of job ``map_job_id``: NotFound (404) when there is no such job for ``owner``,
+    Conflict (409) when it has not succeeded or made no map bundle."""
+    job = store.get_job(map_job_id, owner)
+    if job is None:
+        raise NotFound(f"no job {map_job_id!r} to start from", {"field": "map_job_id"})
+    if job.status is not JobStatus.SUCCEEDED or BUNDLE not in job.products:
+        raise Conflict(f"job {map_job_id!r} has no saved map to start from (status {job.status}; a succeeded mapping "
+                       "or extension job has one)", {"field": "map_job_id", "status": job.status})
+    return data.resolve(str(Path("jobs") / job.id / job.products[BUNDLE]))
+
+
+def job_mode(config: dict[str, Any]) -> JobMode:
+    return JobMode(config.get("mode", JobMode.MAP))
+
+
+def run_from_saved_map(ctx: JobContext, log: DriveLog, progress: Any) -> None:
+    """A 'localize' or 'extend' job over ``log`` once its input is read (``progress``: the run's progress
+    callback, for the mapping part of an extension)."""
+    from service.jobs.settings import engine_config
+    from slam_engine.products.map_bundle import read_bundle
+
+    config = engine_config(ctx.job.config)
+    try:
+        path = saved_map_path(ctx.store, ctx.data, ctx.job.owner, str(ctx.job.config["map_job_id"]))
+    except (NotFound, Conflict) as error:  # the saved map's job was deleted after this job was queued
+        raise MapBundleError(str(error)) from None
+    bundle = read_bundle(path)
+    if job_mode(ctx.job.config) is JobMode.LOCALIZE:
+        _localize(ctx, bundle, log, config)
+    else:
+        _extend(ctx, bundle, log, config, progress)
+
+
+def _localize(ctx: JobContext, bundle: Any, log: DriveLog, config: Any) -> None:
+    from service.jobs.outputs import product_names
+    from slam_engine.multisession.localization import DriveScans, localize
+    from slam_engine.products.multisession import localization_image, saved_map_grid, write_localization
+
+    drive = DriveScans.from_log(log, config)
+    total = len(drive)
+    result = localize(bundle, drive, config, threads=1)
+    ctx.progress(total, total, force=True)
+    summary = result.summary()
+    if not result.localised:
+        raise MapBundleError(f"refused: the drive has no place in the saved map (best score {summary['best_score']}, "
+                             f"{config.localization.min_score} needed, unambiguous and confirmed)")
+    assert result.trajectory is not None
+    image = localization_image(saved_map_grid(bundle, config), result.trajectory, drive.hits, result.tracked)
+    files = write_localization(ctx.out_dir / "products", summary, result.trajectory, result.confidence, image)
+    ctx.store.set_products(ctx.job_id, product_names(files, ctx.out_dir))
+
+
+def _extend(ctx: JobContext, bundle: Any, log: DriveLog, config: Any, progress: Any) -> None:
+    from slam_engine.model.poses import compose
+    from slam_engine.model.result import Trajectory
+    from slam_engine.multisession.joining import join
+    from slam_engine.pipeline import run_slam
+    from slam_engine.products.multisession import drives_image, joined_result, save_png
+
+    own = run_slam(log, config, progress=progress)
+    assert own.bundle is not None  # a run with scans always makes one
+    joined = join(bundle, own.bundle, config)
+    if not joined.connected:
+        raise MapBundleError(f"refused: the drive could not be placed in the saved map (best score "
+                             f"{joined.placement.best_score:.3f}); map it on its own, or extend with a drive that "
+                             "overlaps the map")
+    placed = joined.placement.T_map_from_drive
+    assert placed is not None  # connected: placed
+    dead_reckoning = Trajectory(own.dead_reckoning.t_s, compose(placed, own.dead_reckoning.poses))
+    drawn = save_png(drives_image(joined.grid, joined.trajectory, joined.trajectory_drive),
+                     ctx.out_dir / "products" / "drives.png")
+    write_job_products(ctx, joined_result(joined, config, own, dead_reckoning), log,
+                       extra={"drives.png": drawn})

@@ -1,0 +1,86 @@
+"""Jobs that start from a saved map, through HTTP with the real engine: the simulated office loop cut in
+two halves, uploaded as two logs; the first mapped, the second localised in its map and used to extend
+it; a drive in another building refused; bad references answered 404 / 409 / 422."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+from PIL import Image
+from service_helpers import assert_error, new_session, service_client, wait_for
+
+from slam_engine.formats import write_log
+from slam_engine.simulation import simulate
+
+pytestmark = pytest.mark.slow
+
+
+def _upload(client, sid: str, log, folder) -> str:
+    path = write_log(log, "carmen", folder)
+    with path.open("rb") as f:
+        response = client.post(f"/v1/sessions/{sid}/logs", files={"file": (path.name, f)})
+    assert response.status_code == 201, response.text
+    return response.json()["id"]
+
+
+def test_localize_and_extend_jobs_start_from_a_finished_job(tmp_path) -> None:
+    office = simulate("office", seed=0, cameras=False)
+    start, end = office.log.time_span_s()
+    middle = (start + end) / 2
+    first, second = office.log.between(start, middle), office.log.between(middle, end + 1.0)
+    elsewhere = simulate("campus", seed=1, rig="robot", cameras=False, max_duration_s=40.0).log
+    for name in ("a", "b", "c"):
+        (tmp_path / name).mkdir()
+    with service_client(tmp_path / "data", workers=2) as client:
+        sid = new_session(client)
+        log_a = _upload(client, sid, first, tmp_path / "a")
+        mapped = client.post(f"/v1/sessions/{sid}/jobs", json={"log_id": log_a, "particles": 10}).json()
+        log_b = _upload(client, sid, second, tmp_path / "b")
+        log_c = _upload(client, sid, elsewhere, tmp_path / "c")
+
+        # a saved map must exist and be finished: 422 without one, 404 unknown, 409 not finished
+        assert_error(client.post(f"/v1/sessions/{sid}/jobs", json={"mode": "localize"}), 422)
+        assert_error(client.post(f"/v1/sessions/{sid}/jobs", json={"map_job_id": mapped["id"]}), 422)
+        assert_error(client.post(f"/v1/sessions/{sid}/jobs", json={"mode": "localize", "map_job_id": "nope"}), 404)
+        if client.get(f"/v1/jobs/{mapped['id']}").json()["status"] != "succeeded":
+            assert_error(client.post(f"/v1/sessions/{sid}/jobs",
+                                     json={"mode": "localize", "map_job_id": mapped["id"]}), 409)
+        done = wait_for(client, mapped["id"], timeout_s=300)
+        assert done["status"] == "succeeded" and "map_bundle.npz" in done["products"], done
+        bundle = client.get(f"/v1/jobs/{mapped['id']}/map_bundle.npz")
+        assert bundle.status_code == 200 and np.load(io.BytesIO(bundle.content))["poses"].shape[1] == 3
+
+        localized = client.post(f"/v1/sessions/{sid}/jobs", json={"log_id": log_b, "mode": "localize",
+                                                                 "map_job_id": mapped["id"]}).json()
+        extended = client.post(f"/v1/sessions/{sid}/jobs", json={"log_id": log_b, "mode": "extend",
+                                                                "map_job_id": mapped["id"], "particles": 10}).json()
+        refused = client.post(f"/v1/sessions/{sid}/jobs", json={"log_id": log_c, "mode": "localize",
+                                                               "map_job_id": mapped["id"]}).json()
+
+        got = wait_for(client, localized["id"], timeout_s=300)
+        assert got["status"] == "succeeded", got
+        assert {"trajectory.json", "localization.png", "confidence.json", "run.json"} <= set(got["products"])
+        trajectory = client.get(f"/v1/jobs/{localized['id']}/trajectory").json()
+        assert trajectory["count"] == len(second.scans)
+        confidence = client.get(f"/v1/jobs/{localized['id']}/confidence.json").json()
+        assert len(confidence["confidence"]) == len(second.scans) and max(confidence["confidence"]) > 0.5
+        overlay = Image.open(io.BytesIO(client.get(f"/v1/jobs/{localized['id']}/localization.png").content))
+        assert overlay.mode == "RGB" and overlay.size[0] > 50
+        run = client.get(f"/v1/jobs/{localized['id']}/run.json").json()
+        assert run["localization"]["localised"] is True
+
+        bad = wait_for(client, refused["id"], timeout_s=300)
+        assert bad["status"] == "failed", bad
+        assert bad["error"].startswith("MapBundleError: refused: the drive has no place in the saved map"), bad
+
+        grown = wait_for(client, extended["id"], timeout_s=300)
+        assert grown["status"] == "succeeded", grown
+        assert {"drives.png", "map_bundle.npz", "occupancy.png"} <= set(grown["products"])
+        joint = client.get(f"/v1/jobs/{extended['id']}/trajectory").json()
+        assert joint["count"] == len(first.scans) + len(second.scans)
+        run = client.get(f"/v1/jobs/{extended['id']}/run.json").json()
+        assert run["input"]["drives"] == 2
+        tile = client.get(f"/v1/jobs/{extended['id']}/tiles/occupancy/0/0/0.png")
+        assert tile.status_code == 200
