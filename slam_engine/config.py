@@ -194,6 +194,11 @@ class LocalizationConfig(_Section):
                                 "the drive is lost, and searched for over the whole map again [m].")
     max_points: int = Field(250, ge=10, le=100000, description="A stretch is searched with at most this many "
                             "end points.")
+    max_map_key_frames: int = Field(20000, ge=100, le=10_000_000, description="An extended or merged map "
+                                    "keeps at most this many key frames: beyond, the oldest drives' key frames "
+                                    "that a newer one sees from nearby are dropped (lifelong use).")
+    prune_m: float = Field(0.5, gt=0.0, le=100.0, description="... from within this distance [m] ...")
+    prune_rad: float = Field(0.3, gt=0.0, le=3.2, description="... and this heading difference [rad].")
     max_first_tries: int = Field(12, ge=1, le=10000, description="Stretches searched for the drive's first "
                                  "placement, spread over the drive; none placed: the drive is refused.")
 

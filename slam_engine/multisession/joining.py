@@ -66,6 +66,7 @@ def join(base: MapBundle, part: MapBundle, config: SlamConfig, threads: int = 1)
         else:
             left.append(candidate)
     assert placement is not None
+    joint = pruned(joint, config)
     bundle = joint
     for candidate in left:
         bundle = concatenated(bundle, candidate, connect=False)
@@ -77,6 +78,44 @@ def join(base: MapBundle, part: MapBundle, config: SlamConfig, threads: int = 1)
                       "disconnected_drives": disconnected_drives(bundle),
                       "loop_closing": bundle.sensors.get("last_join")},
                      time.perf_counter() - started)
+
+
+def pruned(bundle: MapBundle, config: SlamConfig) -> MapBundle:
+    """``bundle`` with at most ``localization.max_map_key_frames`` key frames: while over, the key frames
+    of the oldest drives that a key frame of a newer drive sees from within ``prune_m`` / ``prune_rad``
+    are dropped, oldest first (a place driven again and again keeps its newest views); when that is not
+    enough, the older drives are thinned (every other key frame, oldest drive first). Each drive keeps
+    its first and last key frame; the pose graph is rebuilt from the poses at the next join, so the
+    dropped key frames leave a longer motion between their neighbours. Every scan's pose is kept."""
+    from scipy.spatial import cKDTree
+
+    c = config.localization
+    excess = len(bundle) - c.max_map_key_frames
+    if excess <= 0:
+        return bundle
+    keep = np.ones(len(bundle), bool)
+    newest = int(bundle.drive.max())
+    for drive in sorted(set(bundle.drive.tolist())):
+        if drive == newest or excess <= 0:
+            break
+        newer = np.flatnonzero(bundle.drive > drive)
+        tree = cKDTree(bundle.poses[newer, :2])
+        frames = np.flatnonzero(bundle.drive == drive)[1:-1]
+        for k, near in zip(frames, tree.query_ball_point(bundle.poses[frames, :2], c.prune_m), strict=True):
+            turn = np.abs(np.angle(np.exp(1j * (bundle.poses[newer[near], 2] - bundle.poses[k, 2]))))
+            if excess > 0 and np.any(turn <= c.prune_rad):
+                keep[k] = False
+                excess -= 1
+    while excess > 0:  # still over: the older drives thinned, every other key frame, oldest first
+        before = excess
+        for drive in sorted(set(bundle.drive.tolist()))[:-1]:
+            interior = np.flatnonzero(keep & (bundle.drive == drive))[1:-1]
+            for k in interior[::2][:excess]:
+                keep[k] = False
+            excess -= min(len(interior[::2]), excess)
+        if excess == before:
+            break  # nothing left to thin (the newest drive alone is over the cap)
+    return subset(bundle, keep)
 
 
 def disconnected_drives(bundle: MapBundle) -> list[int]:

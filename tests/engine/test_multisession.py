@@ -127,3 +127,24 @@ def test_the_bundle_round_trips_and_a_future_version_is_refused(tmp_path, first_
         read_bundle(tmp_path / "junk.npz")
     with pytest.raises(MapBundleError, match="no map bundle here"):
         read_bundle(tmp_path / "missing")
+
+
+def test_a_map_extended_again_and_again_keeps_at_most_its_key_frame_cap(office, halves, first_map) -> None:
+    """Lifelong use: the second half driven twice more; the map keeps at most max_map_key_frames key
+    frames, dropping the oldest drives' views of places driven again, and stays as accurate."""
+    capped = CONFIG.model_copy(update={"localization": CONFIG.localization.model_copy(
+        update={"max_map_key_frames": 200})})
+    second = run_slam(halves[1], CONFIG).bundle
+    grown = join(first_map.bundle, second, capped)
+    again = join(grown.bundle, second, capped)
+    assert again.connected and again.bundle.drives == 3
+    assert len(again.bundle) <= 200 < len(first_map.bundle) + 2 * len(second)
+    assert set(np.unique(again.bundle.drive).tolist()) == {0, 1, 2}
+    assert len(again.trajectory) == len(first_map.trajectory) + 2 * len(halves[1].scans)
+    # the newest drive keeps every key frame; the older ones gave up views the newer ones repeat
+    assert (again.bundle.drive == 2).sum() == len(second)
+    first_half = again.trajectory_drive == 0
+    truth = office.pose_at(again.trajectory.t_s[first_half])
+    rotation, translation = align_rigid_2d(again.trajectory.poses[first_half, :2], truth[:, :2])
+    placed = again.trajectory.poses[first_half, :2] @ rotation.T + translation
+    assert np.median(np.hypot(*(placed - truth[:, :2]).T)) < 0.05
