@@ -2,7 +2,7 @@
 aces-rough and infinite-corridor-rough (key frames 1 m apart, rough odometry, long loops: the map is
 lost without the covariance-sized proposal, the motion prior in the weights and the loop-closing back
 end) and intel with distorted odometry (the heading calibration inside the filter). Limits leave
-room for seed-to-seed spread measured with ``python -m bench.engine_profile`` (figures in README)."""
+room for seed-to-seed spread measured with ``python -m bench.engine_profile`` (figures in docs/benchmarks.md)."""
 
 from __future__ import annotations
 
