@@ -151,7 +151,7 @@ class MatcherConfig(_Section):
                                      "correlated; fewer = smoother weights).")
     min_score: float = Field(0.3, ge=0.0, le=1.0, description="Below this normalised score the "
                              "odometry proposal is used instead of the match.")
-    local_map_m: float = Field(8.0, ge=0.0, le=100000.0, description="Particles match against their local map: "
+    local_map_m: float = Field(30.0, ge=0.0, le=100000.0, description="Particles match against their local map: "
                                "map tiles no scan touched in this much travel [m] are forgotten (kept for "
                                "previews), so that a place mapped long ago is not matched where the drift puts "
                                "it; the back end closes those loops. 0: keep the whole map.")
