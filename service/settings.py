@@ -66,7 +66,7 @@ class Settings(BaseSettings):
         """The per-job memory limit [MB] (0 = none): the setting, or the machine's share per job."""
         if self.job_memory_limit_mb is not None:
             return self.job_memory_limit_mb
-        from service.memory import default_limit_mb
+        from service.memory_watchdog import default_limit_mb
 
         return default_limit_mb(jobs_at_once or self.workers)
 

@@ -130,7 +130,7 @@ def test_the_project_has_no_import_cycles() -> None:
 
 
 def package_graph(graph: dict[str, set[str]], package: str) -> dict[str, set[str]]:
-    """``graph`` collapsed onto the parts of ``package`` (``service.storage``, ``service.errors``, ...)."""
+    """``graph`` collapsed onto the parts of ``package`` (``service.storage``, ``service.http_errors``, ...)."""
     def part(module: str) -> str | None:
         names = module.split(".")
         return ".".join(names[:2]) if names[0] == package and len(names) > 1 else None

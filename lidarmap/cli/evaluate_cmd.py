@@ -12,7 +12,7 @@ from pathlib import Path
 
 import typer
 
-from lidarmap.cli.errors import bad_input_exits
+from lidarmap.cli.bad_input import bad_input_exits
 from slam_engine.errors import ConfigError
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import typer
 
-from lidarmap.cli.errors import bad_input_exits
+from lidarmap.cli.bad_input import bad_input_exits
 from lidarmap.cli.run_cmd import load_config, prepare_out_dir
 
 REFUSED_EXIT_CODE = 1  # the drive (or map) was understood, but has no place in the saved map

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import typer
 
-from lidarmap.cli.errors import bad_input_exits
+from lidarmap.cli.bad_input import bad_input_exits
 from slam_engine.config import SlamConfig, shortcut_overrides
 from slam_engine.config import load_config as load_slam_config
 from slam_engine.errors import ConfigError

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from lidarmap.cli.errors import BAD_INPUT_EXIT_CODE, one_line
+from lidarmap.cli.bad_input import BAD_INPUT_EXIT_CODE, one_line
 from lidarmap.cli.run_cmd import prepare_out_dir
 from slam_engine.errors import ConfigError
 

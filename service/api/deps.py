@@ -9,7 +9,7 @@ from typing import Annotated
 from fastapi import Depends, Path, Request
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
-from service.errors import NotFound, Unauthorized
+from service.http_errors import NotFound, Unauthorized
 from service.runners.base import JobRunner
 from service.settings import Settings
 from service.storage.data_dir import DataDir

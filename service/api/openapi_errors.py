@@ -21,7 +21,7 @@ from fastapi import FastAPI
 from fastapi.dependencies.models import Dependant
 from fastapi.routing import APIRoute, iter_route_contexts
 
-from api_schemas.errors import ErrorResponse
+from api_schemas.error_body import ErrorResponse
 from service.api.deps import get_owner
 
 REF = "#/components/schemas/"

@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from service.memory import MemoryGuard
+from service.memory_watchdog import MemoryGuard
 from service.storage.data_dir import DataDir
 from service.storage.rows import JobRow
 from service.storage.store import JobStore

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from api_schemas.jobs import JobStatus
-from service.errors import NotFound, NotReady
+from service.http_errors import NotFound, NotReady
 from service.storage.data_dir import DataDir
 from service.storage.rows import JobRow
 from slam_engine.model.result import OccupancyGrid, TextureMap

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from api_schemas.jobs import JobMode, JobStatus
-from service.errors import Conflict, NotFound
+from service.http_errors import Conflict, NotFound
 from service.jobs.context import JobContext
 from service.jobs.outputs import write_job_products
 from service.storage.data_dir import DataDir

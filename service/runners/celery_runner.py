@@ -38,7 +38,7 @@ from billiard.exceptions import WorkerLostError
 from celery import Celery, signals
 
 from api_schemas.jobs import JobStatus
-from service.errors import Unavailable
+from service.http_errors import Unavailable
 from service.jobs.context import JobContext, JobFunction
 from service.runners.base import DEFAULT_JOB_FUNCTION, RunnerHealth
 from service.runners.worker import execute_job, import_function

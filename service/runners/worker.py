@@ -17,9 +17,9 @@ from pathlib import Path
 from typing import Any
 
 from api_schemas.jobs import JobStatus
-from service.errors import shorten_tokens
+from service.http_errors import shorten_tokens
 from service.jobs.context import JobContext, JobFailed, JobFunction
-from service.memory import MemoryGuard, limit_reason
+from service.memory_watchdog import MemoryGuard, limit_reason
 from service.storage.data_dir import DataDir
 from service.storage.store import JobStore
 from slam_engine.errors import Cancelled, LogFormatError, SlamEngineError

@@ -7,7 +7,7 @@ import json
 from typing import Any
 
 from api_schemas.chunks import ChunkCreate, StreamFinish, StreamState
-from service.errors import Conflict, InvalidInput
+from service.http_errors import Conflict, InvalidInput
 from service.storage.data_dir import DataDir, write_atomic
 from service.storage.disk_space import disk_full_error
 from service.storage.rows import ChunkRow

@@ -6,7 +6,7 @@ from __future__ import annotations
 import errno
 from pathlib import Path
 
-from service.errors import InsufficientStorage
+from service.http_errors import InsufficientStorage
 from service.storage.data_dir import DataDir
 
 CHECK_EVERY_BYTES = 8 * 1024**2  # while an upload streams in, free space is checked this often

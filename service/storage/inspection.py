@@ -6,7 +6,7 @@ inspected in a *lane*: one spawned process, used by one upload at a time. Per up
 
 * memory: the child's resident size is held under ``memory_limit_mb`` (watchdog, and an
   address-space limit that turns one huge allocation into a MemoryError), see
-  :class:`service.memory.MemoryGuard`;
+  :class:`service.memory_watchdog.MemoryGuard`;
 * time: past ``timeout_s`` the child is killed;
 * decompressed size: a gzipped log that inflates past ``max_decompressed_bytes`` is refused before
   it is parsed.
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from service.errors import InvalidInput, PayloadTooLarge, UnsupportedFormat, shorten_tokens
+from service.http_errors import InvalidInput, PayloadTooLarge, UnsupportedFormat, shorten_tokens
 
 GZIP_MAGIC = b"\x1f\x8b"
 STARTUP_TIMEOUT_S = 120.0  # a fresh inspection process imports every loader (seconds on a busy machine)
@@ -122,7 +122,7 @@ def _child_main(conn: Any, memory_limit_mb: int) -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which stops us
-    from service.memory import MB, MemoryGuard, resident_bytes
+    from service.memory_watchdog import MB, MemoryGuard, resident_bytes
     from slam_engine.formats import _installed_modules
 
     _installed_modules()  # every loader and its libraries mapped before the address-space bound is set

@@ -35,7 +35,7 @@ from typing import Any
 from urllib.parse import unquote
 
 from api_schemas.jobs import JobSource, JobStatus
-from service.errors import Unavailable
+from service.http_errors import Unavailable
 from service.storage.rows import (
     ACTIVE_STATUSES,
     TERMINAL_STATUSES,

@@ -19,7 +19,7 @@ from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
-from service.errors import BadRequest, InvalidInput, PayloadTooLarge, UnsupportedFormat
+from service.http_errors import BadRequest, InvalidInput, PayloadTooLarge, UnsupportedFormat
 from service.storage.disk_space import CHECK_EVERY_BYTES, disk_full_error
 
 if TYPE_CHECKING:

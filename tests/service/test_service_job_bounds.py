@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 from service_helpers import assert_error, new_session, service_client, wait_for
 
-from service.memory import machine_memory_bytes
+from service.memory_watchdog import machine_memory_bytes
 from service.settings import Settings
 
 

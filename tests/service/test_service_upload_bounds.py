@@ -137,7 +137,7 @@ def test_a_zipped_single_line_csv_is_sniffed_with_bounded_reads(tmp_path) -> Non
 
 
 def test_shorten_tokens_cuts_each_long_word_once() -> None:
-    from service.errors import MAX_MESSAGE_CHARS, shorten_tokens
+    from service.http_errors import MAX_MESSAGE_CHARS, shorten_tokens
 
     message = f"bad token '{'x' * 500}' at line 3"
     short = shorten_tokens(message)

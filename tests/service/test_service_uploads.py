@@ -84,7 +84,7 @@ def test_upload_validates_with_the_loader(tmp_path, dataset) -> None:
 def test_zip_limits(tmp_path) -> None:
     path = tmp_path / "many.zip"
     path.write_bytes(zip_bytes({f"f{i}.txt": b"x" for i in range(5)}))
-    from service.errors import PayloadTooLarge
+    from service.http_errors import PayloadTooLarge
 
     try:
         extract_zip(path, tmp_path / "out1", max_entries=4, max_total_bytes=10**6)

@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "service"))
 from service_helpers import assert_error, service_client, wait_for  # noqa: E402
 
 from service.api.openapi_errors import api_routes  # noqa: E402
-from service.errors import InvalidInput, PayloadTooLarge  # noqa: E402
+from service.http_errors import InvalidInput, PayloadTooLarge  # noqa: E402
 from service.storage.uploads import extract_zip  # noqa: E402
 
 OPEN_ROUTES = {("GET", "/healthz"), ("GET", "/")}  # / leads to the viewer page, where a key is typed in

@@ -6,7 +6,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Request, Response
 
 from api_schemas.chunks import ChunkCreate, ChunkPublic, StreamFinish, StreamState
-from api_schemas.errors import ErrorResponse
+from api_schemas.error_body import ErrorResponse
 from service.api.convert import utc
 from service.api.deps import DataDep, SessionDep, SettingsDep, StoreDep
 from service.storage.chunks import check_calibration, finish_stream, store_chunk, stream_state_in_store

@@ -6,11 +6,11 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Query
 
-from api_schemas.errors import ErrorResponse
+from api_schemas.error_body import ErrorResponse
 from api_schemas.jobs import JobPublic, JobSource, JobsPublic, JobStatus
 from service.api.convert import job_public
 from service.api.deps import MAX_OFFSET, DataDep, JobDep, OwnerDep, RunnerDep, SessionDep, SettingsDep, StoreDep
-from service.errors import Conflict, InvalidInput, NotFound
+from service.http_errors import Conflict, InvalidInput, NotFound
 from service.jobs.estimate import check_job_memory, estimate_bytes
 from service.jobs.products import engine_compiling, live_product_names
 from service.jobs.saved_maps import saved_map_path

@@ -8,11 +8,11 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Query, Request
 from starlette.concurrency import run_in_threadpool
 
-from api_schemas.errors import ErrorResponse
+from api_schemas.error_body import ErrorResponse
 from api_schemas.logs import LogPublic, LogsPublic
 from service.api.convert import log_public
 from service.api.deps import DataDep, SessionDep, SettingsDep, StoreDep
-from service.errors import InvalidInput, NotFound
+from service.http_errors import InvalidInput, NotFound
 from service.storage.disk_space import ensure_free_space
 from service.storage.inspection import LogInspector
 from service.storage.store import new_id

@@ -15,11 +15,11 @@ from fastapi.encoders import jsonable_encoder
 from fastapi.responses import FileResponse, JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
-from api_schemas.errors import ErrorResponse
+from api_schemas.error_body import ErrorResponse
 from api_schemas.jobs import JobStatus
 from api_schemas.products import Pose, TrajectoryPublic
 from service.api.deps import DataDep, JobDep, StoreDep
-from service.errors import InvalidInput
+from service.http_errors import InvalidInput
 from service.jobs.products import MEDIA_TYPES, product_path, tile_source
 from service.storage.data_dir import DataDir
 from service.storage.rows import JobRow

@@ -7,7 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 
-from api_schemas.errors import ErrorResponse
+from api_schemas.error_body import ErrorResponse
 from api_schemas.sessions import SessionCreate, SessionDeleted, SessionPublic, SessionsPublic
 from service.api.convert import session_public
 from service.api.deps import MAX_OFFSET, DataDep, OwnerDep, RunnerDep, SessionDep, SettingsDep, StoreDep

@@ -6,7 +6,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
-from api_schemas.errors import ErrorResponse
+from api_schemas.error_body import ErrorResponse
 from api_schemas.tiles import TileSchemePublic
 from service.api.deps import DataDep, JobDep
 from service.api.routers.products import TileLayer
