@@ -1,5 +1,6 @@
 """``python -m bench [SUBCOMMAND] ...``: ``accuracy`` (the default) runs the SLAM benchmark;
-``throughput`` measures jobs per minute through the Celery runner."""
+``throughput`` measures jobs per minute through the Celery runner; ``sessions`` localises, extends and
+merges maps on the two-session drives."""
 
 from __future__ import annotations
 
@@ -8,9 +9,10 @@ import sys
 import typer
 
 from bench.cli import accuracy
+from bench.sessions import sessions
 from bench.throughput import throughput
 
-SUBCOMMANDS = {"accuracy": accuracy, "throughput": throughput}
+SUBCOMMANDS = {"accuracy": accuracy, "throughput": throughput, "sessions": sessions}
 
 
 def main(argv: list[str]) -> None:

@@ -1,5 +1,6 @@
 """The benchmark's command line (``python -m bench`` and ``lidarmap bench``): thin wrapper over
-:func:`bench.harness.run_benchmark` and :func:`bench.report.print_report`."""
+:func:`bench.harness.run_benchmark` and :func:`bench.report.print_report`, followed by the sessions
+table (:mod:`bench.sessions`) on the shared datasets' two-session drives."""
 
 from __future__ import annotations
 
@@ -56,6 +57,8 @@ def accuracy(
                                        help="YAML or JSON file with SlamConfig overrides."),
     simulated: bool = typer.Option(True, help="Also map the simulated car (written into the output folder "
                                    "with its exact ground truth)."),
+    sessions: bool = typer.Option(True, help="Then the sessions table (localise, extend, merge on the datasets' "
+                                  "sessions/ drives, same seeds; not with --quick or --no-datasets)."),
     out: Path | None = typer.Option(None, help="Output folder (default bench/results/<date-time>)."),
     timeout_s: float = typer.Option(3600.0, min=1.0, help="Time limit per run, seconds."),
     busy: int = typer.Option(0, min=0, max=64, help="CPU-bound processes to run beside every run "
@@ -71,7 +74,7 @@ def accuracy(
     from bench.cases import cases_for_path, datasets_root, default_cases, simulated_cases
     from bench.harness import BenchOptions, default_out_dir, run_benchmark
     from bench.report import fmt, print_report
-    from bench.worker import resolve
+    from bench.worker import DEFAULT_LOADER, DEFAULT_RUNNER, resolve
     from slam_engine.config import read_settings
     from slam_engine.errors import ConfigError
 
@@ -116,3 +119,21 @@ def accuracy(
     options = BenchOptions(seeds=seed_list, particles=particles, config=overrides or {}, out_dir=out,
                            timeout_s=timeout_s, runner=runner, loader=loader, busy=busy)
     print_report(run_benchmark(cases, options, on_run=progress), console)
+    if sessions and datasets and not quick and (runner, loader) == (DEFAULT_RUNNER, DEFAULT_LOADER):
+        run_sessions_table(seed_list, out, overrides or {}, particles, console)
+
+
+def run_sessions_table(seeds: list[int], out: Path, overrides: dict, particles: int | None, console) -> None:
+    """The sessions table (:mod:`bench.sessions`) into ``out`` beside the benchmark's results, when the
+    datasets hold the two-session drives."""
+    from bench.sessions import print_sessions, run_sessions, session_drives, sessions_root
+
+    drives = session_drives() if sessions_root().is_dir() else []
+    if not drives:
+        console.print(f"[yellow]sessions table skipped:[/yellow] no two-session drives under {sessions_root()}",
+                      highlight=False)
+        return
+    console.print(f"sessions: {', '.join(d.name for d in drives)} × {len(seeds)} seeds", highlight=False)
+    results = run_sessions(drives, seeds, out, overrides, particles,
+                           say=lambda line: console.print(line, highlight=False))
+    print_sessions(results, console)

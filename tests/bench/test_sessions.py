@@ -1,0 +1,163 @@
+"""``python -m bench sessions`` on simulated two-session drives: the office loop and a short campus drive,
+each cut in two halves as ``sessions/`` of the shared datasets is (CARMEN logs, ``NAME-all`` and
+``NAME-ab`` relations), mapped with 10 particles: the checks, the per-seed table and the JSON."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from rich.console import Console
+
+from bench.__main__ import main
+from bench.sessions import (
+    DEFAULT_TARGETS,
+    RESULTS_FILE,
+    Check,
+    SessionDrive,
+    checks_for,
+    evaluate,
+    print_sessions,
+    session_drives,
+)
+from slam_engine.evaluation.metrics import read_relations
+from slam_engine.formats import write_log
+from slam_engine.simulation import relations, simulate
+
+# (name, scenario, seconds of drive: None for the whole loop)
+DRIVES = (("office", "office", None), ("campus", "campus", 40.0))
+
+
+def write_sessions(folder):
+    """Each drive's halves as NAME-a.clf / NAME-b.clf, its relations as NAME-all / NAME-ab.relations."""
+    folder.mkdir()
+    for name, scenario, duration_s in DRIVES:
+        drive = simulate(scenario, seed=1, rig="robot", cameras=False, max_duration_s=duration_s)
+        start, end = drive.log.time_span_s() or (0.0, 0.0)
+        middle = (start + end) / 2
+        for part, log in (("a", drive.log.between(start, middle)), ("b", drive.log.between(middle, end + 1.0))):
+            write_log(log, "carmen", folder / f"{name}-{part}").rename(folder / f"{name}-{part}.clf")
+        rel = relations(drive.ground_truth, np.random.default_rng(0))
+        zeros = np.zeros((len(rel), 3))
+        rows = np.column_stack([rel[:, :4], zeros, rel[:, 4]])
+        np.savetxt(folder / f"{name}-all.relations", rows, fmt="%.6f")
+        across = (rows[:, 0] < middle) != (rows[:, 1] < middle)
+        np.savetxt(folder / f"{name}-ab.relations", rows[across], fmt="%.6f")
+    return folder
+
+
+@pytest.fixture(scope="module")
+def sessions_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sessions")
+    folder = write_sessions(root / "sessions")
+    console = Console(record=True, width=250)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["sessions", "--seeds", "0", "--particles", "10", "--folder", str(folder), "--out", str(root / "out")])
+    assert exit_info.value.code == 0
+    results = json.loads((root / "out" / RESULTS_FILE).read_text())
+    print_sessions(results, console)
+    return folder, results, console.export_text()
+
+
+def test_the_drives_of_a_folder_are_found_with_the_benchmark_ones_first(sessions_run, tmp_path):
+    folder, _, _ = sessions_run
+    assert [d.name for d in session_drives(folder)] == ["campus", "office"]
+    for name in ("aces-rough", "intel", "other"):
+        for suffix in ("a.clf", "b.clf", "all.relations", "ab.relations"):
+            (tmp_path / f"{name}-{suffix}").write_text("")
+    (tmp_path / "other-ab.relations").unlink()  # incomplete: left out
+    assert [d.name for d in session_drives(tmp_path)] == ["intel", "aces-rough"]
+
+
+def test_localise_extend_merge_and_refuse_on_simulated_halves(sessions_run):
+    folder, results, _ = sessions_run
+    (run,) = results["runs"]
+    assert run["seed"] == 0 and run["config"]["particles"] == 10 and run["threads"] >= 1
+    assert set(run["mapping"]) == {"office-a", "office-b", "campus-a", "campus-b"}
+    same = run["localise"]["office-b in office-a"]
+    assert same["localised"] and same["same_building"]
+    # the relations of both halves are all scored: a's trajectory from its bundle, b's localised one
+    assert same["relations"]["all"]["n_relations"] == len(read_relations(folder / "office-all.relations"))
+    assert same["relations"]["all"]["n_failed"] == 0 and same["relations"]["ab"]["n_relations"] > 0
+    assert same["relations"]["ab"]["trans_mean_m"] < 0.1
+    assert same["wall_s"] == pytest.approx(same["scans_s"] + same["localize_s"])
+    assert same["time_ratio"] == pytest.approx(same["wall_s"] / run["mapping"]["office-b"]["wall_s"])
+    for key in ("campus-b in office-a", "office-b in campus-a"):  # another building: refused
+        assert run["localise"][key]["localised"] is False and run["localise"][key]["relations"] is None
+    extended, merged = run["extend"]["office"], run["merge"]["office"]
+    assert extended["connected"] and merged["merged"] and merged["error"] is None
+    assert extended["relations"]["all"]["trans_mean_m"] < 0.1
+    assert merged["relations"]["all"]["trans_mean_m"] == pytest.approx(extended["relations"]["all"]["trans_mean_m"])
+
+
+def test_checks_json_and_tables(sessions_run):
+    _, results, text = sessions_run
+    rows = {row["id"]: row for row in results["checks"]}
+    assert list(rows) == ["localise:campus", "localise:office", "extend:campus", "extend:office",
+                          "refuse:campus:office", "refuse:office:campus", "merge:campus", "merge:office",
+                          "time:campus", "time:office"]
+    assert rows["refuse:campus:office"]["passed"] is True and rows["refuse:office:campus"]["passed"] is True
+    assert rows["localise:office"]["passed"] is None  # no target for a simulated drive
+    run = results["runs"][0]
+    assert rows["localise:office"]["values"] == [run["localise"]["office-b in office-a"]["relations"]["ab"]
+                                                 ["trans_mean_m"]]
+    assert results["code"]["commit"] and results["options"]["seeds"] == [0]
+    assert results["drives"] == ["campus", "office"]
+    assert "localise office-b in office-a's map, cross-session relations (office-ab)" in text
+    assert f"{rows['extend:office']['values'][0]:.4f} m" in text and "refused (best score" in text
+    judged = [row["passed"] for row in rows.values() if row["passed"] is not None]  # refusals, time ratios
+    assert len(judged) == 4 and f"{sum(judged)} of 4 checks pass" in text and "Per seed" in text
+
+
+def test_checks_take_the_worst_seed_and_count_a_missing_number_as_a_miss():
+    check = Check("x", "x", ("a",), "at_most", 0.04)
+    passed = evaluate(check, [{"a": 0.03}, {"a": 0.035}, {"a": 0.01}])
+    assert passed["passed"] and passed["median"] == 0.03 and passed["worst"] == 0.035
+    assert passed["measured"] == "0.0300 / 0.0350 m" and passed["target_text"] == "<= 0.04 m"
+    assert not evaluate(check, [{"a": 0.03}, {"a": 0.05}])["passed"]
+    missing = evaluate(check, [{"a": 0.03}, {"a": None}])
+    assert not missing["passed"] and "1 seeds not measured" in missing["measured"]
+    refused = Check("r", "r", ("loc", "localised"), "refused")
+    both = evaluate(refused, [{"loc": {"localised": False, "best_score": 0.5}},
+                              {"loc": {"localised": True, "best_score": 0.9}}])
+    assert not both["passed"] and both["measured"] == "refused 1/2 (best score 0.900)"
+
+
+def test_the_issue_targets_are_the_default_ones():
+    drives = [SessionDrive(name, "a.clf", "b.clf", "all.relations", "ab.relations") for name in ("intel", "aces-rough")]
+    rows = {c.id: c for c in checks_for(drives, DEFAULT_TARGETS)}
+    assert (rows["localise:intel"].target, rows["localise:aces-rough"].target) == (0.04, 0.06)
+    assert (rows["extend:intel"].target, rows["extend:aces-rough"].target) == (0.025, 0.05)
+    assert rows["merge:intel"].target == 0.03 and rows["merge:aces-rough"].target is None
+    assert rows["time:intel"].target == rows["time:aces-rough"].target == 0.2
+    assert {"refuse:intel:aces-rough", "refuse:aces-rough:intel"} <= set(rows)
+
+
+def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_path):
+    """``python -m bench`` runs the sessions table after the logs, with its seeds and output folder; not with
+    --quick, --no-datasets or --no-sessions."""
+    import bench.cases
+    import bench.harness
+    import bench.sessions
+
+    calls: list = []
+    monkeypatch.setattr(bench.cases, "default_cases", lambda root=None, map_only=True: [])
+    monkeypatch.setattr(bench.harness, "run_benchmark",
+                        lambda cases, options, on_run=None: {"summaries": [], "out_dir": str(options.out_dir)})
+    monkeypatch.setattr(bench.sessions, "sessions_root", lambda: tmp_path)
+    drive = SessionDrive("intel", "a.clf", "b.clf", "all.relations", "ab.relations")
+    monkeypatch.setattr(bench.sessions, "session_drives", lambda folder=None: [drive])
+    monkeypatch.setattr(bench.sessions, "run_sessions",
+                        lambda drives, seeds, out, overrides, particles, say: calls.append((drives, seeds, out)))
+    monkeypatch.setattr(bench.sessions, "print_sessions", lambda results, console: None)
+    log = tmp_path / "x.clf"
+    log.write_text("")  # not a log the loader knows: skipped, the benchmark itself has nothing to run
+    out = tmp_path / "out"
+    for flags, runs_sessions in ((["--seeds", "1-2"], True), (["--quick"], False), (["--no-sessions"], False),
+                                 (["--no-datasets"], False)):
+        calls.clear()
+        with pytest.raises(SystemExit) as exit_info:
+            main([*flags, "--no-simulated", "--out", str(out), str(log)])
+        assert exit_info.value.code == 0
+        assert calls == ([([drive], [1, 2], out)] if runs_sessions else []), flags
