@@ -83,6 +83,8 @@ def _extend(ctx: JobContext, bundle: Any, log: DriveLog, config: Any, progress: 
     own = run_slam(log, config, progress=progress)
     assert own.bundle is not None  # a run with scans always makes one
     joined = join(bundle, own.bundle, config)
+    total = len(log.scans) if log.scans is not None else 0
+    ctx.progress(total, total, force=True)
     if not joined.connected:
         raise MapBundleError(f"refused: the drive could not be placed in the saved map (best score "
                              f"{joined.placement.best_score:.3f}); map it on its own, or extend with a drive that "

@@ -416,3 +416,58 @@ def test_simulated_log_dropped_on_the_page_is_mapped(tmp_path) -> None:
         assert np.allclose(trajectory[0], [0.0, 0.0], atol=1e-6)
         path_box = page.locator(".leaflet-overlay-pane svg path.trajectory-slam").bounding_box()
         assert path_box["width"] + path_box["height"] > 40
+
+
+def test_a_localisation_and_an_extension_are_shown_on_their_saved_map(tmp_path) -> None:
+    """The simulated office loop in two halves: the first mapped, the second localised in its map (the
+    page shows the drive's scans over the saved map) and used to extend it (the saved map's drive and
+    the new drive in two colours)."""
+    from slam_engine.formats import write_log
+    from slam_engine.simulation import simulate
+
+    office = simulate("office", seed=0, cameras=False)
+    start, end = office.log.time_span_s()
+    halves = (office.log.between(start, (start + end) / 2), office.log.between((start + end) / 2, end + 1.0))
+    with _serve(tmp_path / "data") as url, httpx.Client(base_url=url, timeout=60) as api:
+        sid = api.post("/v1/sessions", json={"name": "office"}).json()["id"]
+        logs = []
+        for index, half in enumerate(halves):
+            path = write_log(half, "carmen", tmp_path / f"half{index}")
+            with path.open("rb") as f:
+                logs.append(api.post(f"/v1/sessions/{sid}/logs", files={"file": (path.name, f)}).json()["id"])
+
+        def finished(job: dict) -> dict:
+            for _ in range(2400):
+                state = api.get(f"/v1/jobs/{job['id']}").json()
+                if state["status"] not in ("queued", "running"):
+                    return state
+                time.sleep(0.1)
+            raise AssertionError(f"job {job['id']} did not finish")
+
+        mapped = finished(api.post(f"/v1/sessions/{sid}/jobs", json={"log_id": logs[0], "particles": 10}).json())
+        assert mapped["status"] == "succeeded", mapped
+        start_from = {"log_id": logs[1], "map_job_id": mapped["id"], "particles": 10}
+        localised = finished(api.post(f"/v1/sessions/{sid}/jobs", json={**start_from, "mode": "localize"}).json())
+        extended = finished(api.post(f"/v1/sessions/{sid}/jobs", json={**start_from, "mode": "extend"}).json())
+        assert localised["status"] == extended["status"] == "succeeded", (localised, extended)
+
+        with _browser_page("viewer-localisation") as page:
+            page.goto(f"{url}/viewer/#job={localised['id']}")
+            image = page.wait_for_selector("img.product-image", state="visible", timeout=60_000)
+            assert page.evaluate("(img) => img.naturalWidth", image) > 50
+            assert page.locator("#job-downloads a[data-product='localization.png']").count() == 1
+            picture = np.asarray(Image.open(io.BytesIO(image.screenshot())).convert("RGB")).astype(int)
+            red = (picture[..., 0] > 180) & (picture[..., 1] < 90) & (picture[..., 2] < 90)
+            assert red.sum() > 50  # the drive's matched end points over the saved map
+
+        with _browser_page("viewer-extension") as page:
+            page.goto(f"{url}/viewer/#job={extended['id']}")
+            page.wait_for_selector(".tiles-occupancy img.leaflet-tile-loaded", timeout=60_000)
+            page.wait_for_selector(".leaflet-overlay-pane svg path.trajectory-saved")
+            saved = page.evaluate("window.lidarmap.jobMap.layers.savedDrives.getLatLngs().length")
+            new = page.evaluate("window.lidarmap.jobMap.layers.trajectory.getLatLngs().length")
+            assert saved == len(halves[0].scans) and new == len(halves[1].scans)
+            assert page.locator("#job-downloads a[data-product='drives.png']").count() == 1
+            assert page.locator("#job-downloads a[data-product='map_bundle.npz']").count() == 1
+            ARTIFACTS.mkdir(exist_ok=True)
+            page.screenshot(path=str(ARTIFACTS / "viewer-extension.png"))

@@ -25,6 +25,13 @@ function progressBar(job) {
     el("div", { class: `progress-fill ${job.status}`, style: `width: ${progressPercent(job).toFixed(1)}%` }));
 }
 
+/** What a job does: its particles for a mapping run, else its mode and the job whose map it starts from. */
+function jobKind(job) {
+  const mode = job.config.mode || "map";
+  if (mode === "map") return `${job.config.particles ?? "?"} particles`;
+  return `${mode} in job ${shortId(job.config.map_job_id || "")}`;
+}
+
 function jobRow(job, selected, onSelect) {
   const meta = [formatScans(job), formatEta(job)].filter(Boolean).join(" · ");
   return el("li", {
@@ -32,7 +39,7 @@ function jobRow(job, selected, onSelect) {
     title: `job ${job.id}`, onclick: () => onSelect(job.id),
   },
   el("span", { class: `pill ${job.status}` }, job.status),
-  el("span", { class: "job-label" }, `job ${shortId(job.id)} · ${job.config.particles ?? "?"} particles`),
+  el("span", { class: "job-label" }, `job ${shortId(job.id)} · ${jobKind(job)}`),
   el("span", { class: "job-meta" }, meta || formatTime(job.created_at)),
   progressBar(job),
   job.error ? el("span", { class: "job-error", title: job.error }, job.error) : null);
