@@ -28,7 +28,8 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-import service.storage.store as store_module
+import service.storage.job_records as job_records
+import service.storage.log_records as log_records
 from api_schemas.jobs import JobSource, JobStatus
 from service.api.app import create_app
 from service.settings import Settings
@@ -141,7 +142,7 @@ def store(request, tmp_path) -> Iterator[JobStore]:
 
 
 class FakeClock:
-    """Stands in for the ``time`` module inside service.storage.store."""
+    """Stands in for the ``time`` module inside a module of service.storage (log_records, job_records)."""
 
     def __init__(self, now: float):
         self.now = now
@@ -168,7 +169,7 @@ def test_sessions_logs_and_chunks(store, monkeypatch) -> None:
     assert count == 4 and [s.name for s in page] == ["more 2", "more 1"]
 
     # two uploads within one clock tick: the second is still the newest
-    monkeypatch.setattr(store_module, "time", FakeClock(1_700_000_000.123456))
+    monkeypatch.setattr(log_records, "time", FakeClock(1_700_000_000.123456))
     big = 5 * 1024**3  # beyond a 32-bit integer
     first = store.add_log("log-1", session.id, "a.clf", big, "aa", False, {"format": "carmen"}, "uploads/1/log")
     store.add_log("log-2", session.id, "b.zip", 10, "bb", True, {"format": "thor"}, "uploads/2/tree")
@@ -372,7 +373,7 @@ def test_the_stream_end_and_chunks_beyond_it(store) -> None:
 
 def test_heartbeats_and_lost_workers(store, monkeypatch) -> None:
     clock = FakeClock(1_000.0)
-    monkeypatch.setattr(store_module, "time", clock)
+    monkeypatch.setattr(job_records, "time", clock)
     sid = store.create_session("", "s", None, None, None).id
     beating, silent, queued = (store.create_job(sid, "", JobSource.LOG, None, {}).id for _ in range(3))
     assert store.mark_running(beating, worker_pid=11) and store.mark_running(silent, worker_pid=22)
