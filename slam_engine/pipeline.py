@@ -201,9 +201,9 @@ def map_bundle(poses: np.ndarray, t_s: np.ndarray, unverified: np.ndarray, scans
                origin_v: np.ndarray, edges: list[Edge], trajectory: Trajectory, config: SlamConfig,
                log: DriveLog | None = None, drive: int = 0) -> MapBundle:
     """The :class:`MapBundle` of one drive: its key frames at their final ``poses`` (K, 3, map frame) and
-    times ``t_s``, their product ``scans`` (projected again here, one at a time, as the map took them),
+    times ``t_s``, their product ``scans`` (a sequence that projects each when read: packed as they come),
     the pose graph's ``edges`` and every scan's pose."""
-    offsets, ends_v, is_hit, free_from = MapBundle.pack_scans(list(scans))
+    offsets, ends_v, is_hit, free_from = MapBundle.pack_scans(scans)
     n_edges = len(edges)
     unverified = np.array(unverified, bool)
     unverified[:1] = True  # a drive's first key frame: nothing ties it to what came before

@@ -8,6 +8,7 @@ it, ...). File format and version: :mod:`slam_engine.products.map_bundle`, ``doc
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -78,12 +79,15 @@ class MapBundle:
         return [self.hits(k) for k in range(len(self))]
 
     @staticmethod
-    def pack_scans(scans: list[ProjectedScan]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(scan_offsets, ends_v, is_hit, free_from_m) of ``scans``, as a bundle stores them."""
-        counts = [len(s.ends_v) for s in scans]
+    def pack_scans(scans: Sequence[ProjectedScan]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(scan_offsets, ends_v, is_hit, free_from_m) of ``scans``, as a bundle stores them. ``scans`` is
+        read twice, one scan at a time (a lazily projected sequence, as the filter keeps its key frames,
+        is never held whole): once for the counts, once into the arrays."""
+        counts = [len(scan.ends_v) for scan in scans]
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        if not scans:
-            return offsets, np.zeros((0, 2), np.float32), np.zeros(0, bool), np.zeros(0, np.float32)
-        return (offsets, np.concatenate([s.ends_v for s in scans]).astype(np.float32),
-                np.concatenate([s.is_hit for s in scans]).astype(bool),
-                np.concatenate([s.free_from_m for s in scans]).astype(np.float32))
+        n = int(offsets[-1])
+        ends_v, is_hit, free_from = np.empty((n, 2), np.float32), np.empty(n, bool), np.empty(n, np.float32)
+        for k, scan in enumerate(scans):
+            rows = slice(int(offsets[k]), int(offsets[k + 1]))
+            ends_v[rows], is_hit[rows], free_from[rows] = scan.ends_v, scan.is_hit, scan.free_from_m
+        return offsets, ends_v, is_hit, free_from
