@@ -1,0 +1,66 @@
+"""``lidarmap localize``, ``lidarmap run --map`` and ``lidarmap merge`` on the simulated office loop cut in
+two halves (written as CARMEN logs) and a drive in another building."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from lidarmap.cli import app
+from slam_engine.formats import write_log
+from slam_engine.products.map_bundle import read_bundle
+from slam_engine.simulation import simulate
+
+pytestmark = pytest.mark.slow
+
+
+def invoke(*args) -> object:
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory) -> dict[str, Path]:
+    folder = tmp_path_factory.mktemp("logs")
+    office = simulate("office", seed=0, cameras=False)
+    start, end = office.log.time_span_s()
+    middle = (start + end) / 2
+    parts = {"a": office.log.between(start, middle), "b": office.log.between(middle, end + 1.0),
+             "elsewhere": simulate("campus", seed=1, rig="robot", cameras=False, max_duration_s=40.0).log}
+    return {name: write_log(log, "carmen", folder / name) for name, log in parts.items()}
+
+
+def test_localize_extend_and_merge_from_the_command_line(tmp_path, logs) -> None:
+    mapped = invoke("run", logs["a"], "--out", tmp_path / "a", "--particles", "10")
+    assert mapped.exit_code == 0, mapped.output
+    assert read_bundle(tmp_path / "a").drives == 1
+
+    found = invoke("localize", logs["b"], "--map", tmp_path / "a", "--out", tmp_path / "loc")
+    assert found.exit_code == 0, found.output
+    run = json.loads((tmp_path / "loc" / "run.json").read_text())
+    assert run["localization"]["localised"] is True
+    assert {"trajectory.tum", "trajectory.json", "confidence.json", "localization.png"} <= set(run["products"])
+    trajectory = np.loadtxt(tmp_path / "loc" / "trajectory.tum")
+    assert len(trajectory) == run["localization"]["scans"]
+
+    refused = invoke("localize", logs["elsewhere"], "--map", tmp_path / "a", "--out", tmp_path / "refused")
+    assert refused.exit_code == 1 and refused.stderr.startswith("refused: ")
+    assert len(refused.stderr.strip().splitlines()) == 1
+    assert json.loads((tmp_path / "refused" / "run.json").read_text())["localization"]["localised"] is False
+
+    extended = invoke("run", logs["b"], "--map", tmp_path / "a", "--out", tmp_path / "ab", "--particles", "10")
+    assert extended.exit_code == 0, extended.output
+    both = read_bundle(tmp_path / "ab")
+    assert both.drives == 2 and (tmp_path / "ab" / "drives.png").stat().st_size > 1000
+    assert len(np.loadtxt(tmp_path / "ab" / "trajectory.tum")) == len(both.trajectory)
+
+    other = invoke("run", logs["elsewhere"], "--out", tmp_path / "c", "--particles", "10")
+    assert other.exit_code == 0, other.output
+    merged = invoke("merge", tmp_path / "a", tmp_path / "c", "--out", tmp_path / "merged")
+    assert merged.exit_code == 1 and "do not overlap" in merged.stderr
+
+    bad_start = invoke("localize", logs["b"], "--map", tmp_path / "a", "--out", tmp_path / "x", "--start", "1,2")
+    assert bad_start.exit_code == 2 and "--start" in bad_start.stderr
