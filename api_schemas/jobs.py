@@ -20,6 +20,7 @@ class JobStatus(StrEnum):
 class JobSource(StrEnum):
     LOG = "log"  # an uploaded log (the newest one unless log_id is given)
     STREAM = "stream"  # the streamed chunks 0..k received when the job starts (or, live, as they arrive)
+    MAP = "map"  # an uploaded map bundle (POST /v1/sessions/{id}/maps): a finished job whose product it is
 
 
 class JobMode(StrEnum):
@@ -73,6 +74,9 @@ class JobCreate(BaseModel):
 
     @model_validator(mode="after")
     def _live_follows_a_stream(self) -> JobCreate:
+        if self.source is JobSource.MAP:
+            raise ValueError("a job maps a 'log' or a 'stream'; an uploaded map is POSTed to "
+                             "/v1/sessions/{id}/maps and named as 'map_job_id'")
         if self.live and (self.source is JobSource.LOG or self.log_id is not None):
             raise ValueError("a live job follows the session's stream: leave 'source' out (or 'stream') "
                              "and give no 'log_id'")

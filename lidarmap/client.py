@@ -74,6 +74,17 @@ class LidarmapClient:
                                 files={"file": (filename, stream, "application/octet-stream")})
         return LogPublic.model_validate(answer)
 
+    def upload_map(self, session_id: str, path: Path) -> JobPublic:
+        """Upload a saved map (a run's ``map_bundle.npz``, or the run's folder holding one): a finished job
+        whose id a 'localize' or 'extend' job names as ``map_job_id``."""
+        path = Path(path)
+        if path.is_dir():
+            path = path / "map_bundle.npz"
+        with path.open("rb") as stream:
+            answer = self._json("POST", f"/v1/sessions/{session_id}/maps",
+                                files={"file": (path.name, stream, "application/octet-stream")})
+        return JobPublic.model_validate(answer)
+
     def start_job(self, session_id: str, settings: JobCreate | None = None) -> JobPublic:
         """Queue a mapping job on the session (defaults: the newest upload, default settings)."""
         body = (settings or JobCreate()).model_dump(mode="json", exclude_unset=True)

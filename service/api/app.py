@@ -12,7 +12,7 @@ from api_schemas.jobs import JobStatus
 from service.api.error_handlers import install_error_handlers
 from service.api.limits import BodyLimitMiddleware
 from service.api.openapi_errors import document_errors
-from service.api.routers import chunks, formats, health, jobs, logs, products, sessions
+from service.api.routers import chunks, formats, health, jobs, logs, maps, products, sessions
 from service.api.routers.tile_schemes import router as tile_schemes_router
 from service.api.routers.viewer import register_viewer
 from service.runners.factory import create_runner
@@ -78,7 +78,7 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
 
     app.add_middleware(BodyLimitMiddleware, limit_for=body_limit, stall_timeout_s=settings.body_stall_timeout_s)
     app.include_router(health.router)
-    for module in (sessions, logs, chunks, formats, products):
+    for module in (sessions, logs, maps, chunks, formats, products):
         app.include_router(module.router)
     app.include_router(jobs.session_jobs)
     app.include_router(jobs.router)

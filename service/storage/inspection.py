@@ -84,6 +84,23 @@ def inspect_log(path: str, format_name: str, max_decompressed_bytes: int, hidden
     return {"summary": summary}
 
 
+def inspect_bundle(path: str, max_decompressed_bytes: int, hidden_prefix: str = "") -> dict[str, Any]:
+    """Read the map bundle at ``path``; ``{"summary": {...}}`` or ``{"error": "map_bundle", "message", ...}``.
+    Its arrays' declared sizes are checked against ``max_decompressed_bytes`` before any is read."""
+    from slam_engine.errors import SlamEngineError
+    from slam_engine.products.map_bundle import check_bundle_size, read_bundle
+
+    try:
+        check_bundle_size(path, max_decompressed_bytes)
+        bundle = read_bundle(path)
+    except SlamEngineError as exc:
+        return _error("map_bundle", str(exc), None, hidden_prefix)
+    except MemoryError:
+        return _error("memory", "", None)
+    return {"summary": {"key_frames": len(bundle), "drives": bundle.drives, "resolution_m": bundle.resolution_m,
+                        "scans": int(len(bundle.trajectory)), "rays": int(len(bundle.ends_v))}}
+
+
 def _shown(text: str, hidden_prefix: str) -> str:
     """``text`` without the server's folders and with long tokens cut."""
     return shorten_tokens(text.replace(hidden_prefix, "") if hidden_prefix else text)
@@ -114,7 +131,8 @@ def is_log_file(path: str, format_name: str) -> dict[str, Any]:
     return {"is_log": format_name in ("auto", detected)}
 
 
-_CALLS: dict[str, Callable[..., Any]] = {"inspect_log": inspect_log, "is_log_file": is_log_file}
+_CALLS: dict[str, Callable[..., Any]] = {"inspect_log": inspect_log, "is_log_file": is_log_file,
+                                         "inspect_bundle": inspect_bundle}
 
 
 def _child_main(conn: Any, memory_limit_mb: int) -> None:
@@ -240,6 +258,14 @@ class LogInspector:
             return result["summary"]
         raise self._failure(result)
 
+    async def bundle_summary(self, path: Path, hidden_prefix: str = "") -> dict[str, Any]:
+        """An uploaded map bundle's summary (key frames, drives, cell size), or 422 with what is wrong (not a
+        bundle, another format version, damaged, arrays past the decompression limit)."""
+        result = await self._run("inspect_bundle", (str(path), self.limits.max_decompressed_bytes, hidden_prefix))
+        if "summary" in result:
+            return result["summary"]
+        raise self._failure(result)
+
     async def is_log_file(self, path: Path, format_name: str) -> bool:
         """Whether the uploaded file is itself a log (else a .zip is a zipped folder to extract)."""
         result = await self._run("is_log_file", (str(path), format_name))
@@ -265,6 +291,10 @@ class LogInspector:
             return err
         if kind == "crashed":
             return InvalidInput("the log crashed the loader process", detail)
+        if kind == "map_bundle":
+            err = InvalidInput(result["message"], detail)
+            err.code = "map_bundle"
+            return err
         err = InvalidInput(result["message"], detail)
         err.code = "log_format"
         return err

@@ -61,6 +61,37 @@ def read_bundle(path: str | Path) -> MapBundle:
     return bundle
 
 
+def check_bundle_size(path: str | Path, max_bytes: int, max_members: int = 64) -> None:
+    """Refuse (:class:`MapBundleError`) a bundle file whose arrays would take more than ``max_bytes``
+    once read, before any is read: the zip's member count, each member's declared size, and each array
+    header's shape against that size (a lying ``.npy`` header must not make the reader allocate more
+    than the file holds). For files from outside (uploads)."""
+    path = Path(path)
+    try:
+        with zipfile.ZipFile(path) as archive:
+            members = archive.infolist()
+            if len(members) > max_members:
+                raise MapBundleError(f"{path}: {len(members)} files in the archive; a map bundle has "
+                                     f"{len(ARRAYS) + 1}")
+            total = sum(m.file_size for m in members)
+            if total > max_bytes:
+                raise MapBundleError(f"{path}: the map bundle's arrays take {total} bytes; at most {max_bytes}")
+            for member in members:
+                with archive.open(member) as stream:
+                    version = np.lib.format.read_magic(stream)
+                    read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                                   else np.lib.format.read_array_header_2_0)
+                    shape, _, dtype = read_header(stream)
+                if dtype.hasobject:
+                    raise MapBundleError(f"{path}: {member.filename} holds Python objects; a map bundle "
+                                         "holds numbers only")
+                if int(np.prod(shape, dtype=np.int64)) * dtype.itemsize > member.file_size:
+                    raise MapBundleError(f"{path}: {member.filename} claims shape {shape}, more than its "
+                                         f"{member.file_size} bytes")
+    except (OSError, ValueError, zipfile.BadZipFile) as error:
+        raise MapBundleError(f"{path}: not a readable map bundle ({type(error).__name__}: {error})") from None
+
+
 def _check_header(path: Path, header: object) -> None:
     if not isinstance(header, dict) or header.get("format") != BUNDLE_FORMAT:
         raise MapBundleError(f"{path}: not a lidarmap map bundle")

@@ -84,3 +84,62 @@ def test_localize_and_extend_jobs_start_from_a_finished_job(tmp_path) -> None:
         assert run["input"]["drives"] == 2
         tile = client.get(f"/v1/jobs/{extended['id']}/tiles/occupancy/0/0/0.png")
         assert tile.status_code == 200
+
+
+def test_an_uploaded_map_is_checked_and_a_job_can_start_from_it(tmp_path) -> None:
+    """A map bundle made elsewhere (here: by the engine directly) uploaded to a session is listed as a
+    finished job of source 'map'; a localisation starts from it. Not a bundle, a bundle of a future
+    version and one whose array header claims more than the file holds are 422, never read whole."""
+    import zipfile
+
+    from slam_engine.config import SlamConfig
+    from slam_engine.pipeline import run_slam
+    from slam_engine.products.map_bundle import write_bundle
+
+    office = simulate("office", seed=0, cameras=False)
+    start, end = office.log.time_span_s()
+    middle = (start + end) / 2
+    first, second = office.log.between(start, middle), office.log.between(middle, end + 1.0)
+    bundle = write_bundle(run_slam(first, SlamConfig(particles=10)).bundle, tmp_path / "map_bundle.npz")
+    (tmp_path / "b").mkdir()
+    with service_client(tmp_path / "data") as client:
+        sid = new_session(client)
+        with bundle.open("rb") as f:
+            uploaded = client.post(f"/v1/sessions/{sid}/maps", files={"file": ("map_bundle.npz", f)})
+        assert uploaded.status_code == 201, uploaded.text
+        saved = uploaded.json()
+        assert saved["status"] == "succeeded" and saved["source"] == "map" and saved["products"] == ["map_bundle.npz"]
+        assert saved["input"]["summary"]["drives"] == 1 and saved["input"]["summary"]["key_frames"] > 50
+        assert client.get(f"/v1/jobs/{saved['id']}/map_bundle.npz").content == bundle.read_bytes()
+
+        log_b = _upload(client, sid, second, tmp_path / "b")
+        job = client.post(f"/v1/sessions/{sid}/jobs", json={"log_id": log_b, "mode": "localize",
+                                                           "map_job_id": saved["id"]}).json()
+        done = wait_for(client, job["id"], timeout_s=300)
+        assert done["status"] == "succeeded", done
+        assert_error(client.post(f"/v1/sessions/{sid}/jobs", json={"source": "map"}), 422)
+
+        (tmp_path / "junk.npz").write_bytes(b"PK\x03\x04 not really a zip")
+        future = tmp_path / "future.npz"
+        lying = tmp_path / "lying.npz"
+        with zipfile.ZipFile(bundle) as source, zipfile.ZipFile(future, "w") as target:
+            for item in source.namelist():
+                data = source.read(item)
+                if item == "header.npy":
+                    data = data.replace(b'"version": 1', b'"version": 7')
+                target.writestr(item, data)
+        with zipfile.ZipFile(bundle) as source, zipfile.ZipFile(lying, "w") as target:
+            for item in source.namelist():
+                data = source.read(item)
+                if item == "ends_v.npy":  # claims 10^12 rows: reading it would allocate terabytes
+                    data = data.replace(b"'shape': (", b"'shape': (1000000000000, ", 1).replace(b", 2)", b")", 0)
+                target.writestr(item, data)
+        for path, words in ((tmp_path / "junk.npz", "not a readable map bundle"),
+                            (future, "format version 7"), (lying, "claims shape")):
+            with path.open("rb") as f:
+                answer = client.post(f"/v1/sessions/{sid}/maps", files={"file": (path.name, f)})
+            body = assert_error(answer, 422, "map_bundle")
+            assert words in body["message"], body
+            assert str(tmp_path) not in body["message"]  # no server paths in messages
+        listed = client.get(f"/v1/jobs?session={sid}").json()
+        assert sum(j["source"] == "map" for j in listed["data"]) == 1  # nothing half-stored

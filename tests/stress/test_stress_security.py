@@ -39,6 +39,7 @@ def body_for(method: str, path: str) -> dict:
         ("POST", "/v1/sessions/{session_id}/chunks"): {"json": CHUNK},
         ("POST", "/v1/sessions/{session_id}/chunks/finish"): {"json": {"last_seq": 5}},
         ("POST", "/v1/sessions/{session_id}/jobs"): {"json": {"particles": 1, "seed": 1}},
+        ("POST", "/v1/sessions/{session_id}/maps"): {"files": {"file": ("map_bundle.npz", b"PK\x05\x06" + bytes(18))}},
     }
     if method in ("POST", "PUT", "PATCH"):
         assert (method, path) in bodies, f"new route {method} {path}: add a request body to this test"
