@@ -27,6 +27,7 @@ function progressBar(job) {
 
 /** What a job does: its particles for a mapping run, else its mode and the job whose map it starts from. */
 function jobKind(job) {
+  if (job.source === "map") return "uploaded map";
   const mode = job.config.mode || "map";
   if (mode === "map") return `${job.config.particles ?? "?"} particles`;
   return `${mode} in job ${shortId(job.config.map_job_id || "")}`;
