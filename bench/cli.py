@@ -69,14 +69,11 @@ def accuracy(
 ) -> None:
     """Accuracy and speed of SLAM on the benchmark logs (relation errors, ATE, time, memory) over
     several seeds, plus maps of logs without ground truth. Writes JSON and map PNGs."""
-    from rich.console import Console
 
     from bench.cases import cases_for_path, datasets_root, default_cases, simulated_cases
     from bench.harness import BenchOptions, default_out_dir, run_benchmark
     from bench.report import fmt, print_report
     from bench.worker import DEFAULT_LOADER, DEFAULT_RUNNER, resolve
-    from slam_engine.config import read_settings
-    from slam_engine.errors import ConfigError
 
     seed_list = parse_seeds(seeds)[:1] if quick else parse_seeds(seeds)
     cases = default_cases(map_only=not quick) if datasets else []
@@ -90,13 +87,8 @@ def accuracy(
         cases.extend(simulated_cases(out / "simulated"))
     if not cases:
         raise typer.BadParameter(f"nothing to run: no logs under {datasets_root()} and none given")
-    try:
-        overrides = read_settings(config) if config is not None else {}
-    except ConfigError as error:
-        raise typer.BadParameter(str(error)) from None
-    console = Console()
-    if not console.is_terminal:  # files and pipes get the whole table, not an 80-column squeeze
-        console = Console(width=200)
+    overrides = read_overrides(config)
+    console = report_console()
     for dotted in (runner, loader):
         try:
             resolve(dotted)
@@ -137,3 +129,22 @@ def run_sessions_table(seeds: list[int], out: Path, overrides: dict, particles: 
     results = run_sessions(drives, seeds, out, overrides, particles,
                            say=lambda line: console.print(line, highlight=False))
     print_sessions(results, console)
+
+
+def read_overrides(config: Path | None) -> dict:
+    """The SlamConfig overrides in ``config`` (YAML/JSON), none without one; a bad file is a usage error."""
+    from slam_engine.config import read_settings
+    from slam_engine.errors import ConfigError
+
+    try:
+        return read_settings(config) if config is not None else {}
+    except ConfigError as error:
+        raise typer.BadParameter(str(error)) from None
+
+
+def report_console():
+    """A rich console for the tables: files and pipes get the whole table, not an 80-column squeeze."""
+    from rich.console import Console
+
+    console = Console()
+    return console if console.is_terminal else Console(width=200)

@@ -37,7 +37,7 @@ from typing import Any
 
 import typer
 
-from bench.cli import SEEDS_HELP, parse_seeds
+from bench.cli import SEEDS_HELP, parse_seeds, read_overrides, report_console
 
 # The two-session drives, in the order of the tables.
 DRIVES = ("intel", "aces-rough")
@@ -412,22 +412,14 @@ def sessions(
 ) -> None:
     """Maps that outlive a drive: localise the second half of a drive in the first half's map, extend
     it, merge the two maps, refuse other buildings' drives; checks against the targets."""
-    from rich.console import Console
 
-    from slam_engine.config import read_settings
-    from slam_engine.errors import ConfigError
 
     drives = session_drives(folder)
     if not drives:
         raise typer.BadParameter(f"no two-session drives (NAME-a.clf, NAME-b.clf, NAME-all.relations, "
                                 f"NAME-ab.relations) under {folder or sessions_root()}")
-    try:
-        overrides = read_settings(config) if config is not None else {}
-    except ConfigError as error:
-        raise typer.BadParameter(str(error)) from None
-    console = Console()
-    if not console.is_terminal:  # files and pipes get the whole table, not an 80-column squeeze
-        console = Console(width=200)
+    overrides = read_overrides(config)
+    console = report_console()
     seed_list = parse_seeds(seeds)
     console.print(f"sessions: {', '.join(d.name for d in drives)} × seeds {seeds}, one after the other")
     results = run_sessions(drives, seed_list, out, overrides, particles,

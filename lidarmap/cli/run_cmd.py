@@ -87,22 +87,16 @@ def run_with_progress(drive_log, config):
 def extend(saved, result, config: SlamConfig, out: Path, relations) -> dict[str, Path]:
     """The drive of ``result`` (mapped on its own) joined with the ``saved`` map; its products into ``out``.
     A drive that cannot be placed is kept in the new bundle as a disconnected part (said on stderr)."""
-    from slam_engine.model.poses import compose
-    from slam_engine.model.result import Trajectory
     from slam_engine.multisession.joining import join
     from slam_engine.products.multisession import write_joined_products
 
     assert result.bundle is not None  # a mapping run always makes one
     joined = join(saved, result.bundle, config)
-    placed = joined.placement.T_map_from_drive
-    dead_reckoning = None if placed is None else Trajectory(result.dead_reckoning.t_s,
-                                                            compose(placed, result.dead_reckoning.poses))
     if not joined.connected:
         typer.echo(f"warning: the drive could not be placed in the saved map (best score "
                    f"{joined.placement.best_score:.3f}): it is kept in the new map bundle as a disconnected part, "
                    "joined when a later drive links it; the map products show the saved map", err=True)
-    return write_joined_products(joined, config, out, relations=relations, base_result=result,
-                                 dead_reckoning=dead_reckoning)
+    return write_joined_products(joined, config, out, relations=relations, base_result=result)
 
 
 def texture_figures(result, truth, floor) -> dict | None:

@@ -74,8 +74,6 @@ def _localize(ctx: JobContext, bundle: Any, log: DriveLog, config: Any) -> None:
 
 
 def _extend(ctx: JobContext, bundle: Any, log: DriveLog, config: Any, progress: Any) -> None:
-    from slam_engine.model.poses import compose
-    from slam_engine.model.result import Trajectory
     from slam_engine.multisession.joining import join
     from slam_engine.pipeline import run_slam
     from slam_engine.products.multisession import drives_image, joined_result, save_png
@@ -89,10 +87,7 @@ def _extend(ctx: JobContext, bundle: Any, log: DriveLog, config: Any, progress: 
         raise MapBundleError(f"refused: the drive could not be placed in the saved map (best score "
                              f"{joined.placement.best_score:.3f}); map it on its own, or extend with a drive that "
                              "overlaps the map")
-    placed = joined.placement.T_map_from_drive
-    assert placed is not None  # connected: placed
-    dead_reckoning = Trajectory(own.dead_reckoning.t_s, compose(placed, own.dead_reckoning.poses))
     drawn = save_png(drives_image(joined.grid, joined.trajectory, joined.trajectory_drive),
                      ctx.out_dir / "products" / "drives.png")
-    write_job_products(ctx, joined_result(joined, config, own, dead_reckoning), log,
+    write_job_products(ctx, joined_result(joined, config, own), log,
                        extra={"drives.png": drawn})

@@ -154,7 +154,8 @@ class _Candidate:
     window_rad: float
 
 
-def _thin(points: np.ndarray, budget: int) -> np.ndarray:
+def thin(points: np.ndarray, budget: int) -> np.ndarray:
+    """Every n-th point (row) so that at most ``budget`` remain."""
     if len(points) > budget:
         return points[:: int(math.ceil(len(points) / budget))]
     return points
@@ -251,7 +252,7 @@ class LoopCloser:
         self.unverified[:1] = False
         c = config
         in_reach = [p[np.hypot(p[:, 0], p[:, 1]) <= c.match_range_m] for p in points_v]
-        self.points_v = [_thin(p, c.max_points) for p in in_reach]
+        self.points_v = [thin(p, c.max_points) for p in in_reach]
         self.counts = np.array([len(p) for p in self.points_v], np.int64)
         # unverified with a scan to match: the match was rejected, so the motion may be off by more than
         # its model allows and the windows across it widen (a scan without returns says nothing of the
@@ -482,8 +483,8 @@ class LoopCloser:
             return self.points_v[k], np.zeros_like(self.points_v[k])
         frames = np.arange(k, first - 1, -1)  # k first, then back along the drive
         counts = self.counts[frames]
-        owner = _thin(np.repeat(np.arange(len(frames)), counts), c.max_points)
-        rows = _thin(np.arange(int(counts.sum())), c.max_points)
+        owner = thin(np.repeat(np.arange(len(frames)), counts), c.max_points)
+        rows = thin(np.arange(int(counts.sum())), c.max_points)
         T = relative(self.path[k], self.path[frames])  # each key frame in k's frame
         points = np.concatenate([self.points_v[j] for j in frames.tolist()])[rows]
         return place_each(T, points, owner), np.ascontiguousarray(T[owner, :2])

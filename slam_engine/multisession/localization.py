@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slam_engine.backend.correlative import MatchGrid, refine_pose, search
+from slam_engine.backend.loop_closer import thin
 from slam_engine.backend.submaps import match_grid_from_points
 from slam_engine.config import LocalizationConfig, SlamConfig
 from slam_engine.errors import ConfigError
@@ -62,13 +63,6 @@ MAP_SD_M, MAP_SD_RAD = 0.05, 0.02  # the tracking grid's: windows up to 31 cells
 # a global search prunes below this share of min_score: a weaker placement is still reported as the best
 # score of a refused drive, and pruning at min_score itself would leave it unknown
 REPORT_SHARE = 0.9
-
-
-def thin(points: np.ndarray, budget: int) -> np.ndarray:
-    """Every n-th point so that at most ``budget`` remain."""
-    if len(points) > budget:
-        return points[:: int(math.ceil(len(points) / budget))]
-    return points
 
 
 @dataclass

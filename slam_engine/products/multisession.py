@@ -16,7 +16,7 @@ from PIL import Image, ImageDraw
 from slam_engine.backend.map_builder import render_occupancy
 from slam_engine.config import SlamConfig
 from slam_engine.model.map_bundle import MapBundle
-from slam_engine.model.poses import place_points
+from slam_engine.model.poses import compose, place_points
 from slam_engine.model.result import OccupancyGrid, ScanStats, SlamResult, Trajectory
 from slam_engine.products.export import accuracy_figures, write_products
 from slam_engine.products.files import atomic_path, write_text_atomic
@@ -97,12 +97,11 @@ def write_localization(out_dir: str | Path, summary: dict, trajectory: Trajector
     return written
 
 
-def joined_result(joined: JoinedMap, config: SlamConfig, base_result: SlamResult | None = None,
-                  dead_reckoning: Trajectory | None = None) -> SlamResult:
+def joined_result(joined: JoinedMap, config: SlamConfig, base_result: SlamResult | None = None) -> SlamResult:
     """A joint map (an extended or a merged one) as a run's result, for :func:`write_products`: its
     trajectory over every connected drive (in time order), grid and bundle; ``base_result``: the new
-    drive's own run, whose statistics and warnings it keeps; ``dead_reckoning``: that drive's odometry
-    in the joint map's frame."""
+    drive's own run, whose statistics and warnings it keeps, and whose dead reckoning is moved to where
+    the drive was placed (kept as the trajectory when it was not)."""
     order = np.argsort(joined.trajectory.t_s, kind="stable")
     trajectory = Trajectory(joined.trajectory.t_s[order], joined.trajectory.poses[order])
     summary = {"multisession": joined.summary, "key_frames": len(joined.bundle), "drives": joined.bundle.drives}
@@ -111,20 +110,21 @@ def joined_result(joined: JoinedMap, config: SlamConfig, base_result: SlamResult
         stats = ScanStats(empty, empty, np.zeros(0, bool), empty, np.zeros(0, bool), empty)
         return SlamResult(trajectory=trajectory, dead_reckoning=trajectory, grid=joined.grid, scan_stats=stats,
                           config=config, wall_time_s=joined.wall_time_s, input_summary=summary, bundle=joined.bundle)
+    placed = joined.placement.T_map_from_drive
+    odometry = base_result.dead_reckoning
+    dead_reckoning = trajectory if placed is None else Trajectory(odometry.t_s, compose(placed, odometry.poses))
     return dataclasses.replace(base_result, trajectory=trajectory, grid=joined.grid, bundle=joined.bundle,
-                               texture=None, snapshots=[],
-                               dead_reckoning=trajectory if dead_reckoning is None else dead_reckoning,
+                               texture=None, snapshots=[], dead_reckoning=dead_reckoning,
                                input_summary={**base_result.input_summary, **summary})
 
 
 def write_joined_products(joined: JoinedMap, config: SlamConfig, out_dir: str | Path, relations=None,
-                          base_result: SlamResult | None = None, dead_reckoning: Trajectory | None = None
-                          ) -> dict[str, Path]:
+                          base_result: SlamResult | None = None) -> dict[str, Path]:
     """The products of a joint map in ``out_dir``: every product of a mapping run over all its connected
     drives (:func:`joined_result`), the new ``map_bundle.npz``, and ``drives.png``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     drawn = {"drives.png": save_png(drives_image(joined.grid, joined.trajectory, joined.trajectory_drive),
                                     out / "drives.png")}
-    result = joined_result(joined, config, base_result, dead_reckoning)
+    result = joined_result(joined, config, base_result)
     return {**drawn, **write_products(result, out, relations=relations, extra_products=sorted(drawn))}
