@@ -442,6 +442,16 @@ REFINE_MAX_SHIFT_CELLS = 1.5
 REFINE_MAX_TURN_RAD = 0.02
 
 
+def fit_pose(grid: MatchGrid, points_v: np.ndarray, pose: np.ndarray, iterations: int = 30) -> np.ndarray:
+    """The local optimum of ``points_v`` (N, 2) [m, vehicle frame] on ``grid`` from ``pose`` (Levenberg-
+    Marquardt on the bilinear grid values, as :func:`refine_pose`, but unbounded): a tracker's step
+    when its prediction is within the grid's blur of the truth. The caller checks how far it moved."""
+    fitted = np.asarray(pose, np.float64).copy()
+    _refine(grid.values, float(grid.origin_m[0]), float(grid.origin_m[1]), 1.0 / grid.resolution_m,
+            np.ascontiguousarray(points_v, np.float64), fitted, iterations)
+    return fitted
+
+
 def refine_pose(grid: MatchGrid, points_v: np.ndarray, pose: np.ndarray, iterations: int = 20) -> np.ndarray:
     """Sub-cell fit of ``pose`` (Levenberg-Marquardt on the bilinear grid values), kept within one
     cell and one angular step of the start (a lattice match is already that close)."""

@@ -8,9 +8,12 @@ key frames) is searched for over the whole map and every heading by branch and b
 2016, Cartographer's global localisation), then refined. The placement counts only when it scores at
 least ``min_score``, no pose elsewhere scores nearly as well, and the next, disjoint stretch, searched
 for on its own, lands where the scans tracked from the first placement put it. From there each scan is
-searched for in a small window around where the odometry puts it; ``lost_after_scans`` poor matches in
-a row and the drive is lost, and searched for over the whole map again. A drive that is never placed
-is refused (``localised`` False, with the best score found), not forced in.
+fitted locally from where the drive's own motion puts it, or searched for in a small window around
+there, and scored only by its end points that fall where the saved map observed anything (a drive that
+leaves the map is carried by its own motion, not judged against cells the map never saw); with no scan
+matched over ``lost_after_m`` of travel the drive is lost, searched for near where its motion carried
+it and then over the whole map, and a match in the widened window must score as a placement does. A
+drive that is never placed is refused (``localised`` False, with the best score found), not forced in.
 
 Frames: ``map``: the bundle's; the drive's own frame: its odometry (or its map's) frame. Poses
 ``[x_m, y_m, theta_rad]``; points (N, 2) [m] in the vehicle frame.
@@ -24,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam_engine.backend.correlative import MatchGrid, refine_pose, search
+from slam_engine.backend.correlative import MatchGrid, angular_step_rad, fit_pose, refine_pose, search
 from slam_engine.backend.loop_closer import thin
 from slam_engine.backend.submaps import match_grid_from_points
 from slam_engine.config import LocalizationConfig, SlamConfig
@@ -49,6 +52,11 @@ JOIN_LEVELS = 4  # its pyramid: windows up to 15 cells a side
 MAX_TRACK_WINDOW_M = 1.5  # the widest window a scan is tracked in, however long untracked [m]
 MAX_TRACK_WINDOW_RAD = 0.6  # ... [rad]
 FINE_LEVELS = 6
+# a scan whose last one matched is first fitted locally (Levenberg-Marquardt from the prediction); the fit
+# counts when it moved at most this far [m], [rad] and scores track_min_score, else the window is searched
+FIT_TRUST_M, FIT_TRUST_RAD = 0.15, 0.05
+COVERAGE_CELL_M = 0.2  # the map's observed area is kept on cells this large [m]
+MIN_COVERED_SHARE = 0.5  # a scan with fewer of its end points on observed cells is not judged by the map
 STRETCH_GROWTH = (1, 2, 4)  # an ambiguous stretch is searched for again this many times longer
 HINT_WINDOW_M, HINT_WINDOW_RAD = 2.0, 0.5  # a start pose given as a hint is searched within [m], [rad]
 # a lost drive is searched for near where its own motion carried it, in a window that grows REFIND_GROWTH
@@ -66,12 +74,44 @@ REPORT_SHARE = 0.9
 
 
 @dataclass
+class Coverage:
+    """Where the saved map has observed anything, free or occupied: ``observed`` (H, W) bool on cells of
+    ``resolution_m`` from ``origin_m`` (map frame). A drive's end points outside it fall where the map
+    cannot say whether they fit: a low match score there is no evidence against the pose."""
+
+    observed: np.ndarray
+    origin_m: np.ndarray
+    resolution_m: float
+
+    @classmethod
+    def of_bundle(cls, bundle: MapBundle) -> Coverage:
+        from slam_engine.backend.map_builder import render_occupancy
+        from slam_engine.config import GridConfig
+
+        grid = render_occupancy(bundle.scans(), bundle.poses, bundle.origin_v,
+                                GridConfig(resolution_m=bundle.resolution_m))
+        factor = max(1, int(round(COVERAGE_CELL_M / bundle.resolution_m)))
+        pooled = grid.pooled(factor)
+        return cls(pooled.known(), np.array([pooled.origin_x_m, pooled.origin_y_m]), pooled.resolution_m)
+
+    def covers(self, points_m: np.ndarray) -> np.ndarray:
+        """(N,) bool: which map-frame points (N, 2) [m] fall on observed cells."""
+        cells = np.floor((points_m - self.origin_m) / self.resolution_m).astype(np.int64)
+        rows, cols = self.observed.shape
+        inside = (cells[:, 0] >= 0) & (cells[:, 0] < cols) & (cells[:, 1] >= 0) & (cells[:, 1] < rows)
+        out = np.zeros(len(points_m), bool)
+        out[inside] = self.observed[cells[inside, 1], cells[inside, 0]]
+        return out
+
+
+@dataclass
 class MapIndex:
     """A saved map as matching takes it: ``coarse`` for global searches, ``fine`` (the map's cells) for
-    tracking and refinement, both in the map frame."""
+    tracking and refinement, both in the map frame; ``coverage``: where the map observed anything."""
 
     coarse: MatchGrid
     fine: MatchGrid
+    coverage: Coverage
 
     @classmethod
     def of_bundle(cls, bundle: MapBundle, config: LocalizationConfig) -> MapIndex:
@@ -84,7 +124,7 @@ class MapIndex:
         coarse = match_grid_from_points(points_m, max(config.search_resolution_m, bundle.resolution_m), 1.0,
                                         n_levels=COARSE_LEVELS)
         fine = match_grid_from_points(points_m, bundle.resolution_m, 1.0, n_levels=FINE_LEVELS)
-        return cls(coarse, fine)
+        return cls(coarse, fine, Coverage.of_bundle(bundle))
 
     def centre_and_reach(self) -> tuple[np.ndarray, float]:
         """The map's centre pose (heading 0) and the half width that covers the whole map [m]."""
@@ -197,7 +237,8 @@ class LocalizationResult:
     when refused) with each pose's ``confidence`` (its match score, 0-1) and whether it was ``tracked``
     (matched) or carried by the odometry; ``events``: when it was found and lost; ``best_score``: the
     best global placement score seen (also when refused); ``T_map_from_drive``: the drive's own frame in
-    the map at its first placement."""
+    the map at its first placement; ``outside_map``: the scans too far out of the saved map's observed
+    area to be judged by it (carried by the drive's own motion)."""
 
     localised: bool
     best_score: float
@@ -206,6 +247,7 @@ class LocalizationResult:
     tracked: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     events: list[dict] = field(default_factory=list)
     T_map_from_drive: np.ndarray | None = None
+    outside_map: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     global_searches: int = 0
     wall_time_s: float = 0.0
 
@@ -214,6 +256,7 @@ class LocalizationResult:
         return {
             "localised": self.localised, "best_score": round(self.best_score, 4),
             "scans": int(len(self.confidence)), "scans_tracked": int(tracked.sum()),
+            "scans_outside_map": int(self.outside_map.sum()),
             "mean_confidence": round(float(self.confidence.mean()), 4) if len(self.confidence) else None,
             "events": self.events, "global_searches": self.global_searches,
             "T_map_from_drive": None if self.T_map_from_drive is None else [round(float(v), 5)
@@ -232,6 +275,7 @@ class Localizer:
         self.threads = max(1, int(threads))
         self.best_score = 0.0
         self.global_searches = 0
+        self.uncovered = np.zeros(len(drive), bool)  # scans too far out of the map to be judged by it
 
     # --- global placement -------------------------------------------------------------------
     def place_stretch(self, first: int, last: int, near: Near | None = None) -> tuple[np.ndarray | None, bool]:
@@ -263,12 +307,25 @@ class Localizer:
 
     # --- tracking -----------------------------------------------------------------------------
     def track(self, k: int, predicted: np.ndarray, untracked_m: float = 0.0) -> tuple[np.ndarray, float]:
-        """Scan k's pose near ``predicted`` (map frame) and its match score; the window widens with the
-        travel since a scan last matched (``untracked_m``)."""
+        """Scan k's pose near ``predicted`` (map frame) and its match score over its end points that fall
+        on the map's observed cells; the window widens with the travel since a scan last matched
+        (``untracked_m``). The score is NaN when too few of them do (nothing to judge the pose by)."""
         points = np.ascontiguousarray(thin(self.drive.hits[k], TRACK_POINTS), np.float64)
         if len(points) < 5:
             return predicted, 0.0
+        covered = self.index.coverage.covers(place_points(predicted, points))
+        if covered.mean() < MIN_COVERED_SHARE:
+            return predicted, math.nan
+        points = np.ascontiguousarray(points[covered])
         c = self.config
+        if untracked_m == 0.0:  # the last scan matched: the prediction is close, a local fit finds it
+            fitted = fit_pose(self.index.fine, points, predicted)
+            moved = fitted - predicted
+            if math.hypot(moved[0], moved[1]) <= FIT_TRUST_M and abs(float(wrap_angle(moved[2]))) <= FIT_TRUST_RAD:
+                check = search(self.index.fine, points, fitted, self.index.fine.resolution_m,
+                               angular_step_rad(points, self.index.fine.resolution_m), 0.0)
+                if check is not None and check.score >= c.track_min_score:
+                    return fitted, check.score
         window_m = min(c.track_window_m + c.window_per_m * untracked_m, MAX_TRACK_WINDOW_M)
         window_rad = min(c.track_window_rad + c.window_rad_per_m * untracked_m, MAX_TRACK_WINDOW_RAD)
         match = search(self.index.fine, points, predicted, window_m, window_rad, 0.0)
@@ -283,10 +340,14 @@ class Localizer:
         pose, score = self.track(k, predicted, untracked_m)
         c = self.config
         moved = pose - predicted
-        ok = score >= c.track_min_score or (score >= c.nudge_min_score and math.hypot(moved[0], moved[1]) <= c.nudge_m
-                                             and abs(float(wrap_angle(moved[2]))) <= c.nudge_rad)
+        if untracked_m > c.lost_after_m:  # lost, in a wide window: a match there is a placement
+            ok = score >= c.min_score
+        else:
+            nudged = math.hypot(moved[0], moved[1]) <= c.nudge_m and abs(float(wrap_angle(moved[2]))) <= c.nudge_rad
+            ok = score >= c.track_min_score or (score >= c.nudge_min_score and nudged)
         poses[k] = pose if ok else predicted
-        confidence[k], tracked[k] = score, ok
+        self.uncovered[k] = math.isnan(score)
+        confidence[k], tracked[k] = (0.0 if self.uncovered[k] else score), ok
 
     def placed_stretch(self, first: int, near: Near | None = None) -> tuple[int, np.ndarray] | None:
         """(last, map pose of scan ``last``) of the shortest stretch from ``first`` that places
@@ -373,7 +434,8 @@ class Localizer:
         poses = self.smoothed(poses, tracked, jumps)
         T_map_from_drive = _rigid_placement(poses[tracked], drive.poses[tracked])
         return LocalizationResult(True, self.best_score, Trajectory(drive.t_s.copy(), poses), confidence, tracked,
-                                  events, T_map_from_drive, self.global_searches, time.perf_counter() - started)
+                                  events, T_map_from_drive, self.uncovered.copy(), self.global_searches,
+                                  time.perf_counter() - started)
 
     def _track_forward(self, poses: np.ndarray, confidence: np.ndarray, tracked: np.ndarray, start: int,
                        events: list[dict]) -> list[int]:

@@ -10,6 +10,7 @@ from slam_engine.backend import map_alignment
 from slam_engine.backend.correlative import (
     MatchGrid,
     branch_and_bound,
+    fit_pose,
     max_pyramid,
     refine_pose,
     refine_poses,
@@ -129,6 +130,18 @@ def test_search_recovers_a_pose_metres_and_degrees_away() -> None:
     refined = refine_pose(grid, scan, match.pose)
     assert np.hypot(*(refined[:2] - truth[:2])) < 0.02
     assert abs(refined[2] - truth[2]) < 0.004
+
+
+def test_a_local_fit_reaches_the_pose_from_a_close_prediction_and_refine_does_not() -> None:
+    rng = np.random.default_rng(0)
+    room = _room_points(rng)
+    grid = match_grid_from_points(room, 0.05, margin_m=1.0)
+    truth = np.array([2.0, 1.5, 0.3])
+    scan = relative(truth, np.column_stack([room[::4], np.zeros(len(room[::4]))]))[:, :2]
+    guess = truth + np.array([0.09, -0.07, 0.03])  # two cells and 1.7 degrees off
+    fitted = fit_pose(grid, scan, guess)
+    assert np.hypot(*(fitted[:2] - truth[:2])) < 0.02 and abs(fitted[2] - truth[2]) < 0.004
+    np.testing.assert_array_equal(refine_pose(grid, scan, guess), guess)  # bounded to a cell: it keeps the start
 
 
 def test_unobserved_cells_are_neutral() -> None:
