@@ -167,7 +167,7 @@ class LocalizationConfig(_Section):
     local_map_m: float = Field(8.0, gt=0.0, le=100.0, description="Each scan of the drive is first matched "
                                "against its own scans of this much travel before it, which corrects the odometry "
                                "between scans [m].")
-    search_resolution_m: float = Field(0.1, ge=0.02, le=1.0, description="Cell size of the global search's "
+    search_resolution_m: float = Field(0.2, ge=0.02, le=1.0, description="Cell size of the global search's "
                                        "grid [m] (the pose is then refined on the map's own cells).")
     min_score: float = Field(0.65, ge=0.0, le=1.0, description="Lowest mean blurred hit value under a "
                              "stretch's end points for a global placement (0-1).")

@@ -303,7 +303,18 @@ class Localizer:
             return None, False
         if match.runner_up_score >= c.runner_up_ratio * match.score:
             return None, True
-        return refine_pose(self.index.fine, cloud, match.pose), False
+        return self.refined_placement(cloud, match.pose), False
+
+    def refined_placement(self, cloud: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """A global match on the coarse grid's lattice (``pose``) fitted on the map's own cells: kept
+        where the fit stays within a coarse cell and an angular step of it."""
+        fitted = fit_pose(self.index.fine, cloud, pose)
+        moved = fitted - pose
+        coarse_m = self.index.coarse.resolution_m
+        if (math.hypot(moved[0], moved[1]) > 1.5 * coarse_m
+                or abs(float(wrap_angle(moved[2]))) > 1.5 * angular_step_rad(cloud, coarse_m)):
+            return pose
+        return fitted
 
     # --- tracking -----------------------------------------------------------------------------
     def track(self, k: int, predicted: np.ndarray, untracked_m: float = 0.0) -> tuple[np.ndarray, float]:
