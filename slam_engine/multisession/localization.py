@@ -55,7 +55,7 @@ FINE_LEVELS = 6
 # a scan whose last one matched is first fitted locally (Levenberg-Marquardt from the prediction); the fit
 # counts when it moved at most this far [m], [rad] and scores track_min_score, else the window is searched
 FIT_TRUST_M, FIT_TRUST_RAD = 0.15, 0.05
-COVERAGE_CELL_M = 0.2  # the map's observed area is kept on cells this large [m]
+COVERAGE_CELL_M = 0.1  # the map's observed area is kept on cells this large [m]
 MIN_COVERED_SHARE = 0.5  # a scan with fewer of its end points on observed cells is not judged by the map
 STRETCH_GROWTH = (1, 2, 4)  # an ambiguous stretch is searched for again this many times longer
 HINT_WINDOW_M, HINT_WINDOW_RAD = 2.0, 0.5  # a start pose given as a hint is searched within [m], [rad]
