@@ -5,7 +5,7 @@ Files (each written under a temporary name, then renamed):
 | file | what |
 |---|---|
 | trajectory.json, trajectory.tum | SLAM trajectory, lidarmap JSON and TUM |
-| dead_reckoning.json | odometry-only trajectory, lidarmap JSON |
+| dead_reckoning.json, dead_reckoning.tum | odometry-only trajectory, lidarmap JSON and TUM |
 | occupancy.png | grid, north up: free white, occupied black, unknown grey |
 | occupancy_trajectory.png | the same with dead reckoning (blue) and the SLAM trajectory (red) |
 | occupancy.tif | GeoTIFF, float32 probability, -1 = unknown (nodata); local frame or UTM |
@@ -97,6 +97,7 @@ def write_products(result: SlamResult, out_dir: str | Path, geo: GeoOrigin | Non
     written["trajectory.tum"] = write_trajectory_tum(result.trajectory, out / "trajectory.tum")
     written["dead_reckoning.json"] = write_trajectory_json(result.dead_reckoning, out / "dead_reckoning.json",
                                                            frame=MAP_FRAME, config=config)
+    written["dead_reckoning.tum"] = write_trajectory_tum(result.dead_reckoning, out / "dead_reckoning.tum")
     rasters = occupancy_rasters(result.grid)  # rendered once for the PNGs, the GeoTIFF and the ROS map
     save_image(Image.fromarray(rasters.gray), "occupancy.png", "PNG")
     with atomic_path(out / "occupancy_trajectory.png") as tmp:  # streamed: no RGB image of the whole map
