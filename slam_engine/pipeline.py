@@ -201,10 +201,19 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
                        "odometry_calibration": slam.heading_calibration.summary(),
                        "odometry_precision": slam.odometry_precision.summary(),
                        "time_offset": _time_offset_summary(slam, log, config),
-                       "loop_closing": backend.summary(), "map_alignment": alignment,
+                       "loop_closing": _with_places(backend.summary(), key_frames), "map_alignment": alignment,
                        "odometry_smoothing": smoothing},
         bundle=bundle,
     )
+
+
+def _with_places(loop_summary: dict, key_frames: np.ndarray) -> dict:
+    """The loop-closing summary with each closure's two key frames placed on the final map:
+    ``node_xy_m`` and ``anchor_xy_m`` [m, map frame] (what a viewer draws a closure between)."""
+    for closure in loop_summary["closures"]:
+        for end in ("node", "anchor"):
+            closure[f"{end}_xy_m"] = [round(float(v), 4) for v in key_frames[closure[end], :2]]
+    return loop_summary
 
 
 def _key_frames_in_snapshots(snapshots: Sequence[MapSnapshot], key_frame_t_s: np.ndarray) -> list[int]:

@@ -162,3 +162,17 @@ def test_snapshots_are_the_final_map_being_built() -> None:
         s_left, s_bottom, s_right, s_top = map_extent(snapshot.grid)
         assert (s_left >= left - pad and s_bottom >= bottom - pad and s_right <= right + pad
                 and s_top <= top + pad), (map_extent(snapshot.grid), (left, bottom, right, top))
+
+
+def test_loop_closures_are_placed_on_the_final_map() -> None:
+    """run.json's closures carry their two key frames' places on the final map (for the viewer)."""
+    from slam_engine.simulation import simulate
+
+    office = simulate("office", seed=0, cameras=False)
+    result = run_slam(office.log, SlamConfig(particles=10))
+    closures = result.input_summary["loop_closing"]["closures"]
+    accepted = [c for c in closures if c["accepted"]]
+    assert len(accepted) >= 5
+    for closure in closures:
+        for end in ("node", "anchor"):
+            np.testing.assert_allclose(closure[f"{end}_xy_m"], result.bundle.poses[closure[end], :2], atol=1e-4)
