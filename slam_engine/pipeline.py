@@ -169,9 +169,19 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
             or alignment.get("applied") or config.matcher.local_map_m > 0):
         slam.grids.keep_only(None)  # the product map is re-rendered: no particle's map is read any more
         _return_freed_memory()
-        grid = render_occupancy(slam.product_scans(), key_frames, slam.projector.origin_v, config.grid)
-    else:  # the poses are the best particle's: its own map is the same grid
+        key_frames_in = _key_frames_in_snapshots(slam.snapshots, slam.key_frame_times())
+        frames: dict[int, MapSnapshot] = {}
+
+        def keep_frame(n: int, partial: OccupancyGrid) -> None:
+            frames[n] = MapSnapshot(-1, 0.0, partial, trajectory).reduced()
+
+        grid = render_occupancy(slam.product_scans(), key_frames, slam.projector.origin_v, config.grid,
+                                frames_after=set(key_frames_in), on_frame=keep_frame)
+        snapshots = [MapSnapshot(s.scan_index, s.t_s, frames[n].grid, trajectory.until(s.t_s))
+                     for s, n in zip(slam.snapshots, key_frames_in, strict=True) if n in frames]
+    else:  # the poses are the best particle's: its own map is the same grid, its snapshots the map being built
         grid = slam.best_grid()
+        snapshots = [s.reduced() for s in slam.snapshots]
     texture, texture_status = _ground_texture(log, trajectory, grid, config, warnings)
     bundle = map_bundle(key_frames, slam.key_frame_times(), ~slam.key_frame_matched(), slam.product_scans(),
                         slam.projector.origin_v, backend.edges, trajectory, config, log)
@@ -182,7 +192,7 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
         texture=texture,
         scan_stats=slam.scan_stats(),
         config=config,
-        snapshots=[s.reduced() for s in slam.snapshots],
+        snapshots=snapshots,
         wall_time_s=time.perf_counter() - started_s,
         peak_memory_bytes=_peak_rss_bytes(),
         warnings=warnings,
@@ -191,10 +201,24 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
                        "odometry_calibration": slam.heading_calibration.summary(),
                        "odometry_precision": slam.odometry_precision.summary(),
                        "time_offset": _time_offset_summary(slam, log, config),
-                       "loop_closing": backend.summary(), "map_alignment": alignment,
+                       "loop_closing": _with_places(backend.summary(), key_frames), "map_alignment": alignment,
                        "odometry_smoothing": smoothing},
         bundle=bundle,
     )
+
+
+def _with_places(loop_summary: dict, key_frames: np.ndarray) -> dict:
+    """The loop-closing summary with each closure's two key frames placed on the final map:
+    ``node_xy_m`` and ``anchor_xy_m`` [m, map frame] (what a viewer draws a closure between)."""
+    for closure in loop_summary["closures"]:
+        for end in ("node", "anchor"):
+            closure[f"{end}_xy_m"] = [round(float(v), 4) for v in key_frames[closure[end], :2]]
+    return loop_summary
+
+
+def _key_frames_in_snapshots(snapshots: Sequence[MapSnapshot], key_frame_t_s: np.ndarray) -> list[int]:
+    """For each snapshot, how many key frames its map had taken: those at or before its time."""
+    return [int(np.searchsorted(key_frame_t_s, s.t_s, side="right")) for s in snapshots]
 
 
 def map_bundle(poses: np.ndarray, t_s: np.ndarray, unverified: np.ndarray, scans: Sequence[ProjectedScan],

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 from ci_skips import skip_or_fail_on_ci
+from postgres_server import running_postgres
 
 from bench.cases import datasets_root
 
@@ -30,3 +31,11 @@ def require_dataset(relative: str) -> Path:
 def dataset():
     """``dataset("benchmark/intel.clf")`` -> Path, skipping (or failing on CI) when absent."""
     return require_dataset
+
+
+@pytest.fixture(scope="module")
+def postgres():
+    """A throw-away PostgreSQL server (``postgres_server.running_postgres``): loopback only, stopped
+    and deleted after the module's tests; skipped (failed on CI) where the binaries are missing."""
+    with running_postgres() as server:
+        yield server

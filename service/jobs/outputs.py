@@ -47,7 +47,7 @@ def write_job_products(ctx: JobContext, result: SlamResult, log: DriveLog, extra
                        ) -> None:
     """Write a finished run's products into the job's folder, list them in the store (with ``extra``:
     products the caller wrote there itself), drop the live snapshot."""
-    from slam_engine.products import GeoOrigin, write_products, write_trajectory_tum
+    from slam_engine.products import GeoOrigin, write_products
 
     peak = ctx.peak_memory_bytes()
     if peak:  # this job's own peak (the engine's getrusage figure spans the worker's whole life)
@@ -59,8 +59,6 @@ def write_job_products(ctx: JobContext, result: SlamResult, log: DriveLog, extra
                                                      heading_deg=session.geo["heading_deg"])
     files = {**(extra or {}), **write_products(result, out_dir / "products", geo=geo, log=log,
                                                extra_products=sorted(extra or {}))}
-    files["dead_reckoning.tum"] = write_trajectory_tum(result.dead_reckoning,
-                                                       out_dir / "products" / "dead_reckoning.tum")
     save_grid(result.grid, out_dir / GRID_FILE)
     if result.texture is not None:
         save_texture(result.texture, out_dir / TEXTURE_FILE)

@@ -25,6 +25,7 @@ MEDIA_TYPES = {  # every file product a job can list; each is served at GET /v1/
     "map.yaml": "application/yaml",
     "map.pgm": "image/x-portable-graymap", "texture.png": "image/png", "texture.tif": "image/tiff",
     "animation.gif": "image/gif", "run.json": "application/json",
+    "map_points.ply": "application/octet-stream",  # the map as a point cloud (binary PLY)
     "map_bundle.npz": "application/zip",  # the map for later drives: localise, extend, merge (docs/map-bundle.md)
     "drives.png": "image/png", "localization.png": "image/png", "confidence.json": "application/json",
 }

@@ -5,10 +5,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
-from service.storage.database import StoreBase, _Transaction
+from sqlalchemy import Connection, case, delete, exists, func, insert, literal, select
+from sqlalchemy.exc import IntegrityError
+
+from service.storage.database import StoreBase
 from service.storage.rows import ChunkRow, StreamFigures
 from service.storage.session_records import _lock_session
+from service.storage.tables import chunks, stream_ends
 
 
 @dataclass(frozen=True)
@@ -40,11 +45,14 @@ class ChunkRecords(StoreBase):
             end = _stream_end(tx, session_id)
             if end is not None and seq > end:
                 return ChunkOutcome(None, duplicate=False, conflict=False, beyond_end=end)
-            inserted = tx.execute(f"INSERT INTO chunks ({', '.join(row)}) VALUES ({', '.join('?' * len(row))}) "
-                                  "ON CONFLICT (session_id, seq) DO NOTHING", tuple(row.values())).rowcount
-            if inserted == 1:
+            try:
+                with tx.begin_nested():  # a savepoint: a chunk already there leaves the transaction usable
+                    tx.execute(insert(chunks).values(**row))
                 return ChunkOutcome(ChunkRow.from_db(row), duplicate=False, conflict=False)
-            old = tx.execute("SELECT * FROM chunks WHERE session_id = ? AND seq = ?", (session_id, seq)).fetchone()
+            except IntegrityError:
+                pass  # (session_id, seq) is taken: a retry or a conflict
+            old = tx.execute(select(chunks).where(chunks.c.session_id == session_id, chunks.c.seq == seq)
+                             ).mappings().one()
         return ChunkOutcome(ChunkRow.from_db(old), duplicate=old["sha256"] == sha256, conflict=old["sha256"] != sha256)
 
     def finish_stream(self, session_id: str, last_seq: int | None) -> FinishOutcome:
@@ -52,8 +60,7 @@ class ChunkRecords(StoreBase):
         refused (``conflict``) for another end than the one set, or below a chunk already received."""
         with self._tx() as tx:
             _lock_session(tx, session_id)
-            highest = tx.execute("SELECT max(seq) AS highest FROM chunks WHERE session_id = ?",
-                                 (session_id,)).fetchone()["highest"]
+            highest = tx.execute(select(func.max(chunks.c.seq)).where(chunks.c.session_id == session_id)).scalar()
             end = _stream_end(tx, session_id)
             wanted = last_seq if last_seq is not None else (end if end is not None else highest)
             if wanted is None:
@@ -65,8 +72,7 @@ class ChunkRecords(StoreBase):
                 return FinishOutcome(end)
             if highest is not None and int(highest) > wanted:
                 return FinishOutcome(None, f"chunk {int(highest)} was already received, beyond last_seq {wanted}")
-            tx.execute("INSERT INTO stream_ends (session_id, last_seq, finished_at) VALUES (?, ?, ?)",
-                       (session_id, wanted, time.time()))
+            tx.execute(insert(stream_ends).values(session_id=session_id, last_seq=wanted, finished_at=time.time()))
         return FinishOutcome(wanted)
 
     def stream_end(self, session_id: str) -> int | None:
@@ -76,14 +82,15 @@ class ChunkRecords(StoreBase):
 
     def delete_chunk(self, session_id: str, seq: int) -> None:
         """Forget chunk ``seq`` (its file could not be written)."""
-        with self._tx() as conn:
-            conn.execute("DELETE FROM chunks WHERE session_id = ? AND seq = ?", (session_id, seq))
+        with self._tx() as tx:
+            tx.execute(delete(chunks).where(chunks.c.session_id == session_id, chunks.c.seq == seq))
 
     def chunk_rows_near(self, session_id: str, seq: int) -> list[ChunkRow]:
         """Chunks seq-1, seq and seq+1 (what a new chunk is checked against), without reading the rest."""
-        with self._tx() as conn:
-            rows = conn.execute("SELECT * FROM chunks WHERE session_id = ? AND seq BETWEEN ? AND ? ORDER BY seq",
-                                (session_id, seq - 1, seq + 1)).fetchall()
+        with self._tx() as tx:
+            rows = tx.execute(select(chunks).where(chunks.c.session_id == session_id,
+                                                   chunks.c.seq.between(seq - 1, seq + 1))
+                              .order_by(chunks.c.seq)).mappings().all()
         return [ChunkRow.from_db(r) for r in rows]
 
     def stream_figures(self, session_id: str, max_after: int = 5000) -> StreamFigures:
@@ -91,20 +98,15 @@ class ChunkRecords(StoreBase):
         the contiguous run from seq 0 (-1: none), the messages in it, the highest seq, the seqs
         received beyond the run (at most ``max_after``, ascending) and the stream's declared last
         seq (None while open)."""
-        with self._tx() as conn:
-            totals = conn.execute("SELECT count(*) AS received, max(seq) AS highest FROM chunks "
-                                  "WHERE session_id = ?", (session_id,)).fetchone()
-            received, highest = totals["received"], totals["highest"]
-            k = conn.execute(
-                "SELECT CASE WHEN EXISTS (SELECT 1 FROM chunks WHERE session_id = ? AND seq = 0) THEN "
-                "(SELECT min(c.seq) FROM chunks c WHERE c.session_id = ? AND NOT EXISTS "
-                "(SELECT 1 FROM chunks d WHERE d.session_id = ? AND d.seq = c.seq + 1)) ELSE -1 END AS k",
-                (session_id, session_id, session_id)).fetchone()["k"]
-            messages = conn.execute("SELECT coalesce(sum(messages), 0) AS n FROM chunks WHERE session_id = ? "
-                                    "AND seq <= ?", (session_id, k)).fetchone()["n"]
-            after = [r["seq"] for r in conn.execute("SELECT seq FROM chunks WHERE session_id = ? AND seq > ? "
-                                                    "ORDER BY seq LIMIT ?", (session_id, k, max_after))]
-            end = _stream_end(conn, session_id)
+        of_session = chunks.c.session_id == session_id
+        with self._tx() as tx:
+            received, highest = tx.execute(select(func.count(), func.max(chunks.c.seq)).where(of_session)).one()
+            k = tx.execute(select(_contiguous_through(session_id))).scalar_one()
+            messages = tx.execute(select(func.coalesce(func.sum(chunks.c.messages), 0))
+                                  .where(of_session, chunks.c.seq <= k)).scalar_one()
+            after = list(tx.execute(select(chunks.c.seq).where(of_session, chunks.c.seq > k)
+                                    .order_by(chunks.c.seq).limit(max_after)).scalars())
+            end = _stream_end(tx, session_id)
         return StreamFigures(received=int(received), contiguous_through=int(k), messages=int(messages),
                              highest=-1 if highest is None else int(highest), after=[int(s) for s in after],
                              last_seq=end)
@@ -112,10 +114,20 @@ class ChunkRecords(StoreBase):
     def chunk_rows(self, session_id: str) -> list[ChunkRow]:
         """All chunks of a session in seq order."""
         with self._tx() as tx:
-            rows = tx.execute("SELECT * FROM chunks WHERE session_id = ? ORDER BY seq", (session_id,)).fetchall()
+            rows = tx.execute(select(chunks).where(chunks.c.session_id == session_id).order_by(chunks.c.seq)
+                              ).mappings().all()
         return [ChunkRow.from_db(r) for r in rows]
 
 
-def _stream_end(tx: _Transaction, session_id: str) -> int | None:
-    row = tx.execute("SELECT last_seq FROM stream_ends WHERE session_id = ?", (session_id,)).fetchone()
-    return None if row is None else int(row["last_seq"])
+def _stream_end(tx: Connection, session_id: str) -> int | None:
+    last_seq = tx.execute(select(stream_ends.c.last_seq).where(stream_ends.c.session_id == session_id)).scalar()
+    return None if last_seq is None else int(last_seq)
+
+
+def _contiguous_through(session_id: str) -> Any:
+    """The end of the run of seqs from 0 (-1 without chunk 0): the lowest seq whose successor is missing."""
+    c, d = chunks.alias("c"), chunks.alias("d")
+    has_zero = exists().where(chunks.c.session_id == session_id, chunks.c.seq == 0)
+    successor = exists().where(d.c.session_id == session_id, d.c.seq == c.c.seq + 1)
+    first_gap = select(func.min(c.c.seq)).where(c.c.session_id == session_id, ~successor).scalar_subquery()
+    return case((has_zero, first_gap), else_=literal(-1)).label("k")

@@ -6,14 +6,18 @@ from __future__ import annotations
 import time
 from typing import Any
 
+from sqlalchemy import Connection, func, insert, literal, select, update
+
 from api_schemas.jobs import JobSource, JobStatus
-from service.storage.database import StoreBase, _Transaction, new_id
+from service.storage.database import StoreBase, new_id
 from service.storage.rows import ACTIVE_STATUSES, TERMINAL_STATUSES, JobRow, dump_json
 from service.storage.session_records import _lock_session
+from service.storage.tables import jobs
 
 # SQL parameters are plain strings (a driver may adapt an Enum by its name)
 _QUEUED, _RUNNING, _FAILED, _CANCELLED = (s.value for s in (JobStatus.QUEUED, JobStatus.RUNNING, JobStatus.FAILED,
                                                              JobStatus.CANCELLED))
+_ACTIVE_VALUES = tuple(status.value for status in ACTIVE_STATUSES)
 
 
 class JobRecords(StoreBase):
@@ -34,8 +38,9 @@ class JobRecords(StoreBase):
         job_id = new_id()
         with self._tx() as tx:
             _lock_session(tx, session_id)
-            active = tx.execute(f"SELECT * FROM jobs WHERE session_id = ? AND status IN {_ACTIVE} "
-                                "ORDER BY created_at", (session_id, *_ACTIVE_VALUES)).fetchall()
+            active = tx.execute(select(jobs).where(jobs.c.session_id == session_id,
+                                                   jobs.c.status.in_(_ACTIVE_VALUES))
+                                .order_by(jobs.c.created_at)).mappings().all()
             for row in map(JobRow.from_db, active):
                 if row.live:
                     return None, row
@@ -45,141 +50,132 @@ class JobRecords(StoreBase):
     def get_job(self, job_id: str, owner: str | None = None) -> JobRow | None:
         """The job, or None when unknown (or owned by someone else when ``owner`` is given)."""
         with self._tx() as tx:
-            row = tx.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            row = tx.execute(select(jobs).where(jobs.c.id == job_id)).mappings().first()
         if row is None or (owner is not None and row["owner"] != owner):
             return None
         return JobRow.from_db(row)
 
     def list_jobs(self, owner: str, session_id: str | None, status: JobStatus | None,
                   limit: int, offset: int) -> tuple[list[JobRow], int]:
-        where, args = ["owner = ?"], [owner]
+        where = [jobs.c.owner == owner]
         if session_id is not None:
-            where.append("session_id = ?")
-            args.append(session_id)
+            where.append(jobs.c.session_id == session_id)
         if status is not None:
-            where.append("status = ?")
-            args.append(JobStatus(status).value)
-        clause = " AND ".join(where)
+            where.append(jobs.c.status == JobStatus(status).value)
         with self._tx() as tx:
-            rows = tx.execute(f"SELECT * FROM jobs WHERE {clause} ORDER BY created_at DESC LIMIT ? OFFSET ?",
-                              (*args, limit, offset)).fetchall()
-            count = tx.execute(f"SELECT count(*) AS n FROM jobs WHERE {clause}", args).fetchone()["n"]
-        return [JobRow.from_db(r) for r in rows], int(count)
+            rows = tx.execute(select(jobs).where(*where).order_by(jobs.c.created_at.desc())
+                              .limit(limit).offset(offset)).mappings().all()
+            count = tx.execute(select(func.count()).select_from(jobs).where(*where)).scalar()
+        return [JobRow.from_db(r) for r in rows], int(count or 0)
 
     def jobs_with_status(self, *statuses: JobStatus) -> list[str]:
         """Ids of the jobs in any of ``statuses``, oldest first."""
-        marks = ", ".join("?" * len(statuses))
+        values = [JobStatus(s).value for s in statuses]
         with self._tx() as tx:
-            rows = tx.execute(f"SELECT id FROM jobs WHERE status IN ({marks}) ORDER BY created_at",
-                              [JobStatus(s).value for s in statuses])
-            return [r["id"] for r in rows]
+            return list(tx.execute(select(jobs.c.id).where(jobs.c.status.in_(values))
+                                   .order_by(jobs.c.created_at)).scalars())
 
     def mark_running(self, job_id: str, worker_pid: int) -> bool:
         """The claim, queued -> running in one conditional update; False when the job is no longer
         queued (another worker claimed it, or it was cancelled meanwhile)."""
         now = time.time()
         with self._tx() as tx:
-            cur = tx.execute("UPDATE jobs SET status = ?, started_at = ?, heartbeat_at = ?, "
-                             "worker_pid = ? WHERE id = ? AND status = ? AND cancel_requested = 0",
-                             (_RUNNING, now, now, worker_pid, job_id, _QUEUED))
+            cur = tx.execute(update(jobs).where(jobs.c.id == job_id, jobs.c.status == _QUEUED,
+                                                jobs.c.cancel_requested == 0)
+                             .values(status=_RUNNING, started_at=now, heartbeat_at=now, worker_pid=worker_pid))
             return cur.rowcount == 1
 
     def set_input(self, job_id: str, input_description: dict[str, Any]) -> None:
         with self._tx() as tx:
-            tx.execute("UPDATE jobs SET input_json = ? WHERE id = ?", (dump_json(input_description), job_id))
+            tx.execute(update(jobs).where(jobs.c.id == job_id).values(input_json=dump_json(input_description)))
 
     def update_progress(self, job_id: str, scans_done: int, scans_total: int | None) -> bool:
         """Record progress and heartbeat; returns whether a cancel was requested."""
         progress = 0.0 if not scans_total else min(1.0, max(0.0, scans_done / scans_total))
         with self._tx() as tx:
-            tx.execute("UPDATE jobs SET scans_done = ?, scans_total = ?, progress = ?, heartbeat_at = ? "
-                       "WHERE id = ? AND status = ?",
-                       (scans_done, scans_total, progress, time.time(), job_id, _RUNNING))
-            row = tx.execute("SELECT cancel_requested FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return row is None or bool(row["cancel_requested"])
+            tx.execute(update(jobs).where(jobs.c.id == job_id, jobs.c.status == _RUNNING)
+                       .values(scans_done=scans_done, scans_total=scans_total, progress=progress,
+                               heartbeat_at=time.time()))
+            flag = tx.execute(select(jobs.c.cancel_requested).where(jobs.c.id == job_id)).first()
+        return flag is None or bool(flag[0])
 
     def cancel_requested(self, job_id: str) -> bool:
         with self._tx() as tx:
-            row = tx.execute("SELECT cancel_requested FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return row is None or bool(row["cancel_requested"])
+            flag = tx.execute(select(jobs.c.cancel_requested).where(jobs.c.id == job_id)).first()
+        return flag is None or bool(flag[0])
 
     def set_products(self, job_id: str, products: dict[str, str]) -> None:
         """Product name -> file name inside the job's artifact folder."""
         with self._tx() as tx:
-            tx.execute("UPDATE jobs SET products_json = ? WHERE id = ?", (dump_json(products), job_id))
+            tx.execute(update(jobs).where(jobs.c.id == job_id).values(products_json=dump_json(products)))
 
     def finish(self, job_id: str, status: JobStatus, error: str | None = None) -> bool:
         """An active job -> a terminal status (first writer wins); False when already terminal."""
         status = JobStatus(status)
         if status not in TERMINAL_STATUSES:
             raise ValueError(f"a job finishes as one of {[s.value for s in TERMINAL_STATUSES]}, not {status.value!r}")
+        values: dict[str, Any] = {"status": status.value, "error": error, "finished_at": time.time()}
+        if status is JobStatus.SUCCEEDED:
+            values["progress"] = 1.0
         with self._tx() as tx:
-            extra = ", progress = 1.0" if status is JobStatus.SUCCEEDED else ""
-            cur = tx.execute(f"UPDATE jobs SET status = ?, error = ?, finished_at = ?{extra} "
-                             f"WHERE id = ? AND status IN {_ACTIVE}",
-                             (status.value, error, time.time(), job_id, *_ACTIVE_VALUES))
+            cur = tx.execute(update(jobs).where(jobs.c.id == job_id, jobs.c.status.in_(_ACTIVE_VALUES)).values(values))
             return cur.rowcount == 1
 
     def request_cancel(self, job_id: str) -> JobStatus | None:
         """Ask a job to stop: a queued job is cancelled at once, a running one is flagged for its
         worker. Returns the status afterwards (None: no such job)."""
         with self._tx() as tx:
-            tx.execute(f"UPDATE jobs SET cancel_requested = 1 WHERE id = ? AND status IN {_ACTIVE}",
-                       (job_id, *_ACTIVE_VALUES))
-            tx.execute("UPDATE jobs SET status = ?, error = 'cancelled by request', finished_at = ? "
-                       "WHERE id = ? AND status = ?", (_CANCELLED, time.time(), job_id, _QUEUED))
-            row = tx.execute("SELECT status FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return None if row is None else JobStatus(row["status"])
+            tx.execute(update(jobs).where(jobs.c.id == job_id, jobs.c.status.in_(_ACTIVE_VALUES))
+                       .values(cancel_requested=1))
+            tx.execute(update(jobs).where(jobs.c.id == job_id, jobs.c.status == _QUEUED)
+                       .values(status=_CANCELLED, error="cancelled by request", finished_at=time.time()))
+            status = tx.execute(select(jobs.c.status).where(jobs.c.id == job_id)).scalar()
+        return None if status is None else JobStatus(status)
 
     def heartbeat(self, job_id: str) -> bool:
         """A running job's worker is alive; returns whether the job should stop (cancel requested,
         or no longer running because it was failed meanwhile)."""
         with self._tx() as tx:
-            tx.execute("UPDATE jobs SET heartbeat_at = ? WHERE id = ? AND status = ?",
-                       (time.time(), job_id, _RUNNING))
-            row = tx.execute("SELECT status, cancel_requested FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return row is None or row["status"] != JobStatus.RUNNING or bool(row["cancel_requested"])
+            tx.execute(update(jobs).where(jobs.c.id == job_id, jobs.c.status == _RUNNING)
+                       .values(heartbeat_at=time.time()))
+            row = tx.execute(select(jobs.c.status, jobs.c.cancel_requested).where(jobs.c.id == job_id)).first()
+        return row is None or row.status != JobStatus.RUNNING or bool(row.cancel_requested)
 
     def fail_lost(self, silent_s: float) -> list[str]:
         """Running jobs whose heartbeat is older than ``silent_s`` -> failed 'worker lost' (their
         cancel flag is set too, so a worker that was only slow stops at its next progress report).
         Each update re-checks the heartbeat: one that arrives meanwhile keeps its job running."""
         now = time.time()
-        silent = "status = ? AND coalesce(heartbeat_at, started_at, 0) < ?"
+        silent = (jobs.c.status == _RUNNING,
+                  func.coalesce(jobs.c.heartbeat_at, jobs.c.started_at, literal(0.0)) < now - silent_s)
         failed = []
         with self._tx() as tx:
-            rows = tx.execute(f"SELECT id, heartbeat_at, worker_pid FROM jobs WHERE {silent}",
-                              (_RUNNING, now - silent_s)).fetchall()
+            rows = tx.execute(select(jobs.c.id, jobs.c.heartbeat_at, jobs.c.worker_pid).where(*silent)).all()
             for row in rows:
-                silence = f"{now - row['heartbeat_at']:.0f} s" if row["heartbeat_at"] else "ever"
-                reason = (f"worker lost: no heartbeat for {silence} (worker pid {row['worker_pid']}): its process "
+                silence = f"{now - row.heartbeat_at:.0f} s" if row.heartbeat_at else "ever"
+                reason = (f"worker lost: no heartbeat for {silence} (worker pid {row.worker_pid}): its process "
                           "or machine stopped")
-                cur = tx.execute(f"UPDATE jobs SET status = ?, cancel_requested = 1, finished_at = ?, "
-                                 f"error = ? WHERE id = ? AND {silent}",
-                                 (_FAILED, now, reason, row["id"], _RUNNING, now - silent_s))
+                cur = tx.execute(update(jobs).where(jobs.c.id == row.id, *silent)
+                                 .values(status=_FAILED, cancel_requested=1, finished_at=now, error=reason))
                 if cur.rowcount == 1:
-                    failed.append(row["id"])
+                    failed.append(row.id)
         return failed
 
     def fail_interrupted(self) -> list[str]:
         """At start-up: jobs left 'running' by a previous process cannot resume -> failed 'interrupted'."""
         with self._tx() as tx:
-            rows = tx.execute("UPDATE jobs SET status = ?, finished_at = ?, error = 'interrupted: the "
-                              "service stopped while the job was running' WHERE status = ? RETURNING id",
-                              (_FAILED, time.time(), _RUNNING)).fetchall()
-        return [r["id"] for r in rows]
+            return list(tx.execute(
+                update(jobs).where(jobs.c.status == _RUNNING)
+                .values(status=_FAILED, finished_at=time.time(),
+                        error="interrupted: the service stopped while the job was running")
+                .returning(jobs.c.id)).scalars())
 
 
-_ACTIVE_VALUES = tuple(status.value for status in ACTIVE_STATUSES)  # SQL parameters: plain strings
-_ACTIVE = "(" + ", ".join("?" * len(_ACTIVE_VALUES)) + ")"  # their placeholders
-
-
-def _insert_job(tx: _Transaction, job_id: str, session_id: str, owner: str, source: JobSource, log_id: str | None,
+def _insert_job(tx: Connection, job_id: str, session_id: str, owner: str, source: JobSource, log_id: str | None,
                 config: dict[str, Any]) -> None:
-    tx.execute("INSERT INTO jobs (id, session_id, owner, source, log_id, config_json, status, created_at) "
-               "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-               (job_id, session_id, owner, source.value, log_id, dump_json(config), _QUEUED, time.time()))
+    tx.execute(insert(jobs).values(id=job_id, session_id=session_id, owner=owner, source=source.value, log_id=log_id,
+                                   config_json=dump_json(config), status=_QUEUED, created_at=time.time()))
 
 
-def _job_row(tx: _Transaction, job_id: str) -> JobRow:
-    return JobRow.from_db(tx.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone())
+def _job_row(tx: Connection, job_id: str) -> JobRow:
+    return JobRow.from_db(tx.execute(select(jobs).where(jobs.c.id == job_id)).mappings().one())

@@ -8,6 +8,7 @@ of one transaction; read the store again for the state now.
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,7 +43,7 @@ class SessionRow:
     jobs: int
 
     @classmethod
-    def from_db(cls, d: dict[str, Any]) -> SessionRow:
+    def from_db(cls, d: Mapping[Any, Any]) -> SessionRow:
         return cls(id=d["id"], owner=d["owner"], name=d["name"], vehicle_preset=d["vehicle_preset"],
                    calibration=load_json(d["calibration_json"]), geo=load_json(d["geo_json"]),
                    created_at=float(d["created_at"]), logs=int(d["n_logs"]), chunks=int(d["n_chunks"]),
@@ -64,7 +65,7 @@ class LogRow:
     created_at: float
 
     @classmethod
-    def from_db(cls, d: dict[str, Any]) -> LogRow:
+    def from_db(cls, d: Mapping[Any, Any]) -> LogRow:
         return cls(id=d["id"], session_id=d["session_id"], filename=d["filename"], size_bytes=int(d["size_bytes"]),
                    sha256=d["sha256"], archive=bool(d["archive"]), summary=load_json(d["summary_json"]) or {},
                    stored_path=d["stored_path"], created_at=float(d["created_at"]))
@@ -83,7 +84,7 @@ class ChunkRow:
     created_at: float
 
     @classmethod
-    def from_db(cls, d: dict[str, Any]) -> ChunkRow:
+    def from_db(cls, d: Mapping[Any, Any]) -> ChunkRow:
         return cls(session_id=d["session_id"], seq=int(d["seq"]), sha256=d["sha256"], messages=int(d["messages"]),
                    t_first_s=float(d["t_first_s"]), t_last_s=float(d["t_last_s"]),
                    created_at=float(d["created_at"]))
@@ -124,7 +125,7 @@ class JobRow:
         return bool(self.config.get("live"))
 
     @classmethod
-    def from_db(cls, d: dict[str, Any]) -> JobRow:
+    def from_db(cls, d: Mapping[Any, Any]) -> JobRow:
         return cls(id=d["id"], session_id=d["session_id"], owner=d["owner"], source=JobSource(d["source"]),
                    log_id=d["log_id"], config=load_json(d["config_json"]) or {}, status=JobStatus(d["status"]),
                    progress=float(d["progress"]), scans_done=int(d["scans_done"]),

@@ -8,8 +8,11 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from service.storage.database import StoreBase, _Transaction, new_id
+from sqlalchemy import Connection, Select, delete, func, insert, select, update
+
+from service.storage.database import StoreBase, new_id
 from service.storage.rows import SessionRow, dump_json
+from service.storage.tables import SESSION_TABLES, chunks, jobs, logs, sessions
 
 
 class SessionRecords(StoreBase):
@@ -19,42 +22,45 @@ class SessionRecords(StoreBase):
                        calibration: dict[str, Any] | None, geo: dict[str, Any] | None) -> SessionRow:
         session_id = new_id()
         with self._tx() as tx:
-            tx.execute("INSERT INTO sessions (id, owner, name, vehicle_preset, calibration_json, geo_json, "
-                       "created_at) VALUES (?, ?, ?, ?, ?, ?, ?)",
-                       (session_id, owner, name, vehicle_preset, dump_json(calibration), dump_json(geo), time.time()))
-            row = tx.execute(_SESSION_SELECT + " WHERE s.id = ?", (session_id,)).fetchone()
+            tx.execute(insert(sessions).values(
+                id=session_id, owner=owner, name=name, vehicle_preset=vehicle_preset,
+                calibration_json=dump_json(calibration), geo_json=dump_json(geo), created_at=time.time()))
+            row = tx.execute(_session_select().where(sessions.c.id == session_id)).mappings().one()
         return SessionRow.from_db(row)
 
     def get_session(self, session_id: str, owner: str) -> SessionRow | None:
         with self._tx() as tx:
-            row = tx.execute(_SESSION_SELECT + " WHERE s.id = ? AND s.owner = ?", (session_id, owner)).fetchone()
+            row = tx.execute(_session_select().where(sessions.c.id == session_id, sessions.c.owner == owner)
+                             ).mappings().first()
         return None if row is None else SessionRow.from_db(row)
 
     def list_sessions(self, owner: str, limit: int, offset: int) -> tuple[list[SessionRow], int]:
         with self._tx() as tx:
-            rows = tx.execute(_SESSION_SELECT + " WHERE s.owner = ? ORDER BY s.created_at DESC LIMIT ? OFFSET ?",
-                              (owner, limit, offset)).fetchall()
-            count = tx.execute("SELECT count(*) AS n FROM sessions WHERE owner = ?", (owner,)).fetchone()["n"]
-        return [SessionRow.from_db(r) for r in rows], int(count)
+            rows = tx.execute(_session_select().where(sessions.c.owner == owner)
+                              .order_by(sessions.c.created_at.desc()).limit(limit).offset(offset)).mappings().all()
+            count = tx.execute(select(func.count()).select_from(sessions).where(sessions.c.owner == owner)).scalar()
+        return [SessionRow.from_db(r) for r in rows], int(count or 0)
 
     def delete_session(self, session_id: str) -> list[str]:
         """Delete the session with its logs, chunks and jobs; returns the deleted job ids."""
         with self._tx() as tx:
-            job_ids = [r["id"] for r in tx.execute("SELECT id FROM jobs WHERE session_id = ?", (session_id,))]
-            for table in ("logs", "chunks", "jobs", "stream_ends"):
-                tx.execute(f"DELETE FROM {table} WHERE session_id = ?", (session_id,))
-            tx.execute("DELETE FROM sessions WHERE id = ?", (session_id,))
+            job_ids = list(tx.execute(select(jobs.c.id).where(jobs.c.session_id == session_id)).scalars())
+            for table in SESSION_TABLES:
+                tx.execute(delete(table).where(table.c.session_id == session_id))
+            tx.execute(delete(sessions).where(sessions.c.id == session_id))
         return job_ids
 
 
-def _lock_session(tx: _Transaction, session_id: str) -> None:
+def _lock_session(tx: Connection, session_id: str) -> None:
     """Hold the session's row lock until the transaction ends (PostgreSQL; SQLite's BEGIN IMMEDIATE
     already serialises every transaction)."""
-    tx.execute("UPDATE sessions SET id = id WHERE id = ?", (session_id,))
+    tx.execute(update(sessions).where(sessions.c.id == session_id).values(id=sessions.c.id))
 
 
-_SESSION_SELECT = (
-    "SELECT s.*, (SELECT count(*) FROM logs l WHERE l.session_id = s.id) AS n_logs, "
-    "(SELECT count(*) FROM chunks c WHERE c.session_id = s.id) AS n_chunks, "
-    "(SELECT count(*) FROM jobs j WHERE j.session_id = s.id) AS n_jobs FROM sessions s"
-)
+def _session_select() -> Select[Any]:
+    """A session's columns with the counts of its logs, chunks and jobs (n_logs, n_chunks, n_jobs)."""
+    def count_of(table: Any, label: str) -> Any:
+        return (select(func.count()).select_from(table).where(table.c.session_id == sessions.c.id)
+                .scalar_subquery().label(label))
+
+    return select(sessions, count_of(logs, "n_logs"), count_of(chunks, "n_chunks"), count_of(jobs, "n_jobs"))

@@ -3,8 +3,10 @@ file in WAL mode) or PostgreSQL (``LIDARMAP_DATABASE_URL=postgresql://...``, for
 
 :class:`JobStore` puts together each resource's persistence: sessions (``session_records.py``),
 uploaded logs (``log_records.py``), streamed chunks and the stream's end (``chunk_records.py``) and
-jobs (``job_records.py``), over ``database.py``: the schema, the SQLite and PostgreSQL backends and
-the transaction every operation runs in. :func:`open_store` opens the store that
+jobs (``job_records.py``), over ``database.py``: the SQLite and PostgreSQL backends (SQLAlchemy
+engines) and the transaction every operation runs in. The tables are SQLAlchemy Core metadata
+(``tables.py``), created and upgraded by Alembic's migrations (``migration.py``,
+``migrations/versions``) when the store is initialised. :func:`open_store` opens the store that
 ``LIDARMAP_DATABASE_URL`` names.
 
 Atomicity: SQLite's ``BEGIN IMMEDIATE`` runs transactions one after another. PostgreSQL runs them
@@ -21,13 +23,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from sqlalchemy import func, select
+
 from service.storage.chunk_records import ChunkOutcome, ChunkRecords, FinishOutcome
 from service.storage.database import (
     POSTGRES_CONNECT_TIMEOUT_S,
     POSTGRES_POOL_MAX_CONNECTIONS,
     POSTGRES_QUICK_BORROW_S,
-    SCHEMA,
-    SCHEMA_STATEMENTS,
     Backend,
     PostgresBackend,
     SqliteBackend,
@@ -38,13 +40,12 @@ from service.storage.database import (
 from service.storage.job_records import JobRecords
 from service.storage.log_records import LogRecords
 from service.storage.session_records import SessionRecords
+from service.storage.tables import jobs
 
 __all__ = [
     "POSTGRES_CONNECT_TIMEOUT_S",
     "POSTGRES_POOL_MAX_CONNECTIONS",
     "POSTGRES_QUICK_BORROW_S",
-    "SCHEMA",
-    "SCHEMA_STATEMENTS",
     "Backend",
     "ChunkOutcome",
     "ChunkRecords",
@@ -73,19 +74,19 @@ class JobStore(SessionRecords, LogRecords, ChunkRecords, JobRecords):
         return f"JobStore({self.backend!r})"
 
     def close(self) -> None:
-        """Close pooled connections (PostgreSQL); SQLite holds none between transactions."""
-        if isinstance(self.backend, PostgresBackend):
-            self.backend.close()
+        """Close this process's pooled connections (PostgreSQL); SQLite holds none between transactions."""
+        self.backend.close()
 
     def initialise(self) -> None:
-        """Create the tables (idempotent; SQLite: the file too, in WAL mode)."""
+        """Create or upgrade the schema with Alembic's migrations (idempotent; one process at a time;
+        SQLite: the file too, in WAL mode)."""
         self.backend.create_schema()
 
     def ping(self) -> bool:
         """True when the database answers a query."""
         try:
             with self._tx() as tx:
-                tx.execute("SELECT count(*) AS n FROM jobs").fetchone()
+                tx.execute(select(func.count()).select_from(jobs)).scalar()
             return True
         except self.backend.errors:
             return False

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Collection, Sequence
 
 import numpy as np
 
@@ -13,12 +13,17 @@ from slam_engine.frontend.raycast import insert_scan
 from slam_engine.model.result import OccupancyGrid
 
 
-def render_occupancy(scans: Sequence[ProjectedScan], poses: np.ndarray, origin_v: np.ndarray, grid: GridConfig
-                     ) -> OccupancyGrid:
+def render_occupancy(scans: Sequence[ProjectedScan], poses: np.ndarray, origin_v: np.ndarray, grid: GridConfig,
+                     frames_after: Collection[int] = (),
+                     on_frame: Callable[[int, OccupancyGrid], None] | None = None) -> OccupancyGrid:
     """Log-odds grid of every scan in ``scans`` inserted at its vehicle pose ``poses`` (K, 3, world
-    frame); ``origin_v`` (2,) is the LiDAR's position in the vehicle frame [m]."""
+    frame); ``origin_v`` (2,) is the LiDAR's position in the vehicle frame [m]. ``on_frame(n, grid)``
+    is handed the map of the first ``n`` scans for each ``n`` in ``frames_after`` (the map being
+    built, for the animation), in the same pass."""
     grids = ParticleGrids(1, grid.resolution_m)
-    for scan, pose in zip(scans, np.asarray(poses, np.float64), strict=True):
+    for k, (scan, pose) in enumerate(zip(scans, np.asarray(poses, np.float64), strict=True)):
         insert_scan(grids, pose[None, :], origin_v, scan.ends_v, scan.is_hit, grid.log_odds_hit, grid.log_odds_miss,
                     grid.log_odds_min, grid.log_odds_max, scan.free_from_m)
+        if on_frame is not None and k + 1 in frames_after:
+            on_frame(k + 1, grids.occupancy_grid(0))
     return grids.occupancy_grid(0)

@@ -33,6 +33,11 @@ class Trajectory:
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
 
+    def until(self, t_s: float) -> Trajectory:
+        """The poses at or before ``t_s``."""
+        keep = self.t_s <= t_s
+        return Trajectory(t_s=self.t_s[keep], poses=self.poses[keep])
+
 
 @dataclass
 class OccupancyGrid:

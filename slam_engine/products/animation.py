@@ -1,6 +1,8 @@
 """``animation.gif``: the map being built, one frame per snapshot (taken every N processed scans by
-the engine) plus the final map, all on one canvas covering every snapshot, with the trajectory so
-far in red.
+the engine) plus the final map, with the trajectory so far in red. Every frame has the final map's
+framing: the canvas covers the final map's known cells (what the map shows), and a snapshot is cut
+to it. The engine draws the snapshots as the final map is drawn (its poses, its rays) whenever it
+re-renders the final map (:func:`slam_engine.pipeline.filter_result`).
 
 The run keeps its snapshots small (:meth:`~slam_engine.model.result.MapSnapshot.reduced`: maps pooled to
 at most 800 cells a side, what a frame shows anyway), so frames are drawn from small maps; frames
@@ -41,14 +43,10 @@ _GRAY_TO_INDEX = np.rint(np.arange(256) * 254 / 255).astype(np.uint8)
 def animation_frames(snapshots: list[MapSnapshot], final_grid: OccupancyGrid, final_trajectory: Trajectory,
                      max_side_px: int = MAX_SIDE_PX) -> Iterator[Image.Image]:
     """Palette frames, drawn as they are asked for: each snapshot, then the final map; canvases share
-    the extent and scale (the final grid's resolution times the smallest whole factor that brings the
-    longer side to <= ``max_side_px``)."""
-    grids = [s.grid for s in snapshots] + [final_grid]
+    the final map's framing (:func:`map_extent`) and scale (the final grid's resolution times the
+    smallest whole factor that brings the longer side to <= ``max_side_px``)."""
     res = final_grid.resolution_m
-    left = min(g.origin_x_m for g in grids)
-    bottom = min(g.origin_y_m for g in grids)
-    right = max(g.origin_x_m + g.shape[1] * g.resolution_m for g in grids)
-    top = max(g.origin_y_m + g.shape[0] * g.resolution_m for g in grids)
+    left, bottom, right, top = map_extent(final_grid)
     shrink = max(1, math.ceil(max((right - left) / res, (top - bottom) / res) / max_side_px - 1e-9))
     pixel_m = res * shrink
     width, height = max(1, round((right - left) / pixel_m)), max(1, round((top - bottom) / pixel_m))
@@ -77,6 +75,17 @@ def animation_frames(snapshots: list[MapSnapshot], final_grid: OccupancyGrid, fi
             points = [((x - left) / pixel_m, (top - y) / pixel_m) for x, y in trajectory.poses[:, :2]]
             ImageDraw.Draw(frame).line(points, fill=_TRAJECTORY_INDEX, width=1)
         yield frame
+
+
+def map_extent(grid: OccupancyGrid) -> tuple[float, float, float, float]:
+    """(left, bottom, right, top) [m, map frame] of the grid's known cells (the whole grid when none is)."""
+    known = grid.known()
+    rows, cols = np.flatnonzero(known.any(axis=1)), np.flatnonzero(known.any(axis=0))
+    h, w = grid.shape
+    (iy0, iy1), (ix0, ix1) = ((rows[0], rows[-1] + 1), (cols[0], cols[-1] + 1)) if len(rows) else ((0, h), (0, w))
+    res = grid.resolution_m
+    return (grid.origin_x_m + ix0 * res, grid.origin_y_m + iy0 * res,
+            grid.origin_x_m + ix1 * res, grid.origin_y_m + iy1 * res)
 
 
 def write_animation_gif(snapshots: list[MapSnapshot], final_grid: OccupancyGrid, final_trajectory: Trajectory,

@@ -5,13 +5,14 @@ Files (each written under a temporary name, then renamed):
 | file | what |
 |---|---|
 | trajectory.json, trajectory.tum | SLAM trajectory, lidarmap JSON and TUM |
-| dead_reckoning.json | odometry-only trajectory, lidarmap JSON |
+| dead_reckoning.json, dead_reckoning.tum | odometry-only trajectory, lidarmap JSON and TUM |
 | occupancy.png | grid, north up: free white, occupied black, unknown grey |
 | occupancy_trajectory.png | the same with dead reckoning (blue) and the SLAM trajectory (red) |
 | occupancy.tif | GeoTIFF, float32 probability, -1 = unknown (nodata); local frame or UTM |
 | map.pgm, map.yaml | ROS map_server / Nav2 map (trinary) |
 | texture.png, texture.tif | ground texture (RGBA, transparent = unseen), when the run made one |
 | animation.gif | the map being built, when the run kept snapshots |
+| map_points.ply | the map as a point cloud: the scans' returns at the optimised poses, voxel and outlier filtered |
 | run.json | config, input, timings, memory, filter stats, accuracy (written last) |
 """
 
@@ -27,6 +28,7 @@ from slam_engine.products.files import atomic_path
 from slam_engine.products.georeference import GeoOrigin, Georeference
 from slam_engine.products.geotiff import write_occupancy_geotiff, write_texture_geotiff
 from slam_engine.products.map_bundle import BUNDLE_FILE, write_bundle
+from slam_engine.products.point_cloud import POINT_CLOUD_FILE, write_map_point_cloud
 from slam_engine.products.rendering import (
     PNG_COMPRESS_LEVEL,
     occupancy_rasters,
@@ -97,6 +99,7 @@ def write_products(result: SlamResult, out_dir: str | Path, geo: GeoOrigin | Non
     written["trajectory.tum"] = write_trajectory_tum(result.trajectory, out / "trajectory.tum")
     written["dead_reckoning.json"] = write_trajectory_json(result.dead_reckoning, out / "dead_reckoning.json",
                                                            frame=MAP_FRAME, config=config)
+    written["dead_reckoning.tum"] = write_trajectory_tum(result.dead_reckoning, out / "dead_reckoning.tum")
     rasters = occupancy_rasters(result.grid)  # rendered once for the PNGs, the GeoTIFF and the ROS map
     save_image(Image.fromarray(rasters.gray), "occupancy.png", "PNG")
     with atomic_path(out / "occupancy_trajectory.png") as tmp:  # streamed: no RGB image of the whole map
@@ -113,6 +116,8 @@ def write_products(result: SlamResult, out_dir: str | Path, geo: GeoOrigin | Non
                                                        out / "animation.gif")
     if result.bundle is not None:
         written[BUNDLE_FILE] = write_bundle(result.bundle, out / BUNDLE_FILE)
+        if len(result.bundle):
+            written[POINT_CLOUD_FILE] = write_map_point_cloud(result.bundle, out / POINT_CLOUD_FILE)
     input_summary = result.input_summary or (log.summary() if log is not None else {})
     accuracy = accuracy_figures(result.trajectory, relations, ground_truth)
     if texture_accuracy is not None:

@@ -123,7 +123,7 @@ def test_evaluate_bad_input_is_one_line(tmp_path: Path, dataset) -> None:
 
 # --- run ------------------------------------------------------------------------------------------
 
-ALL_PRODUCTS = {"trajectory.json", "trajectory.tum", "dead_reckoning.json", "occupancy.png",
+ALL_PRODUCTS = {"trajectory.json", "trajectory.tum", "dead_reckoning.json", "dead_reckoning.tum", "occupancy.png",
                 "occupancy_trajectory.png", "occupancy.tif", "map.pgm", "map.yaml", "animation.gif", "run.json"}
 
 

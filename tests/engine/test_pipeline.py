@@ -121,12 +121,14 @@ def test_clones_after_resampling_share_one_insertion_with_identical_results(monk
 
 def test_snapshots_without_live_previews_are_the_same_frames() -> None:
     """Without live previews every snapshot is built at an animation frame's size (a few tile rows at
-    a time) instead of at preview size and pooled later: the frames are identical."""
+    a time) instead of at preview size and pooled later: the frames are identical. (The filter's own
+    snapshots: no loop closing and unbounded no-return rays, so the final map is the filter's.)"""
     from slam_engine.model.result import SNAPSHOT_MAX_SIDE_CELLS
     from slam_engine.simulation import simulate
 
     drive = simulate("office", seed=0, rig="carmen-robot", max_duration_s=80.0, cameras=False)
-    config = SlamConfig(particles=4, seed=0, snapshot_every_scans=40, loop_closing={"enabled": False})
+    config = SlamConfig(particles=4, seed=0, snapshot_every_scans=40, loop_closing={"enabled": False},
+                        grid={"no_return_bounded": False})
     live = run_slam(drive.log, config, progress=lambda p: None)
     frames = run_slam(drive.log, config, live_previews=False)
     assert len(live.snapshots) == len(frames.snapshots) >= 5
@@ -138,3 +140,39 @@ def test_snapshots_without_live_previews_are_the_same_frames() -> None:
         np.testing.assert_array_equal(a.grid.log_odds, b.grid.log_odds)
         pooled += b.grid.resolution_m > config.grid.resolution_m
     assert pooled >= 1  # the later maps are larger than a frame: pooled, the same either way
+
+
+def test_snapshots_are_the_final_map_being_built() -> None:
+    """When the final map is re-rendered (optimised poses, bounded no-return rays), the animation's
+    snapshots are drawn the same way in the same pass: each carries the final trajectory up to its
+    time and lies inside the final map (not the filter's own map and path)."""
+    from slam_engine.products.animation import map_extent
+    from slam_engine.simulation import simulate
+
+    drive = simulate("office", seed=0, rig="carmen-robot", max_duration_s=80.0, cameras=False)
+    config = SlamConfig(particles=4, seed=0, snapshot_every_scans=40)
+    result = run_slam(drive.log, config, live_previews=False)
+    assert len(result.snapshots) >= 5
+    left, bottom, right, top = map_extent(result.grid)
+    for snapshot in result.snapshots:
+        so_far = result.trajectory.until(snapshot.t_s)
+        np.testing.assert_array_equal(snapshot.trajectory.poses, so_far.poses)
+        assert snapshot.trajectory.t_s[-1] == snapshot.t_s
+        pad = snapshot.grid.resolution_m  # a pooled snapshot's known blocks may reach one block further
+        s_left, s_bottom, s_right, s_top = map_extent(snapshot.grid)
+        assert (s_left >= left - pad and s_bottom >= bottom - pad and s_right <= right + pad
+                and s_top <= top + pad), (map_extent(snapshot.grid), (left, bottom, right, top))
+
+
+def test_loop_closures_are_placed_on_the_final_map() -> None:
+    """run.json's closures carry their two key frames' places on the final map (for the viewer)."""
+    from slam_engine.simulation import simulate
+
+    office = simulate("office", seed=0, cameras=False)
+    result = run_slam(office.log, SlamConfig(particles=10))
+    closures = result.input_summary["loop_closing"]["closures"]
+    accepted = [c for c in closures if c["accepted"]]
+    assert len(accepted) >= 5
+    for closure in closures:
+        for end in ("node", "anchor"):
+            np.testing.assert_allclose(closure[f"{end}_xy_m"], result.bundle.poses[closure[end], :2], atol=1e-4)

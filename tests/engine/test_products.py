@@ -7,6 +7,8 @@ from __future__ import annotations
 import io
 import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +36,7 @@ from slam_engine.products import (
     write_trajectory_tum,
 )
 from slam_engine.products.files import atomic_path
-from slam_engine.products.rendering import occupancy_gray, occupancy_north_up
+from slam_engine.products.rendering import UNKNOWN_GRAY, occupancy_gray, occupancy_north_up
 
 RES = 0.1
 ORIGIN = (-2.0, -1.5)
@@ -174,7 +176,7 @@ def products(tmp_path_factory) -> dict[str, Path]:
 
 
 def test_write_products_writes_every_product_and_no_temporary_files(products: dict[str, Path]) -> None:
-    expected = {"trajectory.json", "trajectory.tum", "dead_reckoning.json", "occupancy.png",
+    expected = {"trajectory.json", "trajectory.tum", "dead_reckoning.json", "dead_reckoning.tum", "occupancy.png",
                 "occupancy_trajectory.png", "occupancy.tif", "map.pgm", "map.yaml", "texture.png",
                 "texture.tif", "animation.gif", "run.json"}
     assert set(products) == expected
@@ -216,12 +218,13 @@ def test_texture_png_is_north_up_and_transparent_where_unseen(products: dict[str
 def test_animation_has_one_frame_per_snapshot_plus_the_final_map(products: dict[str, Path]) -> None:
     gif = Image.open(products["animation.gif"])
     assert gif.n_frames == 4
-    assert gif.size == (W, H)
+    assert gif.size == (38, 31)  # the final map's known cells: columns 10..47, rows 5..35 of make_grid()
     gif.seek(0)
     first = np.asarray(gif.convert("L"))
     gif.seek(3)
     last = np.asarray(gif.convert("L"))
     col, row = image_pixel(*WALL_XY)
+    col, row = col - 10, row - (H - 36)
     assert first[row, col] > 150 and last[row, col] < 50  # the wall appears only once mapped
 
 
@@ -259,10 +262,19 @@ def test_atomic_write_leaves_the_old_file_and_no_temporary_on_failure(tmp_path: 
 
 # --- GeoTIFF ------------------------------------------------------------------------------------
 
+def rio_info(path: Path) -> dict:
+    """``rio info PATH`` (rasterio's command line, GDAL underneath) as a user runs it."""
+    rio = Path(sys.executable).with_name("rio")
+    done = subprocess.run([str(rio), "info", str(path)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
 def test_local_geotiff_places_a_known_wall_at_its_map_coordinate(products: dict[str, Path]) -> None:
+    """The local map frame has no transformation to any Earth CRS: no CRS, the transform in metres of
+    the map frame, the frame named in the metadata; GDAL's tools read it (``rio info``)."""
     with rasterio.open(products["occupancy.tif"]) as ds:
-        assert ds.crs is not None and "lidarmap local map frame" in ds.crs.to_wkt()
-        assert ds.crs.to_epsg() is None
+        assert ds.crs is None and ds.tags()["LIDARMAP_FRAME"] == "lidarmap local map frame"
         assert ds.nodata == -1 and ds.dtypes == ("float32",) and (ds.width, ds.height) == (W, H)
         assert tuple(ds.transform)[:6] == pytest.approx((RES, 0.0, ORIGIN[0], 0.0, -RES, ORIGIN[1] + H * RES))
         band = ds.read(1)
@@ -271,6 +283,12 @@ def test_local_geotiff_places_a_known_wall_at_its_map_coordinate(products: dict[
         assert band[row, col] == pytest.approx(1 / (1 + math.exp(-5)), abs=1e-6)
         assert band[ds.index(*make_grid().cell_to_world(*UNKNOWN_CELL))] == -1
         assert ds.read_masks(1)[ds.index(*make_grid().cell_to_world(*UNKNOWN_CELL))] == 0
+    info = rio_info(products["occupancy.tif"])
+    assert info["crs"] is None and "lnglat" not in info and info["nodata"] == -1
+    assert info["bounds"] == pytest.approx([ORIGIN[0], ORIGIN[1], ORIGIN[0] + W * RES, ORIGIN[1] + H * RES])
+    assert info["transform"][:6] == pytest.approx([RES, 0.0, ORIGIN[0], 0.0, -RES, ORIGIN[1] + H * RES])
+    texture = rio_info(products["texture.tif"])
+    assert texture["crs"] is None and texture["count"] == 4 and texture["colorinterp"][3] == "alpha"
 
 
 def test_percent_geotiff_is_int8_with_unknown_minus_one(tmp_path: Path) -> None:
@@ -314,6 +332,10 @@ def test_utm_geotiff_has_the_zone_and_puts_start_and_wall_at_their_easting_north
     with rasterio.open(written["texture.tif"]) as ds:
         assert ds.crs.to_epsg() == epsg and ds.count == 4
         assert ds.read(4)[ds.index(*expected_utm(origin, epsg, 0.5, 0.5))] == 255
+    info = rio_info(written["occupancy.tif"])
+    assert info["crs"] == f"EPSG:{epsg}"
+    assert info["lnglat"] == pytest.approx([origin.longitude_deg, origin.latitude_deg], abs=1e-3)  # near the start
+    assert rio_info(written["texture.tif"])["crs"] == f"EPSG:{epsg}"
     run = json.loads(written["run.json"].read_text())
     assert run["georeference"]["epsg"] == epsg
 
@@ -494,19 +516,25 @@ def test_run_json_accuracy_from_relations_and_ground_truth(tmp_path: Path) -> No
     assert accuracy["ate_m"] == pytest.approx(0.0, abs=1e-9)  # a pure shift vanishes after alignment
 
 
-def test_animation_places_snapshots_that_reach_past_the_final_map() -> None:
-    """A snapshot larger than the final map (the filter's own frame before loop closing) whose pooled
-    copy pads past the canvas: every frame has the canvas size and the snapshot's wall is where it is."""
-    from slam_engine.products.animation import animation_frames
+def test_animation_has_the_final_maps_framing() -> None:
+    """A snapshot reaching far past the final map (the filter's own map with 30 m rays) is cut to the
+    final map's known cells: every frame is framed as the final map, which fills it, and a wall both
+    show is at the same pixel in both."""
+    from slam_engine.products.animation import animation_frames, map_extent
 
-    final = OccupancyGrid(np.zeros((100, 100), np.float32), 0.05, 0.0, 0.0)
-    big = np.full((301, 299), -2.0, np.float32)  # odd sizes: pooling pads them
-    big[150:155, 100:105] = 4.0  # a wall around x = -5 + 100.5 * 0.05 = 0.03 m, y = -5 + 152 * 0.05 = 2.6 m
-    snapshot = MapSnapshot(scan_index=0, t_s=0.0, grid=OccupancyGrid(big, 0.05, -5.0, -5.0),
+    final_log_odds = np.zeros((200, 200), np.float32)
+    final_log_odds[50:150, 40:160] = -2.0  # known: x in [2.0, 8.0), y in [2.5, 7.5)
+    final_log_odds[100:103, 100:103] = 4.0  # a wall at x = 5.0..5.15, y = 5.0..5.15
+    final = OccupancyGrid(final_log_odds, 0.05, 0.0, 0.0)
+    assert map_extent(final) == pytest.approx((2.0, 2.5, 8.0, 7.5))
+    big = np.full((600, 600), -2.0, np.float32)  # 30 m of rays: x, y in [-10, 20)
+    big[300:303, 300:303] = 4.0  # the same wall
+    snapshot = MapSnapshot(scan_index=0, t_s=0.0, grid=OccupancyGrid(big, 0.05, -10.0, -10.0),
                            trajectory=Trajectory(np.zeros(2), np.zeros((2, 3))))
-    frames = list(animation_frames([snapshot], final, Trajectory(np.zeros(2), np.zeros((2, 3))), max_side_px=64))
-    assert len(frames) == 2 and frames[0].size == frames[1].size
-    pixel_m = (299 * 0.05) / frames[0].size[0]
-    col = int((0.15 - -5.0) / pixel_m)
-    row = int((-5.0 + 301 * 0.05 - 2.6) / pixel_m)
-    assert np.asarray(frames[0])[row, col] < 60  # dark: the wall
+    frames = list(animation_frames([snapshot], final, Trajectory(np.zeros(2), np.zeros((2, 3))), max_side_px=400))
+    assert [f.size for f in frames] == [(120, 100), (120, 100)]  # 6 m x 5 m at 0.05 m: the final map's cells
+    last = np.asarray(frames[1].convert("L"))
+    assert (last != UNKNOWN_GRAY).all()  # the final map fills its frame
+    wall = (int((5.05 - 2.0) / 0.05), int((7.5 - 5.05) / 0.05))  # (col, row)
+    for frame in frames:
+        assert np.asarray(frame.convert("L"))[wall[1], wall[0]] < 60

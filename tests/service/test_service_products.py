@@ -19,9 +19,9 @@ def test_every_listed_product_downloads_under_its_name(tmp_path) -> None:
         assert done["status"] == "succeeded", done
         listed = set(done["products"])
         # what the engine writes, each under its file name (texture: the synthetic room has a floor texture)
-        # no snapshots; no key frames (a drawn room, not a SLAM run): no map bundle; not a localisation
-        # or an extension (tests/service/test_service_saved_maps.py downloads theirs)
-        assert listed == set(MEDIA_TYPES) - {"dead_reckoning.tum", "animation.gif", "map_bundle.npz",
+        # no snapshots; no key frames (a drawn room, not a SLAM run): no map bundle and no point cloud;
+        # not a localisation or an extension (tests/service/test_service_saved_maps.py downloads theirs)
+        assert listed == set(MEDIA_TYPES) - {"animation.gif", "map_bundle.npz", "map_points.ply",
                                              "localization.png", "confidence.json", "drives.png"}, listed
         job_dir = DataDir(tmp_path).job_dir(job["id"])
         for name in sorted(listed):

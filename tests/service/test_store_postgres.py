@@ -9,24 +9,16 @@ PostgreSQL (not in a SQLite file), and errors that never show the database passw
 
 from __future__ import annotations
 
-import glob
 import os
-import pwd
-import secrets
-import shutil
-import socket
 import sqlite3
-import subprocess
-import tempfile
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from postgres_server import PG_USER, free_port
 
 import service.storage.job_records as job_records
 import service.storage.log_records as log_records
@@ -36,97 +28,7 @@ from service.settings import Settings
 from service.storage.rows import JobRow, LogRow
 from service.storage.store import JobStore, PostgresBackend, StoreUnavailable, open_store, safe_url
 
-PG_USER = "lidarmap"
 QUICK = {"particles": 5, "seed": 1, "resolution_m": 0.1, "snapshot_every_scans": 0}
-
-
-def _require(condition: bool, reason: str) -> None:
-    if not condition:
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(reason)
-        pytest.skip(reason)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _postgres_bin() -> Path | None:
-    """The newest PostgreSQL server binaries on this machine (Debian layout, else PATH)."""
-    found = sorted(glob.glob("/usr/lib/postgresql/*/bin/initdb"), key=lambda p: int(Path(p).parts[-3]))
-    if found:
-        return Path(found[-1]).parent
-    initdb = shutil.which("initdb")
-    return Path(initdb).parent if initdb else None
-
-
-@dataclass
-class PostgresServer:
-    port: int
-    password: str
-    _databases: int = 0
-
-    def url(self, database: str, password: str | None = None) -> str:
-        return f"postgresql://{PG_USER}:{password or self.password}@127.0.0.1:{self.port}/{database}"
-
-    def new_database(self) -> str:
-        """The URL of a new, empty database."""
-        import psycopg
-
-        self._databases += 1
-        name = f"store_{self._databases}"
-        with psycopg.connect(self.url("postgres"), autocommit=True) as conn:
-            conn.execute(f"CREATE DATABASE {name}")
-        return self.url(name)
-
-
-@pytest.fixture(scope="module")
-def postgres():
-    """A throw-away PostgreSQL server: loopback only, a random free port, its socket and data in a
-    temporary folder, password authentication (SCRAM), no fsync; stopped and deleted afterwards."""
-    bin_dir = _postgres_bin()
-    _require(bin_dir is not None, "PostgreSQL server binaries not found (Debian package postgresql: "
-             "/usr/lib/postgresql/<version>/bin/initdb): the PostgreSQL job store tests need a real server")
-    try:
-        import psycopg  # noqa: F401
-    except ImportError:
-        _require(False, "psycopg not installed: pip install '.[distributed]'")
-    as_user: list[str] = []
-    owner = os.getuid()
-    if owner == 0:  # postgres refuses to run as root: run it as the 'postgres' system user
-        try:
-            owner = pwd.getpwnam("postgres").pw_uid
-        except KeyError:
-            _require(False, "running as root and no 'postgres' user to run the PostgreSQL server as")
-        as_user = ["runuser", "-u", "postgres", "--"]
-    folder = Path(tempfile.mkdtemp(prefix="lidarmap-pg-"))
-    password = secrets.token_hex(12)
-    (folder / "password").write_text(password + "\n")
-    (folder / "socket").mkdir()
-    os.chown(folder, owner, -1)
-    for child in folder.iterdir():
-        os.chown(child, owner, -1)
-    data, log = folder / "data", folder / "server.log"
-
-    def run(*args: str) -> None:
-        result = subprocess.run([*as_user, *args], capture_output=True, text=True, timeout=60)
-        assert result.returncode == 0, f"{' '.join(args)} failed:\n{result.stdout}\n{result.stderr}\n" + (
-            log.read_text() if log.exists() else "")
-
-    port = _free_port()
-    try:
-        run(str(bin_dir / "initdb"), "-D", str(data), "-U", PG_USER, "--auth=scram-sha-256",
-            f"--pwfile={folder / 'password'}", "-E", "UTF8", "--no-sync")
-        run(str(bin_dir / "pg_ctl"), "-D", str(data), "-l", str(log), "-w", "-t", "30", "-o",
-            f"-h 127.0.0.1 -p {port} -k {folder / 'socket'} -F -c synchronous_commit=off -c full_page_writes=off",
-            "start")
-        yield PostgresServer(port, password)
-    finally:
-        if (data / "postmaster.pid").exists():
-            run(str(bin_dir / "pg_ctl"), "-D", str(data), "-m", "fast", "-w", "stop")
-        shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture(params=["sqlite", "postgres"])
@@ -452,7 +354,7 @@ def test_database_urls_and_passwords_never_shown(postgres, tmp_path) -> None:
     assert "wrong-password-123" not in info.value.message and info.value.__suppress_context__
     assert info.value.status_code == 503 and wrong.ping() is False
 
-    down = open_store(f"postgresql://{PG_USER}:{postgres.password}@127.0.0.1:{_free_port()}/x", tmp_path)
+    down = open_store(f"postgresql://{PG_USER}:{postgres.password}@127.0.0.1:{free_port()}/x", tmp_path)
     with pytest.raises(StoreUnavailable, match="is unavailable: connection failed") as info:
         down.get_job("x")
     assert postgres.password not in info.value.message and down.ping() is False
@@ -462,28 +364,34 @@ def test_database_urls_and_passwords_never_shown(postgres, tmp_path) -> None:
 
 def test_postgres_store_borrows_pooled_connections(postgres, tmp_path) -> None:
     """Transactions reuse a few pooled connections (not one connection each); a pickled store (as
-    sent to a worker process) carries no pool and opens its own; close() ends the connections."""
+    sent to a worker process) carries no engine and makes its own; close() ends the connections."""
     import pickle
     from concurrent.futures import ThreadPoolExecutor
+
+    from sqlalchemy import event
 
     from service.storage.store import POSTGRES_POOL_MAX_CONNECTIONS
 
     store = open_store(postgres.new_database(), tmp_path / "unused.sqlite3")
     store.initialise()
     session = store.create_session("alice", "pooled", None, None, None)
+    engine = store.backend.engine()
+    opened, lent = [], []
+    event.listen(engine, "connect", lambda *_: opened.append(1))
+    event.listen(engine, "checkout", lambda *_: lent.append(1))
+    before = engine.pool.checkedin()
     with ThreadPoolExecutor(max_workers=8) as threads:
         found = list(threads.map(lambda _: store.get_session(session.id, "alice"), range(200)))
     assert all(row.name == "pooled" for row in found)
-    stats = store.backend._pool.get_stats()
-    assert stats["requests_num"] >= 202
-    assert 1 <= stats["connections_num"] <= POSTGRES_POOL_MAX_CONNECTIONS  # connections opened, ever
+    assert len(lent) == 200
+    assert 1 <= before + len(opened) == engine.pool.checkedin() <= POSTGRES_POOL_MAX_CONNECTIONS  # opened, ever
 
     copy = pickle.loads(pickle.dumps(store))
-    assert copy.backend._pool is None and copy.get_session(session.id, "alice").name == "pooled"
-    assert copy.backend._pool is not store.backend._pool
+    assert copy.backend._engine is None and copy.get_session(session.id, "alice").name == "pooled"
+    assert copy.backend._engine is not engine
     store.close()
     copy.close()
-    assert store.backend._pool is None and store.ping() is True  # a closed store opens a new pool on use
+    assert store.backend._engine is None and store.ping() is True  # a closed store opens a new pool on use
     store.close()
 
 

@@ -471,3 +471,111 @@ def test_a_localisation_and_an_extension_are_shown_on_their_saved_map(tmp_path) 
             assert page.locator("#job-downloads a[data-product='map_bundle.npz']").count() == 1
             ARTIFACTS.mkdir(exist_ok=True)
             page.screenshot(path=str(ARTIFACTS / "viewer-extension.png"))
+
+
+def test_a_finished_map_is_fitted_keyed_and_summarised(tmp_path) -> None:
+    """The known room: while it runs no empty dead-reckoning layer is offered; opened when finished, the
+    map fills the pane around the trajectory, drawn thin and half transparent, with a colour key, a
+    summary of the run record and every download (occupancy_trajectory.png included). A screenshot of
+    the finished page is left in tests/artifacts/viewer-finished-map.png."""
+    log = _simulated_log(tmp_path)  # accepted by the upload check; the room job does not read it
+    with _serve(tmp_path / "data", ROOM_JOB) as url, httpx.Client(base_url=url, timeout=60) as api:
+        sid = api.post("/v1/sessions", json={"name": "room"}).json()["id"]
+        with log.open("rb") as f:
+            assert api.post(f"/v1/sessions/{sid}/logs", files={"file": (log.name, f)}).status_code == 201
+        job_id = api.post(f"/v1/sessions/{sid}/jobs", json={"particles": 12, "seed": 400}).json()["id"]
+
+        with _browser_page("viewer-running-room") as page:
+            page.goto(f"{url}/viewer/#job={job_id}")
+            page.wait_for_selector("#job-status.running", timeout=30_000)
+            page.wait_for_selector(".tiles-occupancy img.leaflet-tile-loaded", timeout=30_000)
+            assert api.get(f"/v1/jobs/{job_id}").json()["status"] == "running"
+            assert page.get_by_label("Dead reckoning").count() == 0  # nothing to show yet: not offered
+            assert page.locator(".map-key .key-dead-reckoning").count() == 0
+            page.wait_for_selector("#job-status.succeeded", timeout=60_000)
+            page.wait_for_selector("path.trajectory-dead-reckoning", timeout=30_000)
+            assert page.get_by_label("Dead reckoning").is_checked()  # offered once it has poses
+            assert page.locator(".map-key .key-dead-reckoning").count() == 1
+
+        with _browser_page("viewer-finished-map") as page:
+            page.goto(f"{url}/viewer/#job={job_id}")
+            page.wait_for_selector(".tiles-occupancy img.leaflet-tile-loaded", timeout=30_000)
+            page.wait_for_selector(".leaflet-overlay-pane svg path.trajectory-slam")
+            page.wait_for_selector("#job-summary:not([hidden])")
+            page.wait_for_timeout(500)  # last tiles settle
+
+            # fitted: the trajectory and a 2 m margin fill the pane's limiting side (at whole zooms with
+            # a 25 % margin the room's trajectory filled under half of the pane)
+            pane = page.locator("#map").bounding_box()
+            path = page.locator(".leaflet-overlay-pane svg path.trajectory-slam").bounding_box()
+            south, west, north, east = page.evaluate(
+                "(() => { const b = window.lidarmap.jobMap.layers.trajectory.getBounds();"
+                " return [b.getSouth(), b.getWest(), b.getNorth(), b.getEast()]; })()")
+            width_m, height_m = east - west, north - south
+            pixels_per_m = min(pane["width"] / (width_m + 4.0), pane["height"] / (height_m + 4.0))
+            assert path["width"] == pytest.approx(width_m * pixels_per_m, abs=4), (path, pane, width_m)
+            assert path["height"] == pytest.approx(height_m * pixels_per_m, abs=4), (path, pane, height_m)
+            assert max(path["width"] / pane["width"], path["height"] / pane["height"]) > 0.6
+
+            # thin, half transparent lines
+            style = page.eval_on_selector(".leaflet-overlay-pane svg path.trajectory-slam",
+                                          "p => [p.getAttribute('stroke-width'), p.getAttribute('stroke-opacity')]")
+            assert [float(v) for v in style] == [1.5, 0.6]
+
+            # the colour key: the map's three greys and both lines
+            key = page.locator(".map-key").inner_text().splitlines()
+            assert key == ["occupied", "free", "unknown", "Trajectory (SLAM)", "Dead reckoning"], key
+
+            # the run record's summary
+            figures = {row.get_attribute("data-figure"): row.locator(".summary-text").inner_text()
+                       for row in page.locator("#job-summary .summary-row").all()}
+            assert figures["accuracy"].startswith("not known"), figures
+            assert re.fullmatch(r"\d+ s for 12 scans(, [\d.]+ scans/s)?", figures["time"]), figures
+            assert figures["warnings"] == "none", figures
+
+            labels = page.locator("#job-downloads a").all_inner_texts()
+            assert "occupancy + trajectories.png" in labels, labels
+            with page.expect_download() as download_info:
+                page.click("#job-downloads a[data-product='occupancy_trajectory.png']")
+            assert Image.open(download_info.value.path()).size == (280, 200)
+            ARTIFACTS.mkdir(exist_ok=True)
+            page.screenshot(path=str(ARTIFACTS / "viewer-finished-map.png"))
+
+
+@pytest.mark.slow
+def test_loop_closures_are_drawn_and_counted(tmp_path) -> None:
+    """The simulated office loop mapped by the real pipeline: each accepted loop closure is a line between
+    its two key frames' places, counted in the colour key and the summary."""
+    from slam_engine.formats import write_log
+    from slam_engine.simulation import simulate
+
+    log = write_log(simulate("office", seed=0, cameras=False).log, "carmen", tmp_path / "office")
+    with _serve(tmp_path / "data") as url, httpx.Client(base_url=url, timeout=60) as api:
+        sid = api.post("/v1/sessions", json={"name": "office loop"}).json()["id"]
+        with log.open("rb") as f:
+            assert api.post(f"/v1/sessions/{sid}/logs", files={"file": (log.name, f)}).status_code == 201
+        job_id = api.post(f"/v1/sessions/{sid}/jobs", json={"particles": 10}).json()["id"]
+        for _ in range(2400):
+            job = api.get(f"/v1/jobs/{job_id}").json()
+            if job["status"] not in ("queued", "running"):
+                break
+            time.sleep(0.1)
+        assert job["status"] == "succeeded", job
+        closing = api.get(f"/v1/jobs/{job_id}/run").json()["loop_closing"]
+        accepted = [c for c in closing["closures"] if c["accepted"]]
+        assert len(accepted) >= 5
+
+        with _browser_page("viewer-closures") as page:
+            page.goto(f"{url}/viewer/#job={job_id}")
+            page.wait_for_selector(".leaflet-overlay-pane svg path.loop-closure")
+            assert page.locator(".leaflet-overlay-pane svg path.loop-closure").count() == len(accepted)
+            ends = page.evaluate("window.lidarmap.jobMap.layers.closures.getLayers()"
+                                 ".map((line) => line.getLatLngs().map((p) => [p.lng, p.lat]))")
+            assert sorted(map(sorted, ends)) == sorted(sorted([c["anchor_xy_m"], c["node_xy_m"]]) for c in accepted)
+            assert page.get_by_label("Loop closures").is_checked()
+            assert f"Loop closures ({len(accepted)})" in page.locator(".map-key").inner_text()
+            page.wait_for_selector("#job-summary:not([hidden])")
+            summary = page.locator("#job-summary [data-figure='loop-closures'] .summary-text").inner_text()
+            assert summary == f"{len(accepted)} accepted of {closing['candidates_matched']} candidates matched"
+            ARTIFACTS.mkdir(exist_ok=True)
+            page.screenshot(path=str(ARTIFACTS / "viewer-closures.png"))

@@ -144,6 +144,8 @@ PRODUCT_SUMMARIES = {
     "dead_reckoning.json": "Odometry alone, as the lidarmap JSON file.",
     "dead_reckoning.tum": "Odometry alone, in TUM format.",
     "run.json": "The run record file: configuration, timings, scan statistics, input summary, accuracy.",
+    "map_points.ply": "The map as a point cloud (binary PLY: Open3D, CloudCompare): every scan's returns at the "
+                      "optimised poses, one point per map cell, stray points removed.",
     "map_bundle.npz": "The map bundle: key frames, their scans and the pose graph, to localise a later drive in "
                       "this map, extend it or merge it (`lidarmap localize/run --map/merge`; docs/map-bundle.md).",
     "drives.png": "An extended map with each drive's trajectory in its own colour (mode 'extend').",

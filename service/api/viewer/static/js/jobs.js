@@ -1,11 +1,16 @@
-// Sessions with their jobs (status, progress), and the selected job's header with its downloads.
+// Sessions with their jobs (status, progress), and the selected job's header with its downloads and,
+// once it succeeded, a summary of its run record (accuracy, timings, loop closures, warnings).
 
-import { getBlob } from "./api.js";
-import { ACTIVE_STATUSES, el, formatEta, formatScans, formatTime, progressPercent, shortId } from "./format.js";
+import { getBlob, getJson } from "./api.js";
+import {
+  ACTIVE_STATUSES, el, formatDuration, formatEta, formatScans, formatTime, progressPercent, shortId,
+} from "./format.js";
 
 /** Every product the page offers for download: [label, path under /v1/jobs/{id}/, product name, file name]. */
 export const DOWNLOADS = Object.freeze([
   ["occupancy.png", "occupancy.png", "occupancy.png", "occupancy.png"],
+  ["occupancy + trajectories.png", "occupancy_trajectory.png", "occupancy_trajectory.png",
+    "occupancy_trajectory.png"],
   ["occupancy.tif (GeoTIFF)", "occupancy.tif", "occupancy.tif", "occupancy.tif"],
   ["map.pgm", "map.pgm", "map.pgm", "map.pgm"],
   ["map.yaml", "map.yaml", "map.yaml", "map.yaml"],
@@ -13,6 +18,7 @@ export const DOWNLOADS = Object.freeze([
   ["dead reckoning (TUM)", "dead-reckoning?format=tum", "dead_reckoning.tum", "dead_reckoning.tum"],
   ["animation.gif", "animation.gif", "animation.gif", "animation.gif"],
   ["texture.png", "texture.png", "texture.png", "texture.png"],
+  ["point cloud (PLY)", "map_points.ply", "map_points.ply", "map_points.ply"],
   ["run record (JSON)", "run", "run.json", "run.json"],
   ["map bundle (to localise in, extend, merge)", "map_bundle.npz", "map_bundle.npz", "map_bundle.npz"],
   ["drives.png", "drives.png", "drives.png", "drives.png"],
@@ -70,6 +76,33 @@ function productAvailable(job, productName) {
   return job.products.length === 0 || job.products.includes(productName);
 }
 
+/** The run record's figures as [label, text] rows; what the record does not hold is left out. */
+export function runSummary(run) {
+  const rows = [];
+  const accuracy = run.accuracy || {};
+  const relations = accuracy.relations && accuracy.relations.all;
+  const parts = [];
+  if (relations && Number.isFinite(relations.trans_mean_m)) {
+    parts.push(`relations ${relations.trans_mean_m.toFixed(3)} ± ${relations.trans_std_m.toFixed(3)} m, `
+      + `${relations.rot_mean_deg.toFixed(2)} ± ${relations.rot_std_deg.toFixed(2)} deg`);
+  }
+  if (Number.isFinite(accuracy.ate_m)) parts.push(`ATE ${accuracy.ate_m.toFixed(3)} m`);
+  rows.push(["Accuracy", parts.length ? parts.join("; ") : "not known (no ground truth or relations given)"]);
+  const timings = run.timings || {};
+  if (Number.isFinite(timings.wall_time_s)) {
+    const rate = Number.isFinite(timings.scans_per_s) ? `, ${timings.scans_per_s.toFixed(1)} scans/s` : "";
+    rows.push(["Time", `${formatDuration(timings.wall_time_s)} for ${timings.scans ?? "?"} scans${rate}`]);
+  }
+  const closing = run.loop_closing || {};
+  if (Number.isFinite(closing.closures_accepted)) {
+    rows.push(["Loop closures", `${closing.closures_accepted} accepted of ${closing.candidates_matched ?? "?"} `
+      + "candidates matched"]);
+  }
+  const warnings = run.warnings || [];
+  rows.push(["Warnings", warnings.length ? warnings.join("\n") : "none"]);
+  return rows;
+}
+
 /** Download with the API key (a plain link cannot send the header) and save under ``fileName``. */
 async function download(url, fileName) {
   const blob = await getBlob(url);
@@ -93,9 +126,11 @@ export class JobHeader {
     this.downloads = document.getElementById("job-downloads");
     this.cancel = document.getElementById("job-cancel");
     this.onError = onError;
+    this.summary = document.getElementById("job-summary");
     this.cancel.addEventListener("click", () => this.job && onCancel(this.job.id));
     this.job = null;
     this.downloadsKey = null;
+    this.summaryKey = null;
   }
 
   render(job, session) {
@@ -113,6 +148,24 @@ export class JobHeader {
     this.error.textContent = job.error || "";
     this.cancel.hidden = !ACTIVE_STATUSES.has(job.status);
     this._renderDownloads(job);
+    this._renderSummary(job);
+  }
+
+  /** A succeeded job's run record, fetched once, as a small table under the downloads. */
+  _renderSummary(job) {
+    const key = job.status === "succeeded" && job.products.includes("run.json") ? job.id : null;
+    if (key === this.summaryKey) return;
+    this.summaryKey = key;
+    this.summary.replaceChildren();
+    this.summary.hidden = true;
+    if (!key) return;
+    getJson(`/v1/jobs/${job.id}/run`).then((run) => {
+      if (this.summaryKey !== key) return;
+      this.summary.replaceChildren(...runSummary(run).map(([label, text]) =>
+        el("div", { class: "summary-row", dataset: { figure: label.toLowerCase().replace(/ /g, "-") } },
+          el("span", { class: "summary-label" }, label), el("span", { class: "summary-text" }, text))));
+      this.summary.hidden = false;
+    }, this.onError);
   }
 
   _renderDownloads(job) {

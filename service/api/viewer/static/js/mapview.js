@@ -1,5 +1,5 @@
 // One job's map: occupancy and texture tiles on a metric L.CRS.Simple, the SLAM and dead-reckoning
-// trajectories as polylines, a scale bar in metres and the cursor's map coordinates.
+// trajectories as polylines, a colour key, a scale bar in metres and the cursor's map coordinates.
 
 import * as L from "../vendor/leaflet/leaflet-src.esm.js";
 import { getBlob, getJson } from "./api.js";
@@ -18,17 +18,22 @@ export const TILE_SCHEME = Object.freeze({
   zoomOutPastWhole: 2, // and out this far past the whole map in one tile
 });
 
-const VIEW_MARGIN_M = 5; // first view: the trajectory and at least this much around it [m]
+const VIEW_MARGIN_M = 2; // first view: the trajectory and at least this much around it [m]
+const VIEW_MARGIN_FRACTION = 0.08; // ... or this fraction of its larger side
 
 const LAYER_NAMES = Object.freeze({
   occupancy: "Occupancy grid",
   texture: "Ground texture",
   trajectory: "Trajectory (SLAM)",
   deadReckoning: "Dead reckoning",
+  closures: "Loop closures",
 });
-const TRAJECTORY_STYLE = { color: "#e8590c", weight: 2.5, opacity: 0.95, className: "trajectory-slam" };
-const DEAD_RECKONING_STYLE = { color: "#1c7ed6", weight: 2, opacity: 0.85, dashArray: "6 5",
+// thin and half transparent: the corridors and walls under the path stay visible
+const TRAJECTORY_STYLE = { color: "#e8590c", weight: 1.5, opacity: 0.6, className: "trajectory-slam" };
+const DEAD_RECKONING_STYLE = { color: "#1c7ed6", weight: 1.5, opacity: 0.55, dashArray: "6 5",
   className: "trajectory-dead-reckoning" };
+// an accepted loop closure: a line between the two key frames it tied together (run.json)
+const CLOSURE_STYLE = { color: "#9c36b5", weight: 1.5, opacity: 0.8, className: "loop-closure" };
 // an extension's saved-map drives, under the new drive's trajectory (TRAJECTORY_STYLE)
 const SAVED_DRIVES_STYLE = { color: "#2f9e44", weight: 2.5, opacity: 0.9, className: "trajectory-saved" };
 const POSE_STYLE = { radius: 5, color: "#fff", weight: 2, fillColor: "#e8590c", fillOpacity: 1,
@@ -54,7 +59,7 @@ function boundsOf(scheme) {
 function initialView(mapBounds, trajectory) {
   if (!trajectory || !trajectory.length) return mapBounds;
   const path = L.latLngBounds(trajectory);
-  const margin = Math.max(VIEW_MARGIN_M, 0.25 * Math.max(
+  const margin = Math.max(VIEW_MARGIN_M, VIEW_MARGIN_FRACTION * Math.max(
     path.getNorth() - path.getSouth(), path.getEast() - path.getWest()));
   const view = L.latLngBounds([path.getSouth() - margin, path.getWest() - margin],
     [path.getNorth() + margin, path.getEast() + margin]);
@@ -118,6 +123,38 @@ const CursorPosition = L.Control.extend({
   },
 });
 
+/** Colour key: what the map's greys and the lines mean (the dead-reckoning line only when it is shown). */
+const ColourKey = L.Control.extend({
+  options: { position: "bottomright" },
+  onAdd() {
+    this.div = L.DomUtil.create("div", "map-key");
+    this.closures = 0;
+    this.setDeadReckoning(false);
+    return this.div;
+  },
+  setDeadReckoning(shown) {
+    this.deadReckoningShown = shown;
+    this._render();
+  },
+  setClosures(count) {
+    this.closures = count;
+    this._render();
+  },
+  _render() {
+    const shown = this.deadReckoningShown;
+    const swatch = (colour, label) => el("div", { class: "map-key-row" },
+      el("span", { class: "map-key-swatch", style: `background: ${colour}` }), label);
+    const line = (style, label, className) => el("div", { class: `map-key-row ${className}` },
+      el("span", { class: "map-legend-line", style: `border-top: 2px ${style.dashArray ? "dashed" : "solid"} `
+        + `${style.color}` }), label);
+    this.div.replaceChildren(...[
+      swatch("#000", "occupied"), swatch("#fff", "free"), swatch("rgb(205, 205, 205)", "unknown"),
+      line(TRAJECTORY_STYLE, LAYER_NAMES.trajectory, "key-trajectory"),
+      shown ? line(DEAD_RECKONING_STYLE, LAYER_NAMES.deadReckoning, "key-dead-reckoning") : null,
+      this.closures ? line(CLOSURE_STYLE, `${LAYER_NAMES.closures} (${this.closures})`, "key-closures") : null].filter(Boolean));
+  },
+});
+
 async function posesOf(path, keep = () => true) {
   try {
     const trajectory = await getJson(path);
@@ -126,6 +163,15 @@ async function posesOf(path, keep = () => true) {
     if (error.status === 404 || error.status === 409) return null; // not (yet) available
     throw error;
   }
+}
+
+/** A finished job's accepted loop closures as [[y, x] anchor, [y, x] node] pairs (null: none recorded). */
+async function closuresOf(jobId) {
+  const run = await getJson(`/v1/jobs/${jobId}/run`).catch(() => null);
+  const closures = run && run.loop_closing && run.loop_closing.closures;
+  if (!closures) return null;
+  return closures.filter((c) => c.accepted && c.node_xy_m && c.anchor_xy_m)
+    .map((c) => [[c.anchor_xy_m[1], c.anchor_xy_m[0]], [c.node_xy_m[1], c.node_xy_m[0]]]);
 }
 
 function hasTexture(job) {
@@ -145,6 +191,8 @@ export class JobMap {
     this.running = null;
     this.queued = null;
     this.onError = () => {};
+    // the pane changes size when the job header grows (its summary): Leaflet must know, or the view shifts
+    new ResizeObserver(() => this.map && this.map.invalidateSize({ animate: false })).observe(container);
   }
 
   /** Show ``job`` (null: nothing) or bring the shown job's map up to date; calls are coalesced. */
@@ -200,10 +248,11 @@ export class JobMap {
     // An extension: the saved map's drives and the new drive (its log's time span) in two colours.
     const span = job.config.mode === "extend" && job.input && job.input.summary && job.input.summary.time_span_s;
     const isNew = (t) => !!span && t >= span[0] && t <= span[1];
-    const [trajectory, deadReckoning, savedDrives] = await Promise.all([
+    const [trajectory, deadReckoning, savedDrives, closures] = await Promise.all([
       listed("trajectory.json") ? posesOf(`/v1/jobs/${job.id}/trajectory`, (t) => !span || isNew(t)) : null,
       listed("dead_reckoning.json") ? posesOf(`/v1/jobs/${job.id}/dead-reckoning`) : null,
-      span && listed("trajectory.json") ? posesOf(`/v1/jobs/${job.id}/trajectory`, (t) => !isNew(t)) : null]);
+      span && listed("trajectory.json") ? posesOf(`/v1/jobs/${job.id}/trajectory`, (t) => !isNew(t)) : null,
+      job.status === "succeeded" && job.products.includes("run.json") ? closuresOf(job.id) : null]);
     if (job.id !== this.jobId) return; // another job was selected meanwhile
     if (!this.map || !sameGeometry(this.scheme, scheme) || !!textureScheme !== !!this.layers.texture) {
       this._build(job.id, scheme, !!textureScheme, version, trajectory);
@@ -212,6 +261,7 @@ export class JobMap {
       if (this.layers.texture) this.layers.texture.refreshTiles(version);
     }
     this._setPaths(trajectory, deadReckoning, savedDrives);
+    this._setClosures(closures);
     this.version = version;
   }
 
@@ -262,29 +312,37 @@ export class JobMap {
       pose: L.circleMarker([0, 0], POSE_STYLE),
       deadReckoning: L.polyline([], DEAD_RECKONING_STYLE),
       savedDrives: L.polyline([], SAVED_DRIVES_STYLE),
+      closures: L.layerGroup(),
     };
     const trajectoryGroup = L.layerGroup([this.layers.savedDrives, this.layers.trajectory]);
     this.layers.trajectoryGroup = trajectoryGroup;
+    // dead reckoning is offered once it has poses (a running job has none yet): see _setPaths
     const overlays = {
       [LAYER_NAMES.occupancy]: this.layers.occupancy,
       ...(withTexture ? { [LAYER_NAMES.texture]: this.layers.texture } : {}),
-      [LAYER_NAMES.deadReckoning]: this.layers.deadReckoning,
       [LAYER_NAMES.trajectory]: trajectoryGroup,
     };
     for (const [name, layer] of Object.entries(overlays)) {
       if (!this.hidden.has(name)) layer.addTo(map);
     }
-    L.control.layers(null, overlays, { collapsed: false, position: "topright" }).addTo(map);
+    this.layerControl = L.control.layers(null, overlays, { collapsed: false, position: "topright" }).addTo(map);
+    this.deadReckoningOffered = false;
+    this.closuresOffered = false;
     L.control.scale({ imperial: false, metric: true, maxWidth: 160, position: "bottomleft" }).addTo(map);
     new CursorPosition().addTo(map);
+    this.colourKey = new ColourKey().addTo(map);
     map.on("overlayadd", (event) => this.hidden.delete(event.name));
     map.on("overlayremove", (event) => this.hidden.add(event.name));
+    // The first view may take a fractional zoom (fitted to the pane: whole zooms would leave up to half
+    // of it empty; a rebuilt map keeps the view it had); the zoom buttons then step by whole zooms.
+    map.options.zoomSnap = 0;
     if (previous) {
       // Same place, same metres per pixel: one native zoom step more halves the cell size on screen.
       map.setView(previous.center, previous.zoom + (native - previous.nativeZoom), { animate: false });
     } else {
       map.fitBounds(initialView(bounds, trajectory), { animate: false });
     }
+    map.options.zoomSnap = 1;
     this.map = map;
     this.scheme = scheme;
     this._setPlaceholder(null);
@@ -294,6 +352,12 @@ export class JobMap {
     this.layers.trajectory.setLatLngs(trajectory || []);
     this.layers.savedDrives.setLatLngs(savedDrives || []);
     this.layers.deadReckoning.setLatLngs(deadReckoning || []);
+    if (deadReckoning && deadReckoning.length && !this.deadReckoningOffered) {
+      this.deadReckoningOffered = true;
+      this.layerControl.addOverlay(this.layers.deadReckoning, LAYER_NAMES.deadReckoning);
+      if (!this.hidden.has(LAYER_NAMES.deadReckoning)) this.layers.deadReckoning.addTo(this.map);
+      this.colourKey.setDeadReckoning(true);
+    }
     const group = this.layers.trajectoryGroup;
     if (trajectory && trajectory.length) {
       this.layers.pose.setLatLng(trajectory[trajectory.length - 1]);
@@ -301,6 +365,16 @@ export class JobMap {
     } else if (group.hasLayer(this.layers.pose)) {
       group.removeLayer(this.layers.pose);
     }
+  }
+
+  /** Accepted loop closures as lines, offered in the layer control and the key once there are any. */
+  _setClosures(closures) {
+    if (!closures || !closures.length || this.closuresOffered) return;
+    this.closuresOffered = true;
+    for (const ends of closures) this.layers.closures.addLayer(L.polyline(ends, CLOSURE_STYLE));
+    this.layerControl.addOverlay(this.layers.closures, LAYER_NAMES.closures);
+    if (!this.hidden.has(LAYER_NAMES.closures)) this.layers.closures.addTo(this.map);
+    this.colourKey.setClosures(closures.length);
   }
 
   _clear(text) {
