@@ -89,24 +89,35 @@ class JobRecords(StoreBase):
             tx.execute("UPDATE jobs SET input_json = ? WHERE id = ?", (dump_json(input_description), job_id))
 
     def update_progress(self, job_id: str, scans_done: int, scans_total: int | None) -> bool:
-        """Record progress and heartbeat; returns whether a cancel was requested."""
+        """Record progress and heartbeat; returns whether the job should stop (a cancel was requested, or
+        it is not running any more: failed as lost or interrupted meanwhile)."""
         progress = 0.0 if not scans_total else min(1.0, max(0.0, scans_done / scans_total))
         with self._tx() as tx:
             tx.execute("UPDATE jobs SET scans_done = ?, scans_total = ?, progress = ?, heartbeat_at = ? "
                        "WHERE id = ? AND status = ?",
                        (scans_done, scans_total, progress, time.time(), job_id, _RUNNING))
-            row = tx.execute("SELECT cancel_requested FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return row is None or bool(row["cancel_requested"])
+            row = tx.execute("SELECT status, cancel_requested FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return row is None or row["status"] != _RUNNING or bool(row["cancel_requested"])
+
+    def owns(self, job_id: str, worker_pid: int) -> bool:
+        """Whether the job is still running on the worker process ``worker_pid`` (not failed as lost or
+        interrupted meanwhile): only then may that worker move its products in and finish it."""
+        with self._tx() as tx:
+            row = tx.execute("SELECT status, worker_pid FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return row is not None and row["status"] == _RUNNING and row["worker_pid"] == worker_pid
 
     def cancel_requested(self, job_id: str) -> bool:
         with self._tx() as tx:
             row = tx.execute("SELECT cancel_requested FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return row is None or bool(row["cancel_requested"])
 
-    def set_products(self, job_id: str, products: dict[str, str]) -> None:
-        """Product name -> file name inside the job's artifact folder."""
+    def set_products(self, job_id: str, products: dict[str, str]) -> bool:
+        """Product name -> file name inside the job's artifact folder, for a job still active; False (and
+        nothing listed) once it is terminal, e.g. failed while a worker it no longer belongs to wrote."""
         with self._tx() as tx:
-            tx.execute("UPDATE jobs SET products_json = ? WHERE id = ?", (dump_json(products), job_id))
+            cur = tx.execute(f"UPDATE jobs SET products_json = ? WHERE id = ? AND status IN {_ACTIVE}",
+                             (dump_json(products), job_id, *_ACTIVE_VALUES))
+            return cur.rowcount == 1
 
     def finish(self, job_id: str, status: JobStatus, error: str | None = None) -> bool:
         """An active job -> a terminal status (first writer wins); False when already terminal."""
