@@ -17,7 +17,7 @@ from typing import Any
 
 from api_schemas.jobs import JobMode, JobSource
 from service.jobs.context import JobContext
-from service.jobs.estimate import check_job_memory
+from service.jobs.estimate import check_drive_memory, check_job_memory
 from service.jobs.live import run_live_job
 from service.jobs.outputs import LiveMap, job_session, write_job_products
 from service.jobs.products import COMPILING_FILE
@@ -109,8 +109,12 @@ def _run_mapping_job(ctx: JobContext) -> None:
     log, description = load_input(ctx)
     ctx.store.set_input(ctx.job_id, description)
     config = engine_config(ctx.job.config)
-    if ctx.memory is not None:  # streamed input: its scan count (and so its frames) is known only now
-        check_job_memory(config, len(log.scans) if log.scans is not None else 0, ctx.memory.limit_mb)
+    if ctx.memory is not None:  # streamed input: its scan count and extent are known only now
+        from slam_engine.evaluation.memory_estimate import drive_figures
+
+        scans = len(log.scans) if log.scans is not None else 0
+        check_job_memory(config, scans, ctx.memory.limit_mb)
+        check_drive_memory(config, drive_figures(log), scans, ctx.memory.limit_mb)
     live = LiveMap(ctx.data.live_dir(ctx.job_id))
 
     def on_progress(progress: Any) -> None:

@@ -27,6 +27,7 @@ one address and one key, and a small upload is cheap to read whoever sends it.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import gzip
 import multiprocessing as mp
 import os
@@ -109,8 +110,11 @@ def inspect_log(path: str, format_name: str, max_decompressed_bytes: int, hidden
         return _error("memory", "", None)
     except Exception as exc:  # a loader bug on odd input is still the input's problem to the client
         return _error("log_format", f"the loader failed on this log ({type(exc).__name__})", None)
+    from slam_engine.evaluation.memory_estimate import drive_figures
+
     summary = log.summary()
     summary["warnings"] = [_shown(w, hidden_prefix) for w in summary.get("warnings", [])]
+    summary["memory_figures"] = dataclasses.asdict(drive_figures(log))  # for the job's memory estimate
     return {"summary": summary}
 
 
