@@ -96,6 +96,22 @@ def test_slow_bombs_in_every_lane_do_not_hold_up_a_small_upload(tmp_path, sim_lo
         bomber.join(timeout=30)
 
 
+def test_absurd_numbers_are_refused_at_upload_naming_line_and_value(tmp_path, sim_log) -> None:
+    """Issue 41 item 9: ODOM at 1.7e308 was accepted (201) and its job failed "internal error: SystemError:
+    CPUDispatcher(<function match_particles at 0x...>)". Now the upload answers 422 naming line and value."""
+    lines = sim_log.decode().splitlines()
+    odom = [i for i, line in enumerate(lines) if line.startswith("ODOM ")][3]
+    tokens = lines[odom].split()
+    tokens[1] = "1.7e308"
+    lines[odom] = " ".join(tokens)
+    with service_client(tmp_path) as client:
+        sid = new_session(client)
+        err = assert_error(upload(client, sid, "log.clf", ("\n".join(lines) + "\n").encode()), 422, "log_format")
+        assert err["detail"]["location"] == f"line {odom + 1}", err
+        assert "ODOM pose is 1.7e+308 m" in err["message"] and str(tmp_path) not in err["message"], err
+        assert client.get(f"/v1/sessions/{sid}").json()["logs"] == 0
+
+
 def test_inspection_time_and_inflated_size_are_bounded(tmp_path, sim_log) -> None:
     with service_client(tmp_path, inspection_timeout_s=1.0, inspection_processes=1,
                         max_extracted_bytes=16 * 1024**2) as client:
