@@ -73,7 +73,7 @@ def test_slow_bombs_in_every_lane_do_not_hold_up_a_small_upload(tmp_path, sim_lo
     little memory; with both regular lanes busy, the small upload is read in the express lane and
     answered while both bombs are still being read."""
     bomb = gzip.compress(head(sim_log) + b"SYNC 0 0 0 0\n" * (800 * 1024**2 // 13), 6)
-    assert len(bomb) < 4 * 1024**2  # small on the wire: only its recorded inflated size keeps it out of the express lane
+    assert len(bomb) < 4 * 1024**2  # small on the wire: its recorded inflated size keeps it out of the express lane
     with service_client(tmp_path, inspection_processes=2, inspection_timeout_s=120) as client:
         sid = new_session(client)
         answers: dict[str, object] = {}
