@@ -25,10 +25,11 @@ class Settings(BaseSettings):
     database_url: str = Field("", description="Job store: empty = SQLite in the data folder (one host), "
                               "sqlite:////absolute/path.sqlite3, or postgresql://user:password@host:5432/db "
                               "(API and workers on several hosts).", repr=False)
-    heartbeat_s: float = Field(5.0, ge=0.1, le=300.0, description="How often a Celery worker's job "
-                               "writes its heartbeat to the store.")
-    worker_lost_s: float = Field(60.0, ge=1.0, le=86_400.0, description="A running Celery job whose "
-                                 "heartbeat is older than this is failed as 'worker lost'.")
+    heartbeat_s: float = Field(5.0, ge=0.1, le=300.0, description="How often [s] a running job's worker "
+                               "(local or Celery) writes its heartbeat to the store.")
+    worker_lost_s: float = Field(60.0, ge=1.0, le=86_400.0, description="A running job whose heartbeat is "
+                                 "older than this [s] is failed as 'worker lost' (its worker stopped, hung or "
+                                 "gone); a local worker is then killed and replaced.")
     max_upload_bytes: int = Field(2 * 1024**3, ge=1024, le=1024**4, description="Largest accepted upload.")
     max_zip_entries: int = Field(100_000, ge=1, le=10_000_000, description="Most files in an uploaded zip.")
     max_extracted_bytes: int = Field(8 * 1024**3, ge=1024, le=4 * 1024**4,
@@ -40,6 +41,12 @@ class Settings(BaseSettings):
                                         "inspection may take; past it the inspecting process is killed: 422.")
     inspection_processes: int = Field(2, ge=1, le=64, description="Uploads inspected at once (one process "
                                       "each); more wait their turn.")
+    inspection_express_bytes: int = Field(4 * 1024**2, ge=0, le=1024**3, description="Uploads up to this size "
+                                          "[bytes] once inflated may be inspected in one more process, the express "
+                                          "lane, when every other is busy (0 = no express lane).")
+    inspection_express_timeout_s: float = Field(10.0, ge=0.5, le=600.0, description="Time [s] one upload may "
+                                                "take in the express lane; past it, it is inspected again in a "
+                                                "regular lane.")
     max_chunk_bytes: int = Field(16 * 1024**2, ge=1024, le=1024**3, description="Largest streamed chunk body "
                                  "(and any other JSON body); the API holds about 8 times this while it parses one.")
     body_stall_timeout_s: float = Field(60.0, ge=0.5, le=3600.0, description="A request whose body gets no "

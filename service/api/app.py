@@ -56,7 +56,7 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
         app.state.data, app.state.store, app.state.runner = data, store, runner
         app.state.inspector = LogInspector(InspectionLimits(
             settings.inspection_memory_limit_mb, settings.inspection_timeout_s, settings.max_extracted_bytes,
-            settings.inspection_processes))
+            settings.inspection_processes, settings.inspection_express_bytes, settings.inspection_express_timeout_s))
         try:
             yield
         finally:

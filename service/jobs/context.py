@@ -37,6 +37,7 @@ class JobContext:
     store: JobStore
     data: DataDir
     memory: MemoryGuard | None = field(default=None, repr=False)
+    staging: Path | None = field(default=None, repr=False)
     _last_write_s: float = field(default=0.0, repr=False)
 
     def peak_memory_bytes(self) -> int | None:
@@ -45,8 +46,10 @@ class JobContext:
 
     @property
     def out_dir(self) -> Path:
-        """The job's artifact folder (created)."""
-        path = self.data.job_dir(self.job_id)
+        """Where the job writes its artifacts (created): this attempt's ``staging`` folder, moved into the
+        job's folder only while the job is still this worker's (:func:`service.runners.worker.publish`),
+        or the job's folder itself when there is none."""
+        path = self.staging or self.data.job_dir(self.job_id)
         path.mkdir(parents=True, exist_ok=True)
         return path
 

@@ -8,7 +8,13 @@ from typing import Any
 
 from api_schemas.jobs import JobSource
 from service.http_errors import Conflict, InvalidInput, NotFound
-from service.jobs.estimate import check_job_memory, estimate_bytes
+from service.jobs.estimate import (
+    check_drive_memory,
+    check_job_memory,
+    drive_estimate,
+    estimate_bytes,
+    stored_figures,
+)
 from service.jobs.saved_maps import saved_map_path
 from service.jobs.settings import JobSettings, resolve, stored_config
 from service.storage.data_dir import DataDir
@@ -29,9 +35,11 @@ def create_job(body: JobSettings, session: SessionRow, store: JobStore, data: Da
     config = stored_config(body, slam)
     source = input_source(body, session)
     log_id = None if source is JobSource.STREAM else input_log(body, session, store)
-    # the scan count is known up front for an upload; a streamed job checks again once its input is read
-    scans = None if log_id is None else _scans_of(store, log_id, session.id)
+    # an upload's scan count and extent are known up front; every job checks again once its input is read
+    summary = {} if log_id is None else _summary_of(store, log_id, session.id)
+    scans = summary.get("streams", {}).get("scans")
     refuse_costly_job(slam, scans, limit_mb)
+    refuse_costly_drive(slam, summary, scans, limit_mb)
     if body.map_job_id is not None:
         saved_map_path(store, data, session.owner, body.map_job_id)  # 404 / 409 now, not when the job runs
     if body.live:
@@ -65,9 +73,9 @@ def input_log(body: JobSettings, session: SessionRow, store: JobStore) -> str:
     return newest[0].id
 
 
-def _scans_of(store: JobStore, log_id: str, session_id: str) -> int | None:
+def _summary_of(store: JobStore, log_id: str, session_id: str) -> dict[str, Any]:
     row = store.get_log(log_id, session_id)
-    return None if row is None else row.summary.get("streams", {}).get("scans")
+    return {} if row is None else row.summary
 
 
 def refuse_costly_job(config: SlamConfig, scans: int | None, limit_mb: int) -> None:
@@ -76,6 +84,20 @@ def refuse_costly_job(config: SlamConfig, scans: int | None, limit_mb: int) -> N
         check_job_memory(config, scans, limit_mb)
     except ConfigError as exc:
         err = InvalidInput(str(exc), {"limit_mb": limit_mb, **estimate_bytes(config, scans)})
+        err.code = "job_too_large"
+        raise err from None
+
+
+def refuse_costly_drive(config: SlamConfig, summary: dict[str, Any], scans: int | None, limit_mb: int) -> None:
+    """422 with the estimate when mapping the uploaded drive (its extent and scans, as its inspection
+    measured them) is estimated to need more than ``limit_mb``."""
+    figures = stored_figures(summary)
+    if figures is None:
+        return
+    try:
+        check_drive_memory(config, figures, scans, limit_mb)
+    except ConfigError as exc:
+        err = InvalidInput(str(exc), {"limit_mb": limit_mb, **drive_estimate(config, figures)})
         err.code = "job_too_large"
         raise err from None
 

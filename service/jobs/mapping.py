@@ -17,7 +17,7 @@ from typing import Any
 
 from api_schemas.jobs import JobMode, JobSource
 from service.jobs.context import JobContext
-from service.jobs.estimate import check_job_memory
+from service.jobs.estimate import ExtentGuard, check_drive_memory, check_job_memory
 from service.jobs.live import run_live_job
 from service.jobs.outputs import LiveMap, job_session, write_job_products
 from service.jobs.products import COMPILING_FILE
@@ -109,13 +109,23 @@ def _run_mapping_job(ctx: JobContext) -> None:
     log, description = load_input(ctx)
     ctx.store.set_input(ctx.job_id, description)
     config = engine_config(ctx.job.config)
-    if ctx.memory is not None:  # streamed input: its scan count (and so its frames) is known only now
-        check_job_memory(config, len(log.scans) if log.scans is not None else 0, ctx.memory.limit_mb)
+    extent = None
+    if ctx.memory is not None:  # streamed input: its scan count and extent are known only now
+        from slam_engine.evaluation.memory_estimate import drive_figures
+
+        scans = len(log.scans) if log.scans is not None else 0
+        figures = drive_figures(log)
+        check_job_memory(config, scans, ctx.memory.limit_mb)
+        check_drive_memory(config, figures, scans, ctx.memory.limit_mb)
+        extent = ExtentGuard(config, figures, scans, ctx.memory.limit_mb)
     live = LiveMap(ctx.data.live_dir(ctx.job_id))
 
     def on_progress(progress: Any) -> None:
         ctx.progress(progress.scans_done, progress.scans_total)
-        live.update(progress.latest_snapshot)
+        snapshot = progress.latest_snapshot
+        live.update(snapshot)
+        if extent is not None and snapshot is not None:
+            extent.check(snapshot.scan_index, snapshot.trajectory.poses)
 
     if job_mode(ctx.job.config) is not JobMode.MAP:
         run_from_saved_map(ctx, log, on_progress)

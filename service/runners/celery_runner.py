@@ -27,11 +27,8 @@ Delivery semantics (what the tests check):
 from __future__ import annotations
 
 import logging
-import os
-import signal
 import threading
 import time
-from collections.abc import Callable
 from typing import Any
 
 from billiard.exceptions import WorkerLostError
@@ -41,6 +38,7 @@ from api_schemas.jobs import JobStatus
 from service.http_errors import Unavailable
 from service.jobs.context import JobContext, JobFunction
 from service.runners.base import DEFAULT_JOB_FUNCTION, RunnerHealth
+from service.runners.heartbeat import with_heartbeat
 from service.runners.worker import execute_job, import_function
 from service.storage.data_dir import DataDir
 from service.storage.store import JobStore, open_store, safe_url
@@ -117,60 +115,11 @@ def run_job_in_worker(job_id: str, conf: Any) -> str:
                 raise RuntimeError(reason)
 
             _functions[name] = _broken
-    function = _with_heartbeat(_functions[name], conf.lidarmap_heartbeat_s, conf.lidarmap_cancel_grace_s)
+    function = with_heartbeat(_functions[name], conf.lidarmap_heartbeat_s, conf.lidarmap_cancel_grace_s)
     status = execute_job(job_id, store, data, function, conf.lidarmap_job_memory_limit_mb)
     if status is None:
         logger.info("job %s: not queued any more (duplicate delivery, or cancelled): dropped", job_id)
     return SKIPPED if status is None else status.value
-
-
-def _with_heartbeat(function: JobFunction, every_s: float, cancel_grace_s: float) -> JobFunction:
-    """``function`` with a heartbeat thread beside it (started once the job is claimed)."""
-
-    def run(ctx: JobContext) -> None:
-        beat = Heartbeat(ctx.store, ctx.job_id, every_s, cancel_grace_s)
-        beat.start()
-        try:
-            function(ctx)
-        finally:
-            beat.stop()
-
-    return run
-
-
-class Heartbeat(threading.Thread):
-    """Writes the job's heartbeat every ``every_s``; when a cancel has been ignored for
-    ``cancel_grace_s`` it marks the job cancelled and kills this (pool) process."""
-
-    def __init__(self, store: JobStore, job_id: str, every_s: float, cancel_grace_s: float,
-                 kill: Callable[[], None] | None = None):
-        super().__init__(name=f"lidarmap-heartbeat-{job_id[:8]}", daemon=True)
-        self._store, self._job_id = store, job_id
-        self._every_s, self._grace_s = every_s, cancel_grace_s
-        self._kill = kill or (lambda: os.kill(os.getpid(), signal.SIGKILL))
-        self._stopped = threading.Event()
-
-    def stop(self) -> None:
-        self._stopped.set()
-        self.join(timeout=self._every_s + 1.0)
-
-    def run(self) -> None:
-        stop_asked_s: float | None = None
-        while not self._stopped.wait(self._every_s):
-            try:
-                should_stop = self._store.heartbeat(self._job_id)
-            except Exception:  # a locked or unreachable store: try again at the next beat
-                logger.exception("job %s: heartbeat failed", self._job_id)
-                continue
-            if not should_stop:
-                continue
-            stop_asked_s = stop_asked_s or time.monotonic()
-            if time.monotonic() - stop_asked_s > self._grace_s and not self._stopped.is_set():
-                logger.warning("job %s ignored its cancel for %.1f s: stopping its worker process", self._job_id,
-                               time.monotonic() - stop_asked_s)
-                self._store.finish(self._job_id, JobStatus.CANCELLED, "cancelled by request (worker stopped)")
-                self._kill()
-                return
 
 
 class CeleryRunner:

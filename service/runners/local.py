@@ -2,8 +2,12 @@
 machine (the default; the API talks only to the :class:`~service.runners.base.JobRunner` interface).
 
 A supervisor thread hands queued job ids to idle workers, notices a worker that exits while it holds
-a job (killed, crashed) and fails that job with the exit reason, replaces the worker, and
-terminates a worker whose job ignores a cancel for longer than the grace period.
+a job (killed, crashed) and fails that job with the exit reason, replaces the worker, and kills
+(SIGKILL, which also reaches a stopped process) a worker whose job ignores a cancel for longer than
+the grace period. Each running job writes a heartbeat every ``heartbeat_s``; a job whose heartbeat is
+older than ``worker_lost_s`` (its worker was stopped with SIGSTOP, or hangs with the interpreter
+lock held) is failed "worker lost: no heartbeat for ..." and its worker killed and replaced.
+Workers die with the API process (:mod:`service.process_guard`).
 """
 
 from __future__ import annotations
@@ -56,8 +60,12 @@ class LocalProcessRunner:
     """A fixed number of long-lived worker processes (spawn start method) on this machine."""
 
     def __init__(self, data: DataDir, store: JobStore, workers: int, cancel_grace_s: float = 5.0,
-                 job_function: str = DEFAULT_JOB_FUNCTION, poll_s: float = 0.05, memory_limit_mb: int = 0):
+                 job_function: str = DEFAULT_JOB_FUNCTION, poll_s: float = 0.05, memory_limit_mb: int = 0,
+                 heartbeat_s: float = 5.0, worker_lost_s: float = 60.0):
         self._data = data
+        self._heartbeat_s = heartbeat_s
+        self._worker_lost_s = worker_lost_s
+        self._next_reap_s = 0.0
         self._memory_limit_mb = memory_limit_mb
         self._store = store
         self._job_function = job_function
@@ -129,7 +137,7 @@ class LocalProcessRunner:
         process = self._ctx.Process(
             target=_worker_entry, name=f"lidarmap-worker-{index}", daemon=True,
             args=(str(self._data.root), self._store, self._job_function, index, inbox, self._outbox,
-                  self._memory_limit_mb))
+                  self._memory_limit_mb, self._heartbeat_s, self._cancel_grace_s))
         process.start()
         return _Slot(index=index, process=process, inbox=inbox, started_s=time.monotonic())
 
@@ -143,12 +151,27 @@ class LocalProcessRunner:
 
     def _tick(self) -> None:
         self._drain_outbox()
+        self._reap_silent()
         with self._lock:
             for slot in list(self._slots):
                 if not slot.process.is_alive():
                     self._replace_dead(slot)
             self._enforce_cancels()
             self._assign_pending()
+
+    def _reap_silent(self) -> None:
+        """Every ``heartbeat_s``: fail the running jobs whose heartbeat is older than ``worker_lost_s``
+        and kill their workers (SIGKILL: a stopped process cannot act on anything else)."""
+        now = time.monotonic()
+        if now < self._next_reap_s:
+            return
+        self._next_reap_s = now + self._heartbeat_s
+        for job_id in self._store.fail_lost(self._worker_lost_s):
+            logger.warning("job %s: no heartbeat for %.0f s: failed, its worker killed", job_id, self._worker_lost_s)
+            with self._lock:
+                for slot in self._slots:
+                    if slot.job_id == job_id and slot.process.is_alive():
+                        slot.process.kill()
 
     def _drain_outbox(self) -> None:
         while True:
@@ -191,9 +214,8 @@ class LocalProcessRunner:
         for slot in self._slots:
             asked = self._cancel_asked.get(slot.job_id) if slot.job_id else None
             if asked is not None and now - asked > self._cancel_grace_s and slot.process.is_alive():
-                logger.warning("job %s ignored its cancel for %.1f s: terminating its worker", slot.job_id,
-                               now - asked)
-                slot.process.terminate()
+                logger.warning("job %s ignored its cancel for %.1f s: killing its worker", slot.job_id, now - asked)
+                slot.process.kill()
 
     def _assign_pending(self) -> None:
         idle = [s for s in self._slots if s.job_id is None and s.process.is_alive()]
@@ -208,7 +230,7 @@ class LocalProcessRunner:
 
 
 def _worker_entry(data_root: str, store: JobStore, job_function: str, slot: int, inbox: Any, outbox: Any,
-                  memory_limit_mb: int = 0) -> None:
+                  memory_limit_mb: int = 0, heartbeat_s: float = 5.0, cancel_grace_s: float = 5.0) -> None:
     from service.runners.worker import worker_main
 
-    worker_main(data_root, store, job_function, slot, inbox, outbox, memory_limit_mb)
+    worker_main(data_root, store, job_function, slot, inbox, outbox, memory_limit_mb, heartbeat_s, cancel_grace_s)

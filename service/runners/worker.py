@@ -11,6 +11,7 @@ import contextlib
 import importlib
 import logging
 import os
+import shutil
 import signal
 import traceback
 from pathlib import Path
@@ -20,6 +21,8 @@ from api_schemas.jobs import JobStatus
 from service.http_errors import shorten_tokens
 from service.jobs.context import JobContext, JobFailed, JobFunction
 from service.memory_watchdog import MemoryGuard, limit_reason
+from service.process_guard import die_with_parent
+from service.runners.heartbeat import with_heartbeat
 from service.storage.data_dir import DataDir
 from service.storage.store import JobStore
 from slam_engine.errors import Cancelled, LogFormatError, SlamEngineError
@@ -39,7 +42,9 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
                 memory_limit_mb: int = 0) -> JobStatus | None:
     """Run one job to a terminal status; returns that status, or None when the job was not queued any
     more (cancelled or deleted meanwhile: nothing ran). Never raises for the job's own errors.
-    Its peak memory is measured; past ``memory_limit_mb`` (0 = no limit) it fails with that reason."""
+    Its peak memory is measured; past ``memory_limit_mb`` (0 = no limit) it fails with that reason.
+    The job writes into a staging folder of its own, moved into the job's folder only while the job
+    is still running on this process (:func:`publish`)."""
     if not store.mark_running(job_id, os.getpid()):
         return None  # cancelled (or deleted) while queued
     job = store.get_job(job_id)
@@ -50,10 +55,44 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
         store.finish(job_id, JobStatus.FAILED, reason)
 
     guard = MemoryGuard(memory_limit_mb, on_exceeded=fail_for_memory)
-    ctx = JobContext(job_id=job_id, job=job, store=store, data=data, memory=guard)
-    status, error = run_job_function(function, ctx, memory_limit_mb)
-    store.finish(job_id, status, error)
+    staging = data.job_dir(job_id) / f"{STAGING_PREFIX}{os.getpid()}"
+    ctx = JobContext(job_id=job_id, job=job, store=store, data=data, memory=guard, staging=staging)
+    try:
+        status, error = run_job_function(function, ctx, memory_limit_mb)
+        moved = publish(store, data, job_id, staging) if status is JobStatus.SUCCEEDED else None
+        if moved is None and status is JobStatus.SUCCEEDED:
+            logger.warning("job %s is not this worker's any more: its products were discarded", job_id)
+            current = store.get_job(job_id)
+            return None if current is None else current.status
+        if not store.finish(job_id, status, error):  # failed or cancelled meanwhile: first writer wins
+            for path in moved or []:
+                if path.is_dir():
+                    data.remove(path)
+                else:
+                    path.unlink(missing_ok=True)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     return status
+
+
+STAGING_PREFIX = ".staging-"  # + the worker's pid: a folder in the job's folder that one attempt writes into
+
+
+def publish(store: JobStore, data: DataDir, job_id: str, staging: Path) -> list[Path] | None:
+    """Move what an attempt wrote into ``staging`` into the job's folder, if the job is still running
+    on this process (:meth:`JobStore.owns`); the paths moved in, or None when it is not (nothing moved:
+    a worker never writes into a job that was failed as lost or interrupted, or cancelled)."""
+    if not store.owns(job_id, os.getpid()):
+        return None
+    job_dir = data.job_dir(job_id)
+    moved = []
+    for entry in sorted(staging.iterdir()) if staging.is_dir() else []:
+        target = job_dir / entry.name
+        if target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target)
+        os.replace(entry, target)
+        moved.append(target)
+    return moved
 
 
 def run_job_function(function: JobFunction, ctx: JobContext, memory_limit_mb: int) -> tuple[JobStatus, str | None]:
@@ -79,15 +118,24 @@ def run_job_function(function: JobFunction, ctx: JobContext, memory_limit_mb: in
         return JobStatus.FAILED, public(f"{type(exc).__name__}: {exc}")
     except Exception as exc:  # the job's bug must not kill the worker
         logger.error("job %s crashed:\n%s", ctx.job_id, traceback.format_exc())
-        return JobStatus.FAILED, public(f"internal error: {type(exc).__name__}: {exc}")
+        return JobStatus.FAILED, internal_error(exc)
     return JobStatus.SUCCEEDED, None
 
 
+def internal_error(exc: BaseException) -> str:
+    """What a user sees of a failure inside the service: a generic reason and the error's class, never
+    its text (which may name internal functions, memory addresses or server paths; the server's log
+    has the traceback)."""
+    return f"internal error ({type(exc).__name__}): the job failed inside the service; its log has the details"
+
+
 def worker_main(data_root: str, store: JobStore, job_function: str, slot: int, inbox: Any, outbox: Any,
-                memory_limit_mb: int = 0) -> None:
+                memory_limit_mb: int = 0, heartbeat_s: float = 5.0, cancel_grace_s: float = 5.0) -> None:
     """Entry point of a spawned worker process: take job ids from ``inbox`` until ``None``.
-    ``store`` is the server's (it holds only where the database is, no connection)."""
+    ``store`` is the server's (it holds only where the database is, no connection). The process
+    dies with the server; each job writes a heartbeat every ``heartbeat_s`` while it runs."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which shuts us down
+    die_with_parent()
     # several workers share the cores: one engine thread each unless LIDARMAP_THREADS says otherwise
     os.environ.setdefault("LIDARMAP_THREADS", "1")
     logging.basicConfig(level=logging.INFO)
@@ -100,6 +148,7 @@ def worker_main(data_root: str, store: JobStore, job_function: str, slot: int, i
 
         def function(ctx: JobContext) -> None:
             raise RuntimeError(reason)
+    function = with_heartbeat(function, heartbeat_s, cancel_grace_s)
     while True:
         job_id = inbox.get()
         if job_id is None:

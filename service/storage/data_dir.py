@@ -66,10 +66,13 @@ class DataDir:
         shutil.rmtree(path, ignore_errors=True)
 
     def remove_stale_temp_files(self) -> int:
-        """Delete what tmp/ holds (partial uploads of a service that stopped mid-upload); call only at
-        start-up, before uploads arrive. Returns how many entries were removed."""
+        """Delete what tmp/ holds (partial uploads of a service that stopped mid-upload) and the staging
+        folders of job attempts (``jobs/<id>/.staging-<pid>``) a crash left; call only at start-up,
+        before uploads arrive and jobs run. Returns how many entries were removed."""
         removed = 0
-        for entry in self.tmp.iterdir() if self.tmp.is_dir() else []:
+        stale = list(self.tmp.iterdir()) if self.tmp.is_dir() else []
+        stale += list((self.root / "jobs").glob("*/.staging-*"))
+        for entry in stale:
             if entry.is_dir() and not entry.is_symlink():
                 shutil.rmtree(entry, ignore_errors=True)
             else:

@@ -13,13 +13,25 @@ inspected in a *lane*: one spawned process, used by one upload at a time. Per up
 
 A lane whose child died or was killed starts a fresh child for its next upload, so one upload's
 failure never answers another's; ``lanes`` uploads are inspected at once (the others wait).
+
+Fairness: one more lane, the *express lane*, takes only small uploads - at most ``express_bytes``
+once inflated (:func:`inflated_size_hint`: the file's size, a gzip's own record of its inflated
+size, a folder's total) - for at most ``express_timeout_s`` each. A small upload that finds every
+regular lane busy (slow bombs being read to their limits) is inspected there instead of waiting up
+to ``timeout_s`` behind them; one that takes longer than its slice (a bomb that lies about its
+size) is stopped and inspected again in a regular lane, so it can hold the express lane for one
+slice at most. A size rule rather than one lane per client: the probe's attacker and victim share
+one address and one key, and a small upload is cheap to read whoever sends it.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import gzip
 import multiprocessing as mp
+import os
+import struct
 import threading
 import zlib
 from collections.abc import Callable
@@ -41,6 +53,25 @@ class InspectionLimits:
     timeout_s: float = 120.0
     max_decompressed_bytes: int = 8 * 1024**3
     lanes: int = 2
+    express_bytes: int = 4 * 1024**2  # uploads up to this size once inflated may use the express lane (0: none)
+    express_timeout_s: float = 10.0  # the express lane's slice per upload [s]
+
+
+def inflated_size_hint(path: Path) -> int:
+    """What reading ``path`` will cost, in bytes, as far as it can be known without reading it: a
+    gzip's recorded inflated size (its last 4 bytes, modulo 4 GiB and forgeable: the express lane's
+    slice bounds a lie) or its own size if larger, a folder's total, else the file's size."""
+    if path.is_dir():
+        return sum(entry.stat().st_size for entry in path.rglob("*") if entry.is_file() and not entry.is_symlink())
+    try:
+        size = path.stat().st_size
+        if size >= 18 and _is_gzip(path):
+            with open(path, "rb") as handle:
+                handle.seek(-4, os.SEEK_END)
+                return max(size, struct.unpack("<I", handle.read(4))[0])
+        return size
+    except OSError:
+        return 0
 
 
 def gzip_size_exceeds(path: Path, limit_bytes: int) -> bool:
@@ -78,9 +109,12 @@ def inspect_log(path: str, format_name: str, max_decompressed_bytes: int, hidden
     except MemoryError:
         return _error("memory", "", None)
     except Exception as exc:  # a loader bug on odd input is still the input's problem to the client
-        return _error("log_format", f"the loader failed: {type(exc).__name__}: {exc}", None, hidden_prefix)
+        return _error("log_format", f"the loader failed on this log ({type(exc).__name__})", None)
+    from slam_engine.evaluation.memory_estimate import drive_figures
+
     summary = log.summary()
     summary["warnings"] = [_shown(w, hidden_prefix) for w in summary.get("warnings", [])]
+    summary["memory_figures"] = dataclasses.asdict(drive_figures(log))  # for the job's memory estimate
     return {"summary": summary}
 
 
@@ -141,6 +175,9 @@ def _child_main(conn: Any, memory_limit_mb: int) -> None:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which stops us
     from service.memory_watchdog import MB, MemoryGuard, resident_bytes
+    from service.process_guard import die_with_parent
+
+    die_with_parent()
     from slam_engine.formats import _installed_modules
 
     _installed_modules()  # every loader and its libraries mapped before the address-space bound is set
@@ -228,18 +265,29 @@ class _Lane:
 
 
 class LogInspector:
-    """Inspects uploads in ``limits.lanes`` bounded processes; one lane per upload at a time."""
+    """Inspects uploads in ``limits.lanes`` bounded processes, one lane per upload at a time, plus the
+    express lane for small uploads (see the module docstring)."""
 
     def __init__(self, limits: InspectionLimits | None = None) -> None:
         self.limits = limits or InspectionLimits()
         self._lanes = [_Lane(self.limits.memory_limit_mb) for _ in range(self.limits.lanes)]
+        self._express = _Lane(self.limits.memory_limit_mb) if self.limits.express_bytes else None
         self._idle = list(self._lanes)
         self._lock = threading.Lock()
         self._free: asyncio.Semaphore | None = None
+        self._express_free: asyncio.Semaphore | None = None
 
-    async def _run(self, name: str, args: tuple) -> dict[str, Any]:
-        if self._free is None:
-            self._free = asyncio.Semaphore(self.limits.lanes)
+    async def _run(self, name: str, args: tuple, path: Path) -> dict[str, Any]:
+        if self._free is None or self._express_free is None:
+            self._free, self._express_free = asyncio.Semaphore(self.limits.lanes), asyncio.Semaphore(1)
+        if self._express is not None and self._free.locked():  # every regular lane busy
+            size = await asyncio.to_thread(inflated_size_hint, path)
+            if size <= self.limits.express_bytes:
+                async with self._express_free:
+                    result = await asyncio.to_thread(self._express.call, name, args, self.limits.express_timeout_s)
+                if result.get("error") != "timeout":
+                    return result
+                # longer than its slice: read again in a regular lane, with the full time limit
         async with self._free:
             with self._lock:
                 lane = self._idle.pop()
@@ -253,7 +301,7 @@ class LogInspector:
         """The log's summary, or 415 (unknown format) / 422 (corrupt, with the loader's message; or past
         the memory or time bound) / 413 (inflates past the limit). ``hidden_prefix`` is cut from texts."""
         result = await self._run("inspect_log", (str(path), format_name, self.limits.max_decompressed_bytes,
-                                                 hidden_prefix))
+                                                 hidden_prefix), path)
         if "summary" in result:
             return result["summary"]
         raise self._failure(result)
@@ -261,14 +309,15 @@ class LogInspector:
     async def bundle_summary(self, path: Path, hidden_prefix: str = "") -> dict[str, Any]:
         """An uploaded map bundle's summary (key frames, drives, cell size), or 422 with what is wrong (not a
         bundle, another format version, damaged, arrays past the decompression limit)."""
-        result = await self._run("inspect_bundle", (str(path), self.limits.max_decompressed_bytes, hidden_prefix))
+        result = await self._run("inspect_bundle", (str(path), self.limits.max_decompressed_bytes, hidden_prefix),
+                                 path)
         if "summary" in result:
             return result["summary"]
         raise self._failure(result)
 
     async def is_log_file(self, path: Path, format_name: str) -> bool:
         """Whether the uploaded file is itself a log (else a .zip is a zipped folder to extract)."""
-        result = await self._run("is_log_file", (str(path), format_name))
+        result = await self._run("is_log_file", (str(path), format_name), path)
         if "is_log" in result:
             return result["is_log"]
         raise self._failure(result)
@@ -301,5 +350,5 @@ class LogInspector:
 
     def shutdown(self) -> None:
         with self._lock:
-            for lane in self._lanes:
+            for lane in [*self._lanes, *([self._express] if self._express is not None else [])]:
                 lane.stop()

@@ -90,24 +90,35 @@ class JobRecords(StoreBase):
             tx.execute(update(jobs).where(jobs.c.id == job_id).values(input_json=dump_json(input_description)))
 
     def update_progress(self, job_id: str, scans_done: int, scans_total: int | None) -> bool:
-        """Record progress and heartbeat; returns whether a cancel was requested."""
+        """Record progress and heartbeat; returns whether the job should stop (a cancel was requested, or
+        it is not running any more: failed as lost or interrupted meanwhile)."""
         progress = 0.0 if not scans_total else min(1.0, max(0.0, scans_done / scans_total))
         with self._tx() as tx:
             tx.execute(update(jobs).where(jobs.c.id == job_id, jobs.c.status == _RUNNING)
                        .values(scans_done=scans_done, scans_total=scans_total, progress=progress,
                                heartbeat_at=time.time()))
-            flag = tx.execute(select(jobs.c.cancel_requested).where(jobs.c.id == job_id)).first()
-        return flag is None or bool(flag[0])
+            row = tx.execute(select(jobs.c.status, jobs.c.cancel_requested).where(jobs.c.id == job_id)).first()
+        return row is None or row[0] != _RUNNING or bool(row[1])
+
+    def owns(self, job_id: str, worker_pid: int) -> bool:
+        """Whether the job is still running on the worker process ``worker_pid`` (not failed as lost or
+        interrupted meanwhile): only then may that worker move its products in and finish it."""
+        with self._tx() as tx:
+            row = tx.execute(select(jobs.c.status, jobs.c.worker_pid).where(jobs.c.id == job_id)).first()
+        return row is not None and row[0] == _RUNNING and row[1] == worker_pid
 
     def cancel_requested(self, job_id: str) -> bool:
         with self._tx() as tx:
             flag = tx.execute(select(jobs.c.cancel_requested).where(jobs.c.id == job_id)).first()
         return flag is None or bool(flag[0])
 
-    def set_products(self, job_id: str, products: dict[str, str]) -> None:
-        """Product name -> file name inside the job's artifact folder."""
+    def set_products(self, job_id: str, products: dict[str, str]) -> bool:
+        """Product name -> file name inside the job's artifact folder, for a job still active; False (and
+        nothing listed) once it is terminal, e.g. failed while a worker it no longer belongs to wrote."""
         with self._tx() as tx:
-            tx.execute(update(jobs).where(jobs.c.id == job_id).values(products_json=dump_json(products)))
+            cur = tx.execute(update(jobs).where(jobs.c.id == job_id, jobs.c.status.in_(_ACTIVE_VALUES))
+                             .values(products_json=dump_json(products)))
+            return cur.rowcount == 1
 
     def finish(self, job_id: str, status: JobStatus, error: str | None = None) -> bool:
         """An active job -> a terminal status (first writer wins); False when already terminal."""

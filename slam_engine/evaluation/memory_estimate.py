@@ -25,10 +25,12 @@ logs it is 1.2-2.4x the measured peak).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from slam_engine.config import SlamConfig
-from slam_engine.frontend.grid import N_LEVELS, POOL_DTYPE, POOL_GROWTH_DIVISOR, TILE
+from slam_engine.frontend.tile_layout import N_LEVELS, POOL_DTYPE, POOL_GROWTH_DIVISOR, TILE
 from slam_engine.model.drive_log import DriveLog
 
 # interpreter, libraries, numba's compiler context and kernels: a short simulated run (10 particles)
@@ -75,10 +77,21 @@ def log_array_bytes(log: DriveLog) -> int:
 REACH_PERCENTILE = 95  # the map reaches about this percentile of the scans' return ranges past the track
 
 
-def map_extent_m(log: DriveLog, config: SlamConfig) -> tuple[float, float]:
-    """(width, height) [m] of the area the map will likely cover: the dead-reckoning track's
-    bounding box grown on every side by the 95th percentile of the returns' ranges (at most
-    ``max_range_m``). Odometry drift makes the box larger than the map: an estimate on the high side."""
+@dataclass(frozen=True)
+class DriveFigures:
+    """What a drive's memory depends on, measured once from its log (a service stores them at upload):
+    the dead-reckoning track's bounding box [m], how far past it the returns reach (the 95th percentile
+    of their ranges [m]), the beams of all scans and the bytes of the log's arrays."""
+
+    track_width_m: float
+    track_height_m: float
+    reach_m: float
+    beams: int
+    array_bytes: int
+
+
+def drive_figures(log: DriveLog) -> DriveFigures:
+    """The figures of ``log`` (see :class:`DriveFigures`)."""
     from slam_engine.frontend.odometry import dead_reckoning
 
     reach = 0.0
@@ -86,19 +99,31 @@ def map_extent_m(log: DriveLog, config: SlamConfig) -> tuple[float, float]:
         ranges = log.scans.ranges_m[:: max(1, len(log.scans) // 500)]  # a sample of scans is enough
         returns = ranges[np.isfinite(ranges) & (ranges > 0) & (ranges < log.lidar.range_max_m)]
         if returns.size:
-            reach = min(float(np.percentile(returns, REACH_PERCENTILE)), config.grid.max_range_m)
+            reach = float(np.percentile(returns, REACH_PERCENTILE))
     try:
         poses = dead_reckoning(log).poses
     except Exception:  # no odometry: nothing will be mapped beyond one scan
         poses = np.zeros((1, 3))
     span = poses[:, :2].max(axis=0) - poses[:, :2].min(axis=0) if len(poses) else np.zeros(2)
-    return float(span[0] + 2 * reach), float(span[1] + 2 * reach)
+    beams = 0 if log.scans is None else int(np.asarray(log.scans.ranges_m).size)
+    return DriveFigures(float(span[0]), float(span[1]), reach, beams, log_array_bytes(log))
 
 
-def estimate_job_memory_bytes(config: SlamConfig, log: DriveLog) -> int:
-    """Estimated peak resident memory [bytes] of mapping ``log`` with ``config`` and writing its
-    products, for the whole process (see the module docstring for the model)."""
-    width_m, height_m = map_extent_m(log, config)
+def map_extent_m(log: DriveLog | DriveFigures, config: SlamConfig) -> tuple[float, float]:
+    """(width, height) [m] of the area the map will likely cover: the dead-reckoning track's
+    bounding box grown on every side by the 95th percentile of the returns' ranges (at most
+    ``max_range_m``). Odometry drift makes the box larger than the map: an estimate on the high side."""
+    figures = log if isinstance(log, DriveFigures) else drive_figures(log)
+    reach = min(figures.reach_m, config.grid.max_range_m)
+    return figures.track_width_m + 2 * reach, figures.track_height_m + 2 * reach
+
+
+def estimate_job_memory_bytes(config: SlamConfig, log: DriveLog | DriveFigures) -> int:
+    """Estimated peak resident memory [bytes] of mapping ``log`` (or a log of these figures) with
+    ``config`` and writing its products, for the whole process (see the module docstring for the
+    model): it grows with the drive's extent (the map's cells) and its scan count (its beams)."""
+    figures = log if isinstance(log, DriveFigures) else drive_figures(log)
+    width_m, height_m = map_extent_m(figures, config)
     res = config.grid.resolution_m
     cells = (width_m / res) * (height_m / res)
     tiles = cells / TILE**2
@@ -106,7 +131,6 @@ def estimate_job_memory_bytes(config: SlamConfig, log: DriveLog) -> int:
     pool = (tiles + private) * TILE_BYTES * POOL_SLACK
     tables = tiles * config.particles * 5  # int32 table + uint8 marks per particle
     dense = cells * DENSE_BYTES_PER_CELL
-    beams = 0 if log.scans is None else int(np.asarray(log.scans.ranges_m).size)
-    total = (BASE_BYTES + LOG_LOAD_FACTOR * log_array_bytes(log) + SCAN_BYTES_PER_BEAM * beams + pool + tables
-             + dense)
+    total = (BASE_BYTES + LOG_LOAD_FACTOR * figures.array_bytes + SCAN_BYTES_PER_BEAM * figures.beams + pool
+             + tables + dense)
     return int(MARGIN * total)

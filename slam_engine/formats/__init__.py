@@ -135,14 +135,16 @@ def load_log(path: str | Path, format: str = "auto") -> DriveLog:
     """Read the drive log at ``path`` into a DriveLog (units normalised, streams sorted by time).
 
     ``format="auto"`` detects it from the content. Raises LogFormatError (with the file and the
-    record) for anything unreadable.
+    record) for anything unreadable, and for values no real drive holds (:meth:`DriveLog.check_values`).
     """
     path = Path(path)
     if format == "auto":
         format, path = _resolve(path)
     elif not path.exists():
         raise LogFormatError("no such file or folder", path=str(path))
-    return _module(format).load(path)
+    log = _module(format).load(path)
+    log.check_values()
+    return log
 
 
 def write_log(log: DriveLog, format: str, out_dir: str | Path) -> Path:

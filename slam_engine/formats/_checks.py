@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from slam_engine.errors import LogFormatError
+from slam_engine.model.drive_log import MAX_RANGE_M, MAX_TIME_S, first_beyond
 
 # More than this share of backward steps means the stamps are not a time axis: refuse, do not sort.
 MAX_BACKWARD_SHARE = 0.1
@@ -29,8 +30,8 @@ def time_order(
 ) -> np.ndarray:
     """Indices that put the records of one stream in strictly increasing time order.
 
-    NaN/inf stamps are refused. Exact duplicates are dropped (first kept) and a few out-of-order
-    records are sorted, each with a warning appended to ``warnings``; when more than
+    NaN/inf stamps and stamps beyond +-``MAX_TIME_S`` are refused. Exact duplicates are dropped (first
+    kept) and a few out-of-order records are sorted, each with a warning appended to ``warnings``; when more than
     ``MAX_BACKWARD_SHARE`` of the steps go backwards the stamps are refused.
     """
     location_of = location_of or record_label(what)
@@ -38,6 +39,10 @@ def time_order(
     bad = np.flatnonzero(~np.isfinite(t_s))
     if bad.size:
         raise LogFormatError(f"timestamp is {t_s[bad[0]]}", path=str(path), location=location_of(int(bad[0])))
+    absurd = first_beyond(t_s, MAX_TIME_S)
+    if absurd is not None:
+        raise LogFormatError(f"timestamp is {t_s[absurd]:g} s, beyond +-{MAX_TIME_S:g} s", path=str(path),
+                             location=location_of(absurd))
     if t_s.size < 2:
         return np.arange(t_s.size)
     steps = np.diff(t_s)
@@ -70,7 +75,8 @@ def clean_ranges(
     zero_is_no_return: bool = True,
     location_of: Callable[[int], str] | None = None,
 ) -> np.ndarray:
-    """(N, B) float32 ranges [m] with ``inf`` for no return; NaN and negative values are refused.
+    """(N, B) float32 ranges [m] with ``inf`` for no return; NaN, negative values and finite values
+    beyond ``MAX_RANGE_M`` are refused.
 
     Values of zero (when ``zero_is_no_return``), values at or above ``no_return_at_or_above_m`` and
     +inf become ``inf``.
@@ -90,6 +96,12 @@ def clean_ranges(
         beam = int(np.flatnonzero(negative[row])[0])
         raise LogFormatError(f"negative range {ranges[row, beam]} at beam {beam}", path=str(path),
                              location=location_of(row))
+    absurd = np.isfinite(ranges) & (ranges > MAX_RANGE_M)
+    if absurd.any():
+        row = int(np.flatnonzero(absurd.any(axis=1))[0])
+        beam = int(np.flatnonzero(absurd[row])[0])
+        raise LogFormatError(f"range {ranges[row, beam]:g} m at beam {beam} is beyond {MAX_RANGE_M:g} m",
+                             path=str(path), location=location_of(row))
     out = ranges.astype(np.float32)
     if zero_is_no_return:
         out[ranges == 0] = np.inf

@@ -31,7 +31,16 @@ import numpy as np
 from slam_engine.errors import LogFormatError
 from slam_engine.formats._checks import clean_ranges, head_lines, is_number, open_text, time_order
 from slam_engine.frontend.odometry import odometry_poses
-from slam_engine.model.drive_log import DriveLog, LidarModel, MotionModelKind, OdometryStream, ScanStream, VehicleModel
+from slam_engine.model.drive_log import (
+    MAX_ANGLE_RAD,
+    MAX_COORDINATE_M,
+    DriveLog,
+    LidarModel,
+    MotionModelKind,
+    OdometryStream,
+    ScanStream,
+    VehicleModel,
+)
 from slam_engine.model.poses import compose, interpolate, is_planar_4x4, planar_from_4x4, relative, to_matrix_4x4
 
 DEFAULT_NO_RETURN_M = 80.0
@@ -83,6 +92,15 @@ def _finite(values: np.ndarray, what: str, path: Path, line_no: int) -> np.ndarr
     return values
 
 
+def _plausible_pose(pose: np.ndarray, what: str, path: Path, line_no: int) -> None:
+    """A LogFormatError naming the line when an (x, y, theta) pose is beyond the bounds of a real drive."""
+    for value, limit, unit in ((pose[0], MAX_COORDINATE_M, "m"), (pose[1], MAX_COORDINATE_M, "m"),
+                               (pose[2], MAX_ANGLE_RAD, "rad")):
+        if not abs(value) <= limit:
+            raise LogFormatError(f"{what} is {value:g} {unit}, beyond +-{limit:g} {unit}: not a real pose",
+                                 path=str(path), location=f"line {line_no}")
+
+
 def _int_field(token: str, path: Path, line_no: int, what: str) -> int:
     try:
         value = int(token)
@@ -105,6 +123,8 @@ def _parse_old_laser(tokens: list[str], laser: _Laser, path: Path, line_no: int)
     _expect_length(tokens, n + 11, path, line_no)
     values = _floats(tokens[2:n + 8], path, line_no)
     _finite(values[n:], "laser/robot pose", path, line_no)
+    _plausible_pose(values[n:n + 3], "laser pose", path, line_no)
+    _plausible_pose(values[n + 3:n + 6], "robot pose", path, line_no)
     laser.ranges.append(values[:n])
     laser.laser_pose.append(tuple(values[n:n + 3]))
     laser.robot_pose.append(tuple(values[n + 3:n + 6]))
@@ -125,6 +145,8 @@ def _parse_new_laser(tokens: list[str], laser: _Laser, path: Path, line_no: int,
     laser.ranges.append(_floats(tokens[9:9 + n], path, line_no))
     rest = _finite(_floats(tokens[10 + n + m:-2], path, line_no), "pose / timestamp", path, line_no)
     if with_poses:
+        _plausible_pose(rest[0:3], "laser pose", path, line_no)
+        _plausible_pose(rest[3:6], "robot pose", path, line_no)
         laser.laser_pose.append(tuple(rest[0:3]))
         laser.robot_pose.append(tuple(rest[3:6]))
     laser.t.append(float(rest[-1]))
@@ -162,6 +184,7 @@ def load(path: Path, no_return_m: float | None = None) -> DriveLog:
                     _expect_length(tokens, 10, path, line_no)
                     values = _finite(_floats(tokens[1:8], path, line_no), "ODOM pose / velocity / time",
                                      path, line_no)
+                    _plausible_pose(values[:3], "ODOM pose", path, line_no)
                     odom_poses.append(values[:3])
                     odom_t.append(float(values[6]))
                     odom_lines.append(line_no)

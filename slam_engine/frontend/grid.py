@@ -29,6 +29,13 @@ import os
 import numba as nb
 import numpy as np
 
+from slam_engine.frontend.tile_layout import (  # noqa: F401 (TILE_SHIFT: the kernels import it from here)
+    N_LEVELS,
+    POOL_DTYPE,
+    POOL_GROWTH_DIVISOR,
+    TILE,
+    TILE_SHIFT,
+)
 from slam_engine.model.result import OccupancyGrid
 
 # Thread pool of the parallel per-particle loops (raycast, scan_matcher): OpenMP first. numba would
@@ -37,15 +44,8 @@ if not {"NUMBA_THREADING_LAYER", "NUMBA_THREADING_LAYER_PRIORITY"} & os.environ.
     # numba.config creates its settings through globals() at import, invisible to its type information
     nb.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]  # type: ignore[attr-defined]
 
-TILE_SHIFT = 6
-TILE = 1 << TILE_SHIFT  # cells per tile side at level 0
-N_LEVELS = 4  # level k: cells of 2**k * resolution_m, tiles of TILE >> k cells
 TABLE_MARGIN_TILES = 4
 LOG_ODDS_UNIT = 0.01  # stored log-odds are integers in these units
-POOL_DTYPE = np.int16
-
-
-POOL_GROWTH_DIVISOR = 32  # the pool grows by 1 / this of its size (at least; 8 kept intel 7 MB higher)
 
 
 def _grown(array: np.ndarray, length: int) -> np.ndarray:

@@ -10,12 +10,13 @@ Frames: the vehicle frame has x forward, y left, z up, origin at the vehicle's r
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 
 import numpy as np
 
+from slam_engine.errors import LogFormatError
 from slam_engine.model.messages import (
     EncoderMessage,
     GyroMessage,
@@ -25,6 +26,21 @@ from slam_engine.model.messages import (
     ScanMessage,
     StereoMessage,
 )
+
+# Physically absurd values no log may hold (loaders refuse them, naming the record and the value;
+# the bounds are far beyond any real drive, so no real log's numbers change)
+MAX_COORDINATE_M = 1e6  # |x|, |y| of a pose: 1000 km from the log's origin
+MAX_ANGLE_RAD = 1e6  # |theta| of a pose (unwrapped headings grow, never this far)
+MAX_TIME_S = 1e10  # |t|: beyond the year 2286 in Unix time
+MAX_RANGE_M = 1e6  # a LiDAR range
+MAX_YAW_RATE_RAD_S = 1e3  # a gyro's yaw rate: 160 turns a second
+
+
+def first_beyond(values: np.ndarray, limit: float) -> int | None:
+    """Flat index of the first value that is NaN, infinite or beyond +-``limit``; None when all are fine."""
+    flat = np.asarray(values, dtype=np.float64).reshape(-1)
+    bad = np.flatnonzero(~(np.abs(flat) <= limit))
+    return int(bad[0]) if bad.size else None
 
 
 class MotionModelKind(StrEnum):
@@ -256,6 +272,40 @@ class DriveLog:
             "lidar_beams": None if self.lidar is None else self.lidar.num_beams,
             "warnings": list(self.warnings),
         }
+
+    def check_values(self, location_of: dict[str, Callable[[int], str]] | None = None) -> None:
+        """LogFormatError naming the stream's record and the value when a stamp, pose, range or yaw rate
+        is not finite or physically absurd (beyond the ``MAX_*`` bounds above); ``location_of`` names a
+        stream's record ``i`` (default ``"<stream> record <i>"``). Infinite ranges (no return) are fine."""
+        location_of = location_of or {}
+
+        def check(name: str, what: str, values: np.ndarray, limit: float, unit: str, columns: int = 1,
+                  allow_inf: bool = False) -> None:
+            values = np.asarray(values, dtype=np.float64)
+            if allow_inf:
+                values = np.where(np.isposinf(values), 0.0, values)
+            bad = first_beyond(values, limit)
+            if bad is None:
+                return
+            record = bad // columns
+            where = location_of.get(name, lambda i: f"{name} record {i}")(record)
+            raise LogFormatError(f"{what} is {values.reshape(-1)[bad]:g} {unit}, beyond +-{limit:g} {unit}",
+                                 path=self.source_path, location=where)
+
+        for name in ("scans", "encoders", "gyro", "odometry"):
+            stream = getattr(self, name)
+            if stream is not None:
+                check(name, f"{name} timestamp", stream.t_s, MAX_TIME_S, "s")
+        if self.odometry is not None and len(self.odometry):
+            poses = np.asarray(self.odometry.poses, dtype=np.float64).reshape(-1, 3)
+            check("odometry", "odometry position", poses[:, :2], MAX_COORDINATE_M, "m", columns=2)
+            check("odometry", "odometry heading", poses[:, 2], MAX_ANGLE_RAD, "rad")
+        if self.scans is not None and len(self.scans):
+            ranges = np.asarray(self.scans.ranges_m)
+            check("scans", "range", ranges, MAX_RANGE_M, "m", columns=ranges.shape[1] if ranges.ndim == 2 else 1,
+                  allow_inf=True)
+        if self.gyro is not None:
+            check("gyro", "yaw rate", self.gyro.yaw_rate_rad_s, MAX_YAW_RATE_RAD_S, "rad/s")
 
     def between(self, start_s: float, end_s: float) -> DriveLog:
         """The part of the drive with stamps in ``[start_s, end_s)`` [s]: its scans, wheel ticks, gyro and

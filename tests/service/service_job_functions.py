@@ -66,3 +66,15 @@ def live_writer(ctx) -> None:
         if not config.scheduling.linear_update_m:
             ctx.progress(i, config.particles)
         time.sleep(config.seed / 1000.0)
+
+
+def late_writer(ctx) -> None:
+    """Runs until the test writes ``release`` into the data folder (at most 30 s, never checking for a
+    cancel), then writes its product and lists it, as a worker that lost its job would."""
+    ctx.progress(1, 2, force=True)
+    release = ctx.data.root / "release"
+    deadline = time.monotonic() + 30.0
+    while not release.exists() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    (ctx.out_dir / "run.json").write_text(json.dumps({"steps": 2}))
+    ctx.store.set_products(ctx.job_id, {"run.json": "run.json"})

@@ -301,7 +301,7 @@ def test_killed_workers_fail_their_jobs_and_the_survivor_goes_on(cluster) -> Non
 def test_heartbeat_stops_a_job_that_ignores_its_cancel(tmp_path) -> None:
     """The pool process's heartbeat thread: beats while the job runs; once a cancel has been ignored
     for the grace period it marks the job cancelled and kills its process (here: a stand-in)."""
-    from service.runners.celery_runner import Heartbeat
+    from service.runners.heartbeat import Heartbeat
 
     store = JobStore(tmp_path / "jobs.sqlite3")
     store.initialise()

@@ -90,7 +90,8 @@ def test_job_lifecycle_listing_cancel_and_errors(tmp_path) -> None:
 
 def test_job_failure_reasons(tmp_path) -> None:
     for function, expected in (("bad_log", "log_format: range count 179 does not match 180 beams (line 3)"),
-                               ("buggy", "internal error: ZeroDivisionError: division by zero")):
+                               ("buggy", "internal error (ZeroDivisionError): the job failed inside the service; "
+                                         "its log has the details")):
         with service_client(tmp_path / function, job_function=f"{FUNCS}:{function}") as client:
             job = start(client, streaming_session(client), 1, 1)
             failed = wait_for(client, job["id"])

@@ -67,6 +67,53 @@ def test_a_memory_bomb_is_stopped_and_a_bystander_upload_succeeds(tmp_path, sim_
         assert len(list((tmp_path / "uploads").iterdir())) == 2  # nothing of the bomb stays
 
 
+def test_slow_bombs_in_every_lane_do_not_hold_up_a_small_upload(tmp_path, sim_log) -> None:
+    """Issue 41 item 5: two slow bombs held both inspection lanes and a valid 49 KB upload waited
+    121.8 s. A bomb of 800 MB of skipped CARMEN records (1.6 MB gzipped) reads for about 50 s with
+    little memory; with both regular lanes busy, the small upload is read in the express lane and
+    answered while both bombs are still being read."""
+    bomb = gzip.compress(head(sim_log) + b"SYNC 0 0 0 0\n" * (800 * 1024**2 // 13), 6)
+    assert len(bomb) < 4 * 1024**2  # small on the wire: its recorded inflated size keeps it out of the express lane
+    with service_client(tmp_path, inspection_processes=2, inspection_timeout_s=120) as client:
+        sid = new_session(client)
+        answers: dict[str, object] = {}
+        bombers = [threading.Thread(target=lambda k=k: answers.update({k: upload(client, sid, "b.clf.gz", bomb)}))
+                   for k in ("bomb1", "bomb2")]
+        for bomber in bombers:
+            bomber.start()
+        deadline = time.monotonic() + 30
+        inspector = client.app.state.inspector
+        while not (inspector._free is not None and inspector._free.locked()) and time.monotonic() < deadline:
+            time.sleep(0.05)  # both regular lanes taken
+        time.sleep(0.5)
+        started = time.monotonic()
+        small = upload(client, sid, "log.clf", sim_log)
+        waited_s = time.monotonic() - started
+        assert small.status_code == 201, small.text
+        assert all(bomber.is_alive() for bomber in bombers) and not answers, answers  # answered before either bomb
+        print(f"a {len(sim_log) / 1024:.0f} KB upload behind two slow bombs: answered in {waited_s:.1f} s")
+        inspector.shutdown()  # stop the bombs' processes: their uploads are answered (422) before the service stops
+        for bomber in bombers:
+            bomber.join(timeout=60)
+        assert {response.status_code for response in answers.values()} == {422}, answers
+
+
+def test_absurd_numbers_are_refused_at_upload_naming_line_and_value(tmp_path, sim_log) -> None:
+    """Issue 41 item 9: ODOM at 1.7e308 was accepted (201) and its job failed "internal error: SystemError:
+    CPUDispatcher(<function match_particles at 0x...>)". Now the upload answers 422 naming line and value."""
+    lines = sim_log.decode().splitlines()
+    odom = [i for i, line in enumerate(lines) if line.startswith("ODOM ")][3]
+    tokens = lines[odom].split()
+    tokens[1] = "1.7e308"
+    lines[odom] = " ".join(tokens)
+    with service_client(tmp_path) as client:
+        sid = new_session(client)
+        err = assert_error(upload(client, sid, "log.clf", ("\n".join(lines) + "\n").encode()), 422, "log_format")
+        assert err["detail"]["location"] == f"line {odom + 1}", err
+        assert "ODOM pose is 1.7e+308 m" in err["message"] and str(tmp_path) not in err["message"], err
+        assert client.get(f"/v1/sessions/{sid}").json()["logs"] == 0
+
+
 def test_inspection_time_and_inflated_size_are_bounded(tmp_path, sim_log) -> None:
     with service_client(tmp_path, inspection_timeout_s=1.0, inspection_processes=1,
                         max_extracted_bytes=16 * 1024**2) as client:

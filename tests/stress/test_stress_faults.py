@@ -6,6 +6,7 @@ listed and downloadable, what is never served, how the service recovers.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import os
@@ -126,6 +127,61 @@ def test_restart_of_a_killed_server_process_mid_job(tmp_path) -> None:
         interrupted = server.get(f"/v1/jobs/{running}")
         assert interrupted["status"] == "failed" and interrupted["error"].startswith("interrupted"), interrupted
         assert server.get("/v1/jobs")["count"] == 2
+
+
+def group_members(pgid: int) -> dict[int, str]:
+    """Live (not zombie) processes of process group ``pgid``: pid -> command line."""
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            if int(fields[2]) == pgid and fields[0] != "Z":
+                found[int(entry.name)] = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()[:120]
+        except (FileNotFoundError, ProcessLookupError, IndexError, ValueError):
+            continue
+    return found
+
+
+def test_kill_9_of_the_server_leaves_no_process_behind(tmp_path) -> None:
+    """Issue 41 item 3: ``kill -9`` of the server (its pid only, as an operator or the OOM killer would)
+    left both workers, an inspection child and the resource tracker running (still alive 36 min later).
+    Now every process the server started is gone within seconds."""
+    from load_service import ServiceProcess
+
+    from slam_engine.simulation import simulate, write_simulated
+
+    log = write_simulated(simulate("office", seed=1, rig="carmen-robot", max_duration_s=8.0), "carmen", tmp_path)
+    env = {"LIDARMAP_WORKERS": "2"}
+    with ServiceProcess(tmp_path / "data", env=env, job_function=f"{JOBS}:sleepy") as server:
+        sid = server.post("/v1/sessions", json={"name": "orphans", "calibration": CALIBRATION})["id"]
+        with open(log, "rb") as handle:  # an upload: an inspection child now runs
+            server.post(f"/v1/sessions/{sid}/logs", files={"file": ("log.clf", handle)})
+        running = server.post(f"/v1/sessions/{sid}/jobs", json={"particles": 1000, "seed": 50})["id"]
+        server.wait_job(running, statuses={"running"})
+        assert server.process is not None
+        pgid = server.process.pid
+        started = group_members(pgid)
+        assert len(started) >= 5, started  # server, 2 workers, inspection child, resource tracker
+        killed_at = time.monotonic()
+        os.kill(server.process.pid, signal.SIGKILL)
+        server.process.wait(timeout=10)
+        try:
+            left = group_members(pgid)
+            while left and time.monotonic() - killed_at < 30:
+                time.sleep(0.1)
+                left = group_members(pgid)
+            gone_s = time.monotonic() - killed_at
+            assert not left, f"still running {gone_s:.0f} s after the server was killed: {left}"
+            print(f"kill -9 of the server: its {len(started) - 1} child processes gone {gone_s:.1f} s later")
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(pgid, signal.SIGKILL)
+    # the next start fails the running job as interrupted, and no worker wrote into it meanwhile
+    with ServiceProcess(tmp_path / "data", env=env, job_function=f"{JOBS}:sleepy") as server:
+        job = server.get(f"/v1/jobs/{running}")
+        assert job["status"] == "failed" and job["error"].startswith("interrupted") and job["products"] == [], job
 
 
 # ---- disk full ----------------------------------------------------------------------------------

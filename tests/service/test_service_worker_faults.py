@@ -1,0 +1,104 @@
+"""Workers that stop, are orphaned or lose their job (issue 41, items 3 and 8): a stopped worker's job
+is failed once its heartbeat is overdue, a cancel reaches a stopped worker, and a worker never writes
+into a job that is no longer its own."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+from service_helpers import service_client, streaming_session, wait_for
+
+from api_schemas.jobs import JobStatus
+
+FUNCS = "service_job_functions"
+
+
+def start(client, sid: str, steps: int, step_ms: int) -> dict:
+    response = client.post(f"/v1/sessions/{sid}/jobs", json={"particles": steps, "seed": step_ms})
+    assert response.status_code == 202, response.text
+    return response.json()
+
+
+def worker_of(client, job_id: str) -> int:
+    pid = client.app.state.runner.worker_pid(job_id)
+    assert pid is not None and pid != os.getpid()
+    return pid
+
+
+def gone(pid: int) -> bool:
+    """Whether ``pid`` has exited (reaped, or a zombie)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+def test_a_stopped_worker_is_noticed_and_its_job_failed(tmp_path) -> None:
+    """Before: a SIGSTOPped worker's job stayed 'running' for ever. Now: failed 'worker lost: no heartbeat'
+    after worker_lost_s (1 s here), the worker killed and replaced."""
+    with service_client(tmp_path, job_function=f"{FUNCS}:counting", heartbeat_s=0.2, worker_lost_s=1.0) as client:
+        sid = streaming_session(client)
+        job = start(client, sid, 1000, 30)  # 30 s of steps
+        wait_for(client, job["id"], {"running"}, timeout_s=60, condition=lambda j: j["scans_done"] > 0)
+        pid = worker_of(client, job["id"])
+        stopped_at = time.monotonic()
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            failed = wait_for(client, job["id"], timeout_s=15)
+        finally:
+            if not gone(pid):
+                os.kill(pid, signal.SIGCONT)
+        noticed_s = time.monotonic() - stopped_at
+        assert failed["status"] == "failed" and failed["error"].startswith("worker lost: no heartbeat for"), failed
+        assert noticed_s >= 1.0, noticed_s  # not before its heartbeat was overdue
+        deadline = time.monotonic() + 10
+        while not gone(pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert gone(pid)  # killed, not left stopped
+        print(f"stopped worker: job failed {noticed_s:.1f} s after SIGSTOP (worker_lost_s 1 s)")
+        again = wait_for(client, start(client, sid, 3, 1)["id"], timeout_s=60)  # on the replacement
+        assert again["status"] == "succeeded"
+
+
+def test_a_cancel_reaches_a_stopped_worker(tmp_path) -> None:
+    """Before: DELETE answered 202 and the stopped job stayed 'running' (SIGTERM waits for SIGCONT).
+    Now: its worker is killed after cancel_grace_s (1 s here) and the job ends 'cancelled'."""
+    with service_client(tmp_path, job_function=f"{FUNCS}:counting", cancel_grace_s=1.0) as client:
+        sid = streaming_session(client)
+        job = start(client, sid, 1000, 30)
+        wait_for(client, job["id"], {"running"}, timeout_s=60, condition=lambda j: j["scans_done"] > 0)
+        pid = worker_of(client, job["id"])
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            asked_at = time.monotonic()
+            assert client.delete(f"/v1/jobs/{job['id']}").status_code == 202
+            ended = wait_for(client, job["id"], timeout_s=15)
+        finally:
+            if not gone(pid):
+                os.kill(pid, signal.SIGCONT)
+        took_s = time.monotonic() - asked_at
+        assert ended["status"] == "cancelled" and ended["error"] == "cancelled by request (worker stopped)", ended
+        print(f"cancel of a stopped worker: job cancelled {took_s:.1f} s after DELETE (cancel_grace_s 1 s)")
+
+
+def test_a_worker_never_writes_into_a_job_that_is_no_longer_its_own(tmp_path) -> None:
+    """Before: a worker whose job was failed meanwhile (the server restarted: 'interrupted') wrote its
+    products into it and listed them. Now: nothing is moved in, nothing listed, the failure stands."""
+    with service_client(tmp_path, job_function=f"{FUNCS}:late_writer", cancel_grace_s=60.0) as client:
+        sid = streaming_session(client)
+        job = wait_for(client, start(client, sid, 1, 1)["id"], {"running"}, timeout_s=60)
+        store = client.app.state.store
+        assert store.finish(job["id"], JobStatus.FAILED, "interrupted: the service stopped while the job was running")
+        (tmp_path / "release").touch()
+        deadline = time.monotonic() + 30
+        while client.get("/readyz").json()["workers"]["busy"] and time.monotonic() < deadline:
+            time.sleep(0.05)  # the worker finished its function and reported
+        row = store.get_job(job["id"])
+        assert row.status is JobStatus.FAILED and row.error.startswith("interrupted"), row
+        assert row.products == {}, row.products
+        job_dir = tmp_path / "jobs" / job["id"]
+        assert not (job_dir / "run.json").exists()
+        assert not any(job_dir.glob(".staging-*"))  # the attempt's own folder is removed too
