@@ -12,7 +12,7 @@ from api_schemas.jobs import JobStatus
 from service.api.error_handlers import install_error_handlers
 from service.api.limits import BodyLimitMiddleware
 from service.api.openapi_errors import document_errors
-from service.api.routers import chunks, formats, health, jobs, logs, maps, products, sessions
+from service.api.routers import api_docs, chunks, formats, health, jobs, logs, maps, products, sessions
 from service.api.routers.tile_schemes import router as tile_schemes_router
 from service.api.routers.viewer import register_viewer
 from service.runners.factory import create_runner
@@ -64,7 +64,7 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
             app.state.inspector.shutdown()
             store.close()
 
-    app = FastAPI(title="lidarmap", version=__version__, lifespan=lifespan,
+    app = FastAPI(title="lidarmap", version=__version__, lifespan=lifespan, docs_url=None, redoc_url=None,
                   description="Occupancy grid, texture map and trajectory from drive logs, by "
                               "particle-filter SLAM. Upload a log (or stream chunks) into a session, "
                               "start a job, poll it, fetch the products.")
@@ -84,5 +84,6 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
     app.include_router(jobs.router)
     app.include_router(tile_schemes_router)
     register_viewer(app)
+    api_docs.register_api_docs(app)  # /docs and /redoc from the package's own assets
     document_errors(app)
     return app
