@@ -122,6 +122,14 @@ def print_summary(result, written: dict[str, Path], out: Path) -> None:
                       f"{texture['observed_cells']} cells, placed {texture['placement_offset_m']:.2f} m off")
 
 
+def print_warnings(run_json: Path) -> None:
+    """run.json's warnings, one line each on stderr (``warning: ...``)."""
+    import json
+
+    for warning in json.loads(run_json.read_text()).get("warnings", []):
+        typer.echo(f"warning: {warning}", err=True)
+
+
 def _fmt(value: float | None, spec: str) -> str:
     return "n/a" if value is None else format(value, spec)
 
@@ -192,3 +200,4 @@ def register(app: typer.Typer) -> None:
                                              log=drive_log, texture_accuracy=texture_figures(result, truth, floor))
                 bar.finish()
             print_summary(result, written, out)
+            print_warnings(written["run.json"])

@@ -9,6 +9,7 @@ from typing import Any
 from api_schemas.jobs import JobSource
 from service.http_errors import Conflict, InvalidInput, NotFound
 from service.jobs.estimate import check_job_memory, estimate_bytes
+from service.jobs.events import job_event
 from service.jobs.saved_maps import saved_map_path
 from service.jobs.settings import JobSettings, resolve, stored_config
 from service.storage.data_dir import DataDir
@@ -40,6 +41,8 @@ def create_job(body: JobSettings, session: SessionRow, store: JobStore, data: Da
         if source is JobSource.STREAM:
             _stream_ready(session)
         row = store.create_job(session.id, session.owner, source, log_id, config)
+    job_event("created", row.id, session=session.id, source=row.source.value, live=row.live or None,
+              mode=config.get("mode"))
     submit(row.id)
     return row
 

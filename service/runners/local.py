@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from api_schemas.jobs import JobStatus
+from service.jobs.events import job_event
 from service.runners.base import DEFAULT_JOB_FUNCTION, RunnerHealth
 from service.storage.data_dir import DataDir
 from service.storage.store import JobStore
@@ -113,8 +114,9 @@ class LocalProcessRunner:
                     slot.process.kill()
                     slot.process.join(timeout=2.0)
                 if slot.job_id is not None:
-                    self._store.finish(slot.job_id, JobStatus.FAILED, "interrupted: the service stopped while the job "
-                                       "was running")
+                    reason = "interrupted: the service stopped while the job was running"
+                    self._store.finish(slot.job_id, JobStatus.FAILED, reason)
+                    job_event("failed", slot.job_id, logging.WARNING, error=reason)
             for slot in self._slots:
                 slot.inbox.close()
                 slot.inbox.join_thread()
@@ -169,9 +171,10 @@ class LocalProcessRunner:
             asked = slot.job_id in self._cancel_asked
             if asked:
                 self._store.finish(slot.job_id, JobStatus.CANCELLED, "cancelled by request (worker stopped)")
+                job_event("cancelled", slot.job_id, error="cancelled by request (worker stopped)")
             else:
                 self._store.finish(slot.job_id, JobStatus.FAILED, reason)
-            logger.warning("job %s: %s", slot.job_id, reason)
+                job_event("failed", slot.job_id, logging.WARNING, error=reason)
             self._cancel_asked.pop(slot.job_id, None)
             slot.job_id = None
         if self._stopping.is_set():

@@ -12,6 +12,7 @@ import importlib
 import logging
 import os
 import signal
+import time
 import traceback
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,7 @@ from typing import Any
 from api_schemas.jobs import JobStatus
 from service.http_errors import shorten_tokens
 from service.jobs.context import JobContext, JobFailed, JobFunction
+from service.jobs.events import job_event
 from service.memory_watchdog import MemoryGuard, limit_reason
 from service.storage.data_dir import DataDir
 from service.storage.store import JobStore
@@ -45,6 +47,9 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
     job = store.get_job(job_id)
     if job is None:
         return None
+    started_s = time.monotonic()
+    queued_s = None if job.started_at is None else job.started_at - job.created_at
+    job_event("started", job_id, worker_pid=os.getpid(), queued_s=queued_s)
 
     def fail_for_memory(reason: str) -> None:
         store.finish(job_id, JobStatus.FAILED, reason)
@@ -52,8 +57,19 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
     guard = MemoryGuard(memory_limit_mb, on_exceeded=fail_for_memory)
     ctx = JobContext(job_id=job_id, job=job, store=store, data=data, memory=guard)
     status, error = run_job_function(function, ctx, memory_limit_mb)
-    store.finish(job_id, status, error)
+    recorded = store.finish(job_id, status, error)
+    row = store.get_job(job_id)
+    if not recorded and row is not None:  # finished meanwhile by another (the memory guard, a reaper): its outcome
+        status, error = row.status, row.error
+    level = logging.WARNING if status is JobStatus.FAILED else logging.INFO
+    job_event(status.value, job_id, level, duration_s=time.monotonic() - started_s,
+              scans=None if row is None else row.scans_done, peak_memory_mb=_megabytes(ctx.peak_memory_bytes()),
+              error=error)
     return status
+
+
+def _megabytes(size: int | None) -> int | None:
+    return None if size is None else round(size / 1024**2)
 
 
 def run_job_function(function: JobFunction, ctx: JobContext, memory_limit_mb: int) -> tuple[JobStatus, str | None]:
@@ -90,7 +106,7 @@ def worker_main(data_root: str, store: JobStore, job_function: str, slot: int, i
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which shuts us down
     # several workers share the cores: one engine thread each unless LIDARMAP_THREADS says otherwise
     os.environ.setdefault("LIDARMAP_THREADS", "1")
-    logging.basicConfig(level=logging.INFO)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)-9s %(message)s")  # as uvicorn's lines
     data = DataDir(Path(data_root))
     try:
         function = import_function(job_function)

@@ -88,9 +88,13 @@ class JobRecords(StoreBase):
         with self._tx() as tx:
             tx.execute("UPDATE jobs SET input_json = ? WHERE id = ?", (dump_json(input_description), job_id))
 
-    def update_progress(self, job_id: str, scans_done: int, scans_total: int | None) -> bool:
-        """Record progress and heartbeat; returns whether a cancel was requested."""
-        progress = 0.0 if not scans_total else min(1.0, max(0.0, scans_done / scans_total))
+    def update_progress(self, job_id: str, scans_done: int, scans_total: int | None,
+                        progress: float | None = None) -> bool:
+        """Record progress (``progress``: the job's share done, 0..1; default the scans' share) and
+        heartbeat; returns whether a cancel was requested."""
+        if progress is None:
+            progress = 0.0 if not scans_total else scans_done / scans_total
+        progress = min(1.0, max(0.0, progress))
         with self._tx() as tx:
             tx.execute("UPDATE jobs SET scans_done = ?, scans_total = ?, progress = ?, heartbeat_at = ? "
                        "WHERE id = ? AND status = ?",
