@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
+from log_helpers import saturated_log
 from PIL import Image
 from typer.testing import CliRunner
 
@@ -184,6 +185,17 @@ def test_run_progress_bar_names_each_stage_in_order_and_ends_after_the_products(
                      "writing products", "done"]
     assert percents == sorted(percents) and percents[-1] == 100
     assert percents[stages.index("writing products")] == 97 and percents.count(100) == stages.count("done")
+
+
+def test_run_prints_each_run_json_warning_as_one_line_on_stderr(tmp_path: Path) -> None:
+    log = saturated_log(tmp_path / "sim")
+    result = CliRunner().invoke(app, ["run", str(log), "--out", str(tmp_path / "out"), "--particles", "3"])
+    assert result.exit_code == 0, result.output
+    recorded = json.loads((tmp_path / "out" / "run.json").read_text())["warnings"]
+    assert f"{log}: FLASER: range 30 m fills many beams; treated as no return" in recorded
+    printed = [line for line in result.stderr.splitlines() if line.startswith("warning: ")]
+    assert printed == [f"warning: {warning}" for warning in recorded]
+    assert "warning" not in result.stdout
 
 
 @pytest.mark.slow

@@ -16,28 +16,11 @@ from pathlib import Path
 
 import httpx
 import pytest
+from log_helpers import saturated_log
 
 from slam_engine.progress import STAGES
 
 REPO = Path(__file__).resolve().parents[2]
-
-
-def saturated_log(folder: Path) -> Path:
-    """A simulated drive whose last 4 of every 180 ranges read 30 m, below the 50 m maximum: the reader
-    takes that for the scanner's no-return code, warns and treats them as no return."""
-    from slam_engine.simulation import simulate, write_simulated
-
-    path = write_simulated(simulate("office", seed=3, rig="carmen-robot", max_duration_s=15.0), "carmen", folder)
-    lines = []
-    for line in path.read_text().splitlines():
-        if line.startswith("FLASER "):
-            words = line.split()
-            beams = int(words[1])
-            words[2 + beams - 4: 2 + beams] = ["30.000"] * 4
-            line = " ".join(words)
-        lines.append(line)
-    path.write_text("\n".join(lines) + "\n")
-    return path
 
 
 def free_port() -> int:
