@@ -69,6 +69,7 @@ def make_celery(settings: Any, job_function: str | None = None, concurrency: int
         broker_connection_retry_on_startup=True,
         worker_hijack_root_logger=False,
         worker_redirect_stdouts=False,
+        worker_max_tasks_per_child=settings.worker_max_jobs or None,  # a fresh pool process: the memory back
         lidarmap_data_dir=str(settings.data_dir),
         lidarmap_database_url=settings.database_url,
         lidarmap_job_function=job_function or DEFAULT_JOB_FUNCTION,

@@ -16,7 +16,8 @@ def create_runner(settings: Any, data: DataDir, store: JobStore, job_function: s
     if settings.runner == "local":
         return LocalProcessRunner(data, store, settings.workers, settings.cancel_grace_s,
                                   job_function or DEFAULT_JOB_FUNCTION,
-                                  memory_limit_mb=settings.job_memory_limit())
+                                  memory_limit_mb=settings.job_memory_limit(),
+                                  max_jobs_per_worker=settings.worker_max_jobs)
     if settings.runner == "celery":
         from service.runners.celery_runner import CeleryRunner  # celery is an optional dependency
 

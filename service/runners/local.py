@@ -3,7 +3,9 @@ machine (the default; the API talks only to the :class:`~service.runners.base.Jo
 
 A supervisor thread hands queued job ids to idle workers, notices a worker that exits while it holds
 a job (killed, crashed) and fails that job with the exit reason, replaces the worker, and
-terminates a worker whose job ignores a cancel for longer than the grace period.
+terminates a worker whose job ignores a cancel for longer than the grace period. A worker that has
+run ``max_jobs_per_worker`` jobs is asked to exit and replaced by a fresh one, so an idle worker does
+not hold the memory its jobs left behind (the heap of a finished run is not given back to the system).
 """
 
 from __future__ import annotations
@@ -51,14 +53,18 @@ class _Slot:
     started_s: float
     job_id: str | None = None
     respawn_at_s: float | None = None
+    jobs_done: int = 0
+    retiring: bool = False  # asked to exit after its jobs (max_jobs_per_worker): replaced when it has
 
 
 class LocalProcessRunner:
     """A fixed number of long-lived worker processes (spawn start method) on this machine."""
 
     def __init__(self, data: DataDir, store: JobStore, workers: int, cancel_grace_s: float = 5.0,
-                 job_function: str = DEFAULT_JOB_FUNCTION, poll_s: float = 0.05, memory_limit_mb: int = 0):
+                 job_function: str = DEFAULT_JOB_FUNCTION, poll_s: float = 0.05, memory_limit_mb: int = 0,
+                 max_jobs_per_worker: int = 0):
         self._data = data
+        self._max_jobs_per_worker = max_jobs_per_worker
         self._memory_limit_mb = memory_limit_mb
         self._store = store
         self._job_function = job_function
@@ -162,10 +168,18 @@ class LocalProcessRunner:
                 slot = self._slots[index] if index < len(self._slots) else None
                 if slot is not None and slot.job_id == job_id:
                     slot.job_id = None
+                    slot.jobs_done += 1
+                    if self._max_jobs_per_worker and slot.jobs_done >= self._max_jobs_per_worker:
+                        slot.retiring = True  # it exits at this; _replace_dead starts a fresh one
+                        slot.inbox.put(None)
                 self._cancel_asked.pop(job_id, None)
 
     def _replace_dead(self, slot: _Slot) -> None:
         slot.process.join(timeout=0)
+        if slot.retiring and slot.job_id is None and not self._stopping.is_set():
+            slot.inbox.close()
+            self._slots[slot.index] = self._spawn(slot.index)
+            return
         reason = exit_reason(slot.process.exitcode)
         if slot.job_id is not None:
             asked = slot.job_id in self._cancel_asked
@@ -199,7 +213,7 @@ class LocalProcessRunner:
                 slot.process.terminate()
 
     def _assign_pending(self) -> None:
-        idle = [s for s in self._slots if s.job_id is None and s.process.is_alive()]
+        idle = [s for s in self._slots if s.job_id is None and s.process.is_alive() and not s.retiring]
         while idle and self._pending:
             job_id = self._pending.popleft()
             job = self._store.get_job(job_id)

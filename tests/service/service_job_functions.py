@@ -66,3 +66,13 @@ def live_writer(ctx) -> None:
         if not config.scheduling.linear_update_m:
             ctx.progress(i, config.particles)
         time.sleep(config.seed / 1000.0)
+
+
+HOARD_MB = 200
+_hoard: list = []  # what a job leaves behind in its worker (as a run's caches and heap do)
+
+
+def hoarding(ctx) -> None:
+    """Leaves HOARD_MB of touched memory behind in the worker process, then succeeds."""
+    _hoard.append(bytearray(b"\x01" * (HOARD_MB * 1024 * 1024)))
+    ctx.progress(1, 1, force=True)
