@@ -101,6 +101,7 @@ def test_the_image_cli_starts(image_venv: Path, tmp_path: Path) -> None:
                               cwd=tmp_path, env=clean_env(), timeout=120)
         assert done.returncode == 0, done.stderr[-3000:]
     where = subprocess.run([str(image_venv / "bin" / "python"), "-c", "import lidarmap, service; "
+                            "from api_schemas import JobCreate, JobPublic; "
                             "print(lidarmap.__file__, service.__file__)"], capture_output=True, text=True,
                            cwd=tmp_path, env=clean_env(), check=True).stdout
     assert str(REPO) not in where and str(image_venv) in where  # the installed copy, not the checkout
