@@ -15,6 +15,7 @@ from service.api.openapi_errors import document_errors
 from service.api.routers import api_docs, chunks, formats, health, jobs, logs, maps, products, sessions
 from service.api.routers.tile_schemes import router as tile_schemes_router
 from service.api.routers.viewer import register_viewer
+from service.jobs.events import job_event
 from service.runners.factory import create_runner
 from service.settings import Settings, get_settings
 from service.storage.data_dir import DataDir
@@ -48,8 +49,9 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
             logger.warning("removed %d folder(s) of deleted sessions, logs or jobs", orphans)
         if settings.runner == "local":  # Celery workers outlive the API: their jobs go on (the reaper watches them)
             interrupted = store.fail_interrupted()
-            if interrupted:
-                logger.warning("%d job(s) were running when the service stopped: marked failed", len(interrupted))
+            for job_id in interrupted:
+                job_event("failed", job_id, logging.WARNING,
+                          error="interrupted: the service stopped while the job was running")
         runner = create_runner(settings, data, store, job_function)
         for job_id in store.jobs_with_status(JobStatus.QUEUED):
             runner.submit(job_id)
