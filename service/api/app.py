@@ -50,7 +50,7 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
         if settings.runner == "local":  # Celery workers outlive the API: their jobs go on (the reaper watches them)
             interrupted = store.fail_interrupted()
             for job_id in interrupted:
-                job_event("failed", job_id, logging.WARNING,
+                job_event(JobStatus.FAILED.value, job_id, logging.WARNING,
                           error="interrupted: the service stopped while the job was running")
         runner = create_runner(settings, data, store, job_function)
         for job_id in store.jobs_with_status(JobStatus.QUEUED):

@@ -90,7 +90,7 @@ def make_celery(settings: Any, job_function: str | None = None, concurrency: int
             job_id = str(args[0])
             reason = f"worker lost: {exception}".strip()
             if _store_of(app.conf).finish(job_id, JobStatus.FAILED, reason):
-                job_event("failed", job_id, logging.WARNING, error=reason)
+                job_event(JobStatus.FAILED.value, job_id, logging.WARNING, error=reason)
 
     signals.task_failure.connect(on_failure, sender=run_job, weak=False)
     return app
@@ -235,7 +235,7 @@ class CeleryRunner:
         while not self._stopping.wait(self._settings.heartbeat_s):
             try:
                 for job_id in self._store.fail_lost(self._settings.worker_lost_s):
-                    job_event("failed", job_id, logging.WARNING,
+                    job_event(JobStatus.FAILED.value, job_id, logging.WARNING,
                               error=f"worker lost: no heartbeat for {self._settings.worker_lost_s:.0f} s")
             except Exception:  # the reaper must survive a locked database
                 logger.exception("reaper pass failed")

@@ -122,7 +122,7 @@ class LocalProcessRunner:
                 if slot.job_id is not None:
                     reason = "interrupted: the service stopped while the job was running"
                     self._store.finish(slot.job_id, JobStatus.FAILED, reason)
-                    job_event("failed", slot.job_id, logging.WARNING, error=reason)
+                    job_event(JobStatus.FAILED.value, slot.job_id, logging.WARNING, error=reason)
             for slot in self._slots:
                 slot.inbox.close()
                 slot.inbox.join_thread()
@@ -185,10 +185,10 @@ class LocalProcessRunner:
             asked = slot.job_id in self._cancel_asked
             if asked:
                 self._store.finish(slot.job_id, JobStatus.CANCELLED, "cancelled by request (worker stopped)")
-                job_event("cancelled", slot.job_id, error="cancelled by request (worker stopped)")
+                job_event(JobStatus.CANCELLED.value, slot.job_id, error="cancelled by request (worker stopped)")
             else:
                 self._store.finish(slot.job_id, JobStatus.FAILED, reason)
-                job_event("failed", slot.job_id, logging.WARNING, error=reason)
+                job_event(JobStatus.FAILED.value, slot.job_id, logging.WARNING, error=reason)
             self._cancel_asked.pop(slot.job_id, None)
             slot.job_id = None
         if self._stopping.is_set():

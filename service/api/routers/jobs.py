@@ -77,7 +77,7 @@ def cancel_job(job: JobDep, store: StoreDep, runner: RunnerDep, data: DataDep) -
     if not job.active:
         raise Conflict(f"job already {job.status}", {"status": job.status})
     if store.request_cancel(job.id) is JobStatus.CANCELLED:  # it was queued: cancelled now, never ran
-        job_event("cancelled", job.id, error="cancelled by request")
+        job_event(JobStatus.CANCELLED.value, job.id, error="cancelled by request")
     runner.cancel(job.id)
     row = store.get_job(job.id) or job  # (deleted meanwhile: the job as it was)
     return public(row, data)
