@@ -4,8 +4,9 @@ into a fresh virtual environment (its dependencies from the running one, not thi
 what the image does not need; compose publishes on loopback and has no default password; the README's
 "Deploy with Docker" commands run as far as this machine allows.
 
-No image is built here: the base image needs a registry this machine may not reach. Where a Docker
-daemon with the compose plugin answers, the README's ``docker compose ... config`` is run too.
+No image is built here: the base image needs a registry this machine may not reach. Where compose is
+installed (the docker plugin, or the standalone ``docker-compose``), the README's ``docker compose ...
+config`` is run too: it needs no daemon.
 """
 
 from __future__ import annotations
@@ -192,10 +193,12 @@ def deploy_commands() -> list[str]:
     return [line.split("  #", 1)[0].strip() for line in block.splitlines() if line.strip()]
 
 
-def compose_available() -> bool:
-    if shutil.which("docker") is None:
-        return False
-    return subprocess.run(["docker", "compose", "version"], capture_output=True).returncode == 0
+def compose_command() -> list[str] | None:
+    """How compose is run here: the docker plugin, else the standalone docker-compose (which reads the
+    same file and flags), else None."""
+    if shutil.which("docker") and subprocess.run(["docker", "compose", "version"], capture_output=True).returncode == 0:
+        return ["docker", "compose"]
+    return ["docker-compose"] if shutil.which("docker-compose") else None
 
 
 def test_the_readme_deploy_commands(tmp_path: Path) -> None:
@@ -213,10 +216,14 @@ def test_the_readme_deploy_commands(tmp_path: Path) -> None:
         argv = shlex.split(command)
         assert argv[argv.index("-f") + 1] == "docker/compose.yaml"
         assert argv[argv.index("--env-file") + 1] == "docker/.env"
-    config = next(c for c in compose_commands if " config" in c)
-    if compose_available():  # the compose file as compose reads it: the password required, then given
-        done = subprocess.run(shlex.split(config), cwd=tmp_path, capture_output=True, text=True)
+    config = shlex.split(next(c for c in compose_commands if " config" in c))
+    compose = compose_command()
+    if compose is not None:  # the compose file as compose reads it: the password given, then required
+        argv = compose + config[2:]
+        done = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True)
         assert done.returncode == 0, done.stderr
+        shown = subprocess.run([a for a in argv if a != "--quiet"], cwd=tmp_path, capture_output=True, text=True)
+        assert "127.0.0.1:8000:8000" in shown.stdout and "s3cret@postgres" in shown.stdout, shown.stdout
         env_file.write_text(env_file.read_text().replace("POSTGRES_PASSWORD=s3cret\n", "POSTGRES_PASSWORD=\n"))
-        done = subprocess.run(shlex.split(config), cwd=tmp_path, capture_output=True, text=True)
-        assert done.returncode != 0 and "POSTGRES_PASSWORD" in done.stderr
+        done = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True)
+        assert done.returncode != 0 and "set POSTGRES_PASSWORD in docker/.env" in done.stderr, done.stderr

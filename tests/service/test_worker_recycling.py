@@ -1,18 +1,26 @@
 """An idle worker does not keep what its jobs left behind: after max_jobs_per_worker jobs (default 1)
-the local runner replaces the worker process by a fresh one. Resident memory is measured (psutil) on the
-worker processes themselves."""
+the local runner replaces the worker process by a fresh one. Resident memory is measured on the worker
+processes themselves (the kernel's VmRSS)."""
 
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
-import psutil
 import pytest
 
 from tests.service.service_helpers import service_client, streaming_session, wait_for
 from tests.service.service_job_functions import HOARD_MB
 
 FUNCS = "tests.service.service_job_functions"
+
+
+def rss_mb(pid: int) -> float:
+    """Resident memory of process ``pid`` [MB] (Linux /proc)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError(f"no VmRSS for pid {pid}")
 
 
 def worker_rss_mb(client) -> dict[int, float]:
@@ -25,7 +33,7 @@ def worker_rss_mb(client) -> dict[int, float]:
         if settled and not any(slot.retiring for slot in runner._slots):  # (the runner's own view)
             pids = [slot.process.pid for slot in runner._slots]
             time.sleep(1.0)  # a fresh worker finishes its imports
-            return {pid: psutil.Process(pid).memory_info().rss / 2**20 for pid in pids}
+            return {pid: rss_mb(pid) for pid in pids}
         assert time.monotonic() < deadline, health
         time.sleep(0.1)
 
