@@ -10,6 +10,7 @@ from fastapi import FastAPI
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
 from fastapi.responses import HTMLResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.requests import Request
 
 ASSETS_DIR = Path(__file__).resolve().parent.parent / "docs_assets"  # service/api/docs_assets
 ASSETS_URL = "/static/docs"
@@ -33,20 +34,22 @@ def register_api_docs(app: FastAPI) -> None:
     oauth2_redirect_url = app.swagger_ui_oauth2_redirect_url or "/docs/oauth2-redirect"
     favicon = f"{ASSETS_URL}/swagger-ui/favicon-32x32.png"
 
-    @app.get("/docs", include_in_schema=False)
-    def swagger_ui() -> HTMLResponse:
+    # plain routes, as FastAPI adds its own pages (and /openapi.json): open, outside the API's routes and schema
+    async def swagger_ui(request: Request) -> HTMLResponse:
         return _self_contained(get_swagger_ui_html(
             openapi_url=openapi_url, title=f"{app.title} - Swagger UI", oauth2_redirect_url=oauth2_redirect_url,
             swagger_js_url=f"{ASSETS_URL}/swagger-ui/swagger-ui-bundle.js",
             swagger_css_url=f"{ASSETS_URL}/swagger-ui/swagger-ui.css", swagger_favicon_url=favicon,
             swagger_ui_parameters={"validatorUrl": None}))  # no badge fetched from the validator's site
 
-    @app.get(oauth2_redirect_url, include_in_schema=False)
-    def swagger_ui_redirect() -> HTMLResponse:
+    async def swagger_ui_redirect(request: Request) -> HTMLResponse:
         return get_swagger_ui_oauth2_redirect_html()
 
-    @app.get("/redoc", include_in_schema=False)
-    def redoc() -> HTMLResponse:
+    async def redoc(request: Request) -> HTMLResponse:
         return _self_contained(get_redoc_html(
             openapi_url=openapi_url, title=f"{app.title} - ReDoc",
             redoc_js_url=f"{ASSETS_URL}/redoc/redoc.standalone.js", redoc_favicon_url=favicon, with_google_fonts=False))
+
+    app.add_route("/docs", swagger_ui, include_in_schema=False)
+    app.add_route(oauth2_redirect_url, swagger_ui_redirect, include_in_schema=False)
+    app.add_route("/redoc", redoc, include_in_schema=False)
