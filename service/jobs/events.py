@@ -1,7 +1,7 @@
 """The job lifecycle log: one line per event (created, started, stage, succeeded, failed, cancelled), as
 ``key=value`` pairs on the ``lidarmap.jobs`` logger, e.g.::
 
-    job event=finished job=1b9e... status=succeeded duration_s=41.2 scans=910
+    job event=succeeded job=1b9e... duration_s=41.2 scans=910 peak_memory_mb=612
 
 Values with spaces or quotes are quoted (JSON string rules), so each line splits with ``shlex.split``.
 """
