@@ -95,19 +95,30 @@ class JobPublic(BaseModel):
     source: JobSource
     log_id: str | None
     status: JobStatus
-    progress: float | None = Field(ge=0.0, le=1.0, description="0..1; null for a live job until it "
-                                   "succeeds (its total is unknown while the stream goes on).")
+    mode: JobMode = Field(JobMode.MAP, description="'map', 'localize' or 'extend' (the job's setting).")
+    map_job_id: str | None = Field(None, description="The saved map's job for 'localize' and 'extend'.")
+    live: bool = Field(False, description="A live job: it follows the session's stream.")
+    particles: int | None = Field(None, description="The engine's particle count (= config.slam.particles).")
+    stage: str | None = Field(None, description="While running: what the job does now - 'mapping scans', "
+                              "'closing loops', 'aligning to the map', 'rendering the map', 'writing products', "
+                              "in that order (null when not running or not yet known).")
+    progress: float | None = Field(ge=0.0, le=1.0, description="The job's share done, 0..1, over every stage "
+                                   "(each weighted by its usual share of a run's time: mapping the scans is about "
+                                   "70 %); 1.0 once it succeeded. Null for a live job until it succeeds (its total "
+                                   "is unknown while the stream goes on).")
     scans_done: int
     scans_total: int | None = Field(description="Scans in the input; null while unknown (before the run "
                                     "starts, and for a live job until it succeeds).")
-    eta_s: float | None = Field(description="Estimated seconds left while running (null while unknown, "
-                                "e.g. while the engine compiles).")
+    eta_s: float | None = Field(description="Estimated seconds left while running, from the share done so "
+                                "far (null while unknown, e.g. while the engine compiles).")
     compiling: bool = Field(False, description="The engine is compiling its kernels (the first job after an "
                             "install whose kernel cache is not warm, about 30 s): no scans are mapped meanwhile.")
     error: str | None = Field(description="Why the job failed or was cancelled.")
     cancel_requested: bool
-    config: dict[str, Any] = Field(description="The job's settings: 'slam' is the whole engine configuration "
-                                   "it runs with (a SlamConfig); the shortcut fields repeat its values.")
+    config: dict[str, Any] | None = Field(None, description="The job's settings: 'slam' is the whole engine "
+                                          "configuration it runs with (a SlamConfig); the shortcut fields repeat "
+                                          "its values. Given when the job is created, and with ?include=config "
+                                          "(GET /v1/jobs/{id}, GET /v1/jobs); null otherwise, to keep polls small.")
     input: dict[str, Any] | None = Field(description="What the job mapped (log summary; chunks used).")
     products: list[str] = Field(description="Product names available now, e.g. 'occupancy.png'.")
     created_at: datetime

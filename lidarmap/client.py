@@ -90,8 +90,10 @@ class LidarmapClient:
         body = (settings or JobCreate()).model_dump(mode="json", exclude_unset=True)
         return JobPublic.model_validate(self._json("POST", f"/v1/sessions/{session_id}/jobs", json=body))
 
-    def job(self, job_id: str) -> JobPublic:
-        return JobPublic.model_validate(self._json("GET", f"/v1/jobs/{job_id}"))
+    def job(self, job_id: str, include_config: bool = False) -> JobPublic:
+        """The job's status; its settings (``config``) too with ``include_config``."""
+        params = {"include": "config"} if include_config else None
+        return JobPublic.model_validate(self._json("GET", f"/v1/jobs/{job_id}", params=params))
 
     def cancel(self, job_id: str) -> JobPublic:
         return JobPublic.model_validate(self._json("DELETE", f"/v1/jobs/{job_id}"))

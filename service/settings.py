@@ -17,6 +17,10 @@ class Settings(BaseSettings):
     data_dir: Path = Field(Path("lidarmap-data"), description="Where the job store, uploads and "
                            "artifacts live.")
     workers: int = Field(2, ge=1, le=64, description="Local SLAM worker processes.")
+    worker_max_jobs: int = Field(1, ge=0, le=1_000_000, description="A worker process is replaced by a fresh "
+                                 "one after this many jobs (0 = never), so an idle worker does not keep the memory "
+                                 "its jobs left behind (measured after a 300-scan job: about 280 MB kept, 140 MB "
+                                 "fresh). A Celery worker's pool process likewise (max tasks per child).")
     runner: Literal["local", "celery"] = Field("local", description="Job runner: 'local' worker processes, "
                                                "or 'celery' (jobs go through the broker to `lidarmap worker`s).")
     broker_url: str = Field("redis://127.0.0.1:6379/0", description="Celery broker (runner 'celery').")

@@ -1,5 +1,9 @@
 """One SLAM run over a whole drive log: the loop, the timing, the progress reports.
 
+Progress goes through named stages, in order (:mod:`slam_engine.progress`): the front end maps the
+scans, the back end closes loops and aligns the key frames to the map, the product map is rendered; the
+caller writes the products (it reports ``WRITING_PRODUCTS`` itself).
+
 ``run_slam(log, config)`` feeds every message of the log to a :class:`SlamFilter` and collects a
 :class:`SlamResult`: the best particle's trajectory and the dead-reckoning trajectory (one pose per
 scan), the best particle's final map, per-scan statistics, snapshots, wall time and peak memory.
@@ -13,8 +17,7 @@ import ctypes
 import ctypes.util
 import functools
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -34,23 +37,23 @@ from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.map_bundle import MapBundle
 from slam_engine.model.messages import ScanMessage
 from slam_engine.model.result import MapSnapshot, OccupancyGrid, ScanStats, SlamResult, TextureMap, Trajectory
+from slam_engine.progress import (  # re-exported: callers of run_slam find them here
+    ALIGNING_TO_MAP,
+    CLOSING_LOOPS,
+    MAPPING_SCANS,
+    RENDERING_MAP,
+    STAGE_SHARES,
+    STAGES,
+    WRITING_PRODUCTS,
+    ProgressCallback,
+    RunProgress,
+    run_fraction,
+    stage_progress,
+)
 
-
-@dataclass(frozen=True)
-class RunProgress:
-    """Progress of a run: scans handled so far, scans in the log, seconds since the start, and the
-    newest map snapshot kept so far (``config.snapshot_every_scans``; None before the first), for live
-    previews (its map pooled to at most about ``PREVIEW_MAX_SIDE_CELLS`` a side; older snapshots are
-    pooled further, to an animation frame's size)."""
-
-    scans_done: int
-    scans_total: int
-    elapsed_s: float
-    latest_snapshot: MapSnapshot | None = None
-
-
-ProgressCallback = Callable[[RunProgress], None]
-
+__all__ = ["ALIGNING_TO_MAP", "CLOSING_LOOPS", "MAPPING_SCANS", "RENDERING_MAP", "STAGES", "STAGE_SHARES",
+           "WRITING_PRODUCTS", "ProgressCallback", "RunProgress", "filter_result", "map_bundle", "run_fraction",
+           "run_filter", "run_slam", "stage_progress"]
 
 def _peak_rss_bytes() -> int:
     """Peak resident memory of this process so far [bytes] (:func:`peak_resident_bytes`)."""
@@ -110,7 +113,7 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
     slam = run_filter(log, config, rng, progress, start, live_previews)
     if progress is not None:
         progress(RunProgress(scans_total, scans_total, time.perf_counter() - start))
-    result = filter_result(slam, log, config, start)
+    result = filter_result(slam, log, config, start, progress)
     del slam
     _return_freed_memory()
     return result
@@ -137,12 +140,22 @@ def run_filter(log: DriveLog, config: SlamConfig, rng: np.random.Generator, prog
     return slam
 
 
-def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s: float) -> SlamResult:
+def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s: float,
+                  progress: ProgressCallback | None = None) -> SlamResult:
     """The :class:`SlamResult` of a filter that has stepped through every message of ``log`` (in
     time order) and been finished: what :func:`run_slam` returns, also for a caller that fed the
     filter itself, message by message as they arrived. Only the best particle's map is kept in the
     filter afterwards (the others are freed): it is not stepped further. ``started_s`` is the run's
-    ``time.perf_counter()`` at its start (for the wall time)."""
+    ``time.perf_counter()`` at its start (for the wall time). ``progress`` hears the back end's stages
+    (:data:`CLOSING_LOOPS` with its share of key frames searched, :data:`ALIGNING_TO_MAP`,
+    :data:`RENDERING_MAP`)."""
+    scans_total = 0 if log.scans is None else len(log.scans)
+
+    def report(stage: str, stage_fraction: float = 0.0) -> None:
+        if progress is not None:
+            progress(stage_progress(stage, scans_total, started_s, stage_fraction))
+
+    report(CLOSING_LOOPS)
     warnings = list(log.warnings)
     grid_memory_bytes = slam.grids.memory_bytes()
     # from here on only the best particle's map is read: the others' tiles are freed before the back end
@@ -151,7 +164,9 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     front_end_path = slam.key_frame_path()
     key_frame_points = [scan.hits_v for scan in slam.key_frame_scans]
     backend = close_loops(front_end_path, key_frame_points, config.loop_closing, config.grid.resolution_m,
-                          unverified=~slam.key_frame_matched(), threads=engine_threads())
+                          unverified=~slam.key_frame_matched(), threads=engine_threads(),
+                          progress=None if progress is None else lambda done: report(CLOSING_LOOPS, done))
+    report(ALIGNING_TO_MAP)
     aligned, alignment = backend.poses, {"applied": False, "reason": "loop closing is disabled"}
     if config.loop_closing.enabled:
         aligned, alignment = align_to_map(backend.poses, key_frame_points, config.grid.resolution_m,
@@ -159,6 +174,7 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     _return_freed_memory()
     key_frames, smoothing = _keep_odometry_precision(aligned, slam.key_frame_odometry, slam.key_frame_wheels,
                                                      config)
+    report(RENDERING_MAP)
     trajectory = slam.trajectory(key_frames)
     resampled = slam.scan_stats().resampled
     if len(resampled) > 1 and resampled.mean() > 0.9:
@@ -185,6 +201,7 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     texture, texture_status = _ground_texture(log, trajectory, grid, config, warnings)
     bundle = map_bundle(key_frames, slam.key_frame_times(), ~slam.key_frame_matched(), slam.product_scans(),
                         slam.projector.origin_v, backend.edges, trajectory, config, log)
+    report(RENDERING_MAP, 1.0)
     return SlamResult(
         trajectory=trajectory,
         dead_reckoning=dead_reckoning(log),

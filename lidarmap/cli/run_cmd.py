@@ -9,6 +9,7 @@ simulator's floor (``accuracy.texture``).
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import typer
@@ -52,36 +53,11 @@ def geo_origin(lat: float | None, lon: float | None, heading: float | None):
     return GeoOrigin(latitude_deg=lat, longitude_deg=lon, heading_deg=heading)
 
 
-def run_with_progress(drive_log, config):
-    """run_slam with a rich progress bar (scans, scans/s, ETA) on stderr."""
-    from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        ProgressColumn,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-    from rich.text import Text
-
+def run_with_progress(drive_log, config, bar):
+    """run_slam reporting to ``bar`` (a :class:`~lidarmap.cli.progress_bar.StageProgressBar`)."""
     from slam_engine.pipeline import run_slam
 
-    class ScanRateColumn(ProgressColumn):
-        def render(self, task) -> Text:
-            return Text("" if task.speed is None else f"{task.speed:.1f} scans/s", style="progress.data.speed")
-
-    columns = (TextColumn("SLAM"), BarColumn(), MofNCompleteColumn(), TextColumn("scans"), ScanRateColumn(),
-               TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn())
-    with Progress(*columns, console=Console(stderr=True), transient=False) as bar:
-        task = bar.add_task("slam", total=None)
-
-        def on_progress(p) -> None:
-            bar.update(task, completed=p.scans_done, total=p.scans_total)
-
-        return run_slam(drive_log, config, progress=on_progress,
-                        live_previews=False)  # the bar shows counts only: no preview maps
+    return run_slam(drive_log, config, progress=bar, live_previews=False)  # the bar shows no preview maps
 
 
 def extend(saved, result, config: SlamConfig, out: Path, relations) -> dict[str, Path]:
@@ -146,6 +122,14 @@ def print_summary(result, written: dict[str, Path], out: Path) -> None:
                       f"{texture['observed_cells']} cells, placed {texture['placement_offset_m']:.2f} m off")
 
 
+def print_warnings(run_json: Path) -> None:
+    """run.json's warnings, one line each on stderr (``warning: ...``)."""
+    import json
+
+    for warning in json.loads(run_json.read_text()).get("warnings", []):
+        typer.echo(f"warning: {warning}", err=True)
+
+
 def _fmt(value: float | None, spec: str) -> str:
     return "n/a" if value is None else format(value, spec)
 
@@ -179,8 +163,10 @@ def register(app: typer.Typer) -> None:
         """Build the map of a drive log and write every product (PNG, GeoTIFF, ROS map, trajectories,
         animation, map bundle, run.json) into --out. With --map, the drive extends a saved map: it is
         placed in it, loops between the drives are closed, and the products cover both."""
+        from lidarmap.cli.progress_bar import StageProgressBar
         from slam_engine.evaluation import metrics as evaluation
         from slam_engine.formats import load_log
+        from slam_engine.pipeline import WRITING_PRODUCTS, stage_progress
         from slam_engine.products import write_products
         from slam_engine.products.map_bundle import read_bundle
         from slam_engine.simulation import floor_beside_log
@@ -203,10 +189,15 @@ def register(app: typer.Typer) -> None:
                 slam_config = slam_config.model_copy(update={"snapshot_every_scans": every})
             floor = floor_beside_log(log)
             saved = None if map_dir is None else read_bundle(map_dir)  # before the long run: fail in seconds
-            result = run_with_progress(drive_log, slam_config)
-            if saved is not None:
-                written = extend(saved, result, slam_config, out, relation_table)
-            else:
-                written = write_products(result, out, geo=geo, relations=relation_table, ground_truth=truth,
-                                         log=drive_log, texture_accuracy=texture_figures(result, truth, floor))
+            with StageProgressBar() as bar:
+                started_s = time.perf_counter()
+                result = run_with_progress(drive_log, slam_config, bar)
+                bar(stage_progress(WRITING_PRODUCTS, len(drive_log.scans or ()), started_s))
+                if saved is not None:
+                    written = extend(saved, result, slam_config, out, relation_table)
+                else:
+                    written = write_products(result, out, geo=geo, relations=relation_table, ground_truth=truth,
+                                             log=drive_log, texture_accuracy=texture_figures(result, truth, floor))
+                bar.finish()
             print_summary(result, written, out)
+            print_warnings(written["run.json"])

@@ -8,7 +8,7 @@ from pathlib import Path
 import typer
 
 from lidarmap.cli.bad_input import BAD_INPUT_EXIT_CODE, one_line
-from lidarmap.cli.run_cmd import prepare_out_dir
+from lidarmap.cli.run_cmd import prepare_out_dir, print_warnings
 from slam_engine.errors import ConfigError
 
 JOB_FAILED_EXIT_CODE = 1
@@ -38,7 +38,7 @@ def register(app: typer.Typer) -> None:
         import httpx
         from pydantic import ValidationError
         from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+        from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
 
         from api_schemas.jobs import JobCreate, JobPublic, JobStatus
         from lidarmap.client import ApiError, LidarmapClient
@@ -69,13 +69,15 @@ def register(app: typer.Typer) -> None:
                 typer.echo(f"uploaded {uploaded.filename} ({uploaded.summary.format}, "
                            f"{uploaded.summary.streams.get('scans', 0)} scans) to session {session.id}", err=True)
                 job = api.start_job(session.id, settings)
-                columns = (TextColumn("SLAM on the service"), BarColumn(), MofNCompleteColumn(),
-                           TextColumn("scans"), TextColumn("ETA"), TimeRemainingColumn())
+                columns = (TextColumn("{task.description:<19}"), BarColumn(), TaskProgressColumn(),
+                           TextColumn("{task.fields[scans]}"), TextColumn("ETA"), TimeRemainingColumn())
                 with Progress(*columns, console=Console(stderr=True)) as bar:
-                    task = bar.add_task("job", total=None)
+                    task = bar.add_task("queued", total=1.0, scans="")
 
-                    def show(state: JobPublic) -> None:
-                        bar.update(task, completed=state.scans_done, total=state.scans_total)
+                    def show(state: JobPublic) -> None:  # the job's stage and share done (scans, back end, products)
+                        scans = f"{state.scans_done}/{state.scans_total} scans" if state.scans_total else ""
+                        done = 1.0 if state.status is JobStatus.SUCCEEDED else state.progress or 0.0
+                        bar.update(task, completed=done, description=state.stage or state.status.value, scans=scans)
 
                     job = api.wait(job.id, on_progress=show, timeout_s=timeout)
                 if job.status is not JobStatus.SUCCEEDED:
@@ -90,3 +92,5 @@ def register(app: typer.Typer) -> None:
         for _name, path in sorted(written.items()):
             typer.echo(f"{path}  {path.stat().st_size:,} bytes")
         typer.echo(f"job {job.id}: {job.scans_done} scans, {len(written)} products in {out}")
+        if "run.json" in written:
+            print_warnings(written["run.json"])

@@ -12,9 +12,10 @@ from api_schemas.jobs import JobStatus
 from service.api.error_handlers import install_error_handlers
 from service.api.limits import BodyLimitMiddleware
 from service.api.openapi_errors import document_errors
-from service.api.routers import chunks, formats, health, jobs, logs, maps, products, sessions
+from service.api.routers import api_docs, chunks, formats, health, jobs, logs, maps, products, sessions
 from service.api.routers.tile_schemes import router as tile_schemes_router
 from service.api.routers.viewer import register_viewer
+from service.jobs.events import job_event
 from service.runners.factory import create_runner
 from service.settings import Settings, get_settings
 from service.storage.data_dir import DataDir
@@ -48,8 +49,9 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
             logger.warning("removed %d folder(s) of deleted sessions, logs or jobs", orphans)
         if settings.runner == "local":  # Celery workers outlive the API: their jobs go on (the reaper watches them)
             interrupted = store.fail_interrupted()
-            if interrupted:
-                logger.warning("%d job(s) were running when the service stopped: marked failed", len(interrupted))
+            for job_id in interrupted:
+                job_event(JobStatus.FAILED.value, job_id, logging.WARNING,
+                          error="interrupted: the service stopped while the job was running")
         runner = create_runner(settings, data, store, job_function)
         for job_id in store.jobs_with_status(JobStatus.QUEUED):
             runner.submit(job_id)
@@ -64,7 +66,7 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
             app.state.inspector.shutdown()
             store.close()
 
-    app = FastAPI(title="lidarmap", version=__version__, lifespan=lifespan,
+    app = FastAPI(title="lidarmap", version=__version__, lifespan=lifespan, docs_url=None, redoc_url=None,
                   description="Occupancy grid, texture map and trajectory from drive logs, by "
                               "particle-filter SLAM. Upload a log (or stream chunks) into a session, "
                               "start a job, poll it, fetch the products.")
@@ -84,5 +86,6 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
     app.include_router(jobs.router)
     app.include_router(tile_schemes_router)
     register_viewer(app)
+    api_docs.register_api_docs(app)  # /docs and /redoc from the package's own assets
     document_errors(app)
     return app

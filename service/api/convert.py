@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from datetime import UTC, datetime
 
-from api_schemas.jobs import JobPublic, JobStatus
+from api_schemas.jobs import JobMode, JobPublic, JobStatus
 from api_schemas.logs import LogPublic
 from api_schemas.sessions import SessionPublic
 from service.storage.rows import JobRow, LogRow, SessionRow
@@ -27,20 +27,28 @@ def log_public(row: LogRow) -> LogPublic:
 
 
 def eta_s(row: JobRow, now: float | None = None) -> float | None:
-    """Seconds left, extrapolating the run's rate so far; None when unknown."""
-    if row.status is not JobStatus.RUNNING or not row.started_at or not row.scans_total or row.scans_done <= 0:
+    """Seconds left, extrapolating the time the share done so far took (every stage: mapping, back end,
+    products); None when unknown."""
+    if row.status is not JobStatus.RUNNING or not row.started_at or row.live or row.progress <= 0.0:
         return None
     elapsed = (now or time.time()) - row.started_at
-    return max(0.0, elapsed * (row.scans_total - row.scans_done) / row.scans_done)
+    return max(0.0, elapsed * (1.0 - row.progress) / row.progress)
 
 
-def job_public(row: JobRow, live_products: list[str] | None = None, compiling: bool = False) -> JobPublic:
-    """The public view of a job row; ``compiling``: its engine is compiling (no ETA meanwhile)."""
+def job_public(row: JobRow, live_products: list[str] | None = None, compiling: bool = False,
+               stage: str | None = None, include_config: bool = True) -> JobPublic:
+    """The public view of a job row; ``compiling``: its engine is compiling (no ETA meanwhile); ``stage``:
+    what a running job does now; its settings (``config``) only with ``include_config``."""
     products = sorted(set(row.products) | set(live_products or []))
     following = row.live and row.status is not JobStatus.SUCCEEDED  # total unknown
+    slam = row.config.get("slam") or {}
     return JobPublic(id=row.id, session_id=row.session_id, source=row.source, log_id=row.log_id, status=row.status,
+                     mode=row.config.get("mode") or JobMode.MAP, map_job_id=row.config.get("map_job_id"),
+                     live=row.live, particles=slam.get("particles", row.config.get("particles")),
+                     stage=stage if row.status is JobStatus.RUNNING else None,
                      progress=None if following else row.progress, scans_done=row.scans_done,
                      scans_total=row.scans_total, eta_s=None if compiling else eta_s(row), compiling=compiling,
-                     error=row.error, cancel_requested=row.cancel_requested, config=row.config, input=row.input,
+                     error=row.error, cancel_requested=row.cancel_requested,
+                     config=row.config if include_config else None, input=row.input,
                      products=products, created_at=utc(row.created_at), started_at=utc(row.started_at),
                      finished_at=utc(row.finished_at))

@@ -15,6 +15,7 @@ from service.jobs.estimate import (
     estimate_bytes,
     stored_figures,
 )
+from service.jobs.events import job_event
 from service.jobs.saved_maps import saved_map_path
 from service.jobs.settings import JobSettings, resolve, stored_config
 from service.storage.data_dir import DataDir
@@ -48,6 +49,8 @@ def create_job(body: JobSettings, session: SessionRow, store: JobStore, data: Da
         if source is JobSource.STREAM:
             _stream_ready(session)
         row = store.create_job(session.id, session.owner, source, log_id, config)
+    job_event("created", row.id, session=session.id, source=row.source.value, live=row.live or None,
+              mode=config.get("mode"))
     submit(row.id)
     return row
 

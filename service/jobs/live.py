@@ -42,6 +42,7 @@ from slam_engine.frontend.particle_filter import SlamFilter
 from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.messages import EncoderMessage, Message, ScanMessage
 from slam_engine.model.result import MapSnapshot, SlamResult
+from slam_engine.progress import MAPPING_SCANS, RunProgress
 
 POLL_S = 0.2  # how often a job that has caught up looks for the next chunk (and for a cancel)
 ODOMETRY_TYPES = ("encoder", "odometry")
@@ -125,15 +126,17 @@ class LiveRun:
         return MapSnapshot(scan_index=len(trajectory) - 1, t_s=float(trajectory.t_s[-1]),
                            grid=self.slam.preview_grid(), trajectory=trajectory)
 
-    def result(self, started_s: float) -> tuple[SlamResult, DriveLog]:
-        """Finish the filter and collect the run's result over every message fed."""
+    def result(self, started_s: float, progress: Callable[[RunProgress], None] | None = None
+               ) -> tuple[SlamResult, DriveLog]:
+        """Finish the filter and collect the run's result over every message fed (``progress`` hears the
+        back end's stages)."""
         from slam_engine.pipeline import filter_result, run_slam
 
         log = drive_log_from_messages(self.calibration, self.messages)
         if self.slam is None or log.scans is None:  # no odometry (an error) or no scans: as a regular job
             return run_slam(log, self.config), log
         self.slam.finish()
-        return filter_result(self.slam, log, self.config, started_s), log
+        return filter_result(self.slam, log, self.config, started_s, progress), log
 
 
 def run_live_job(ctx: JobContext) -> None:
@@ -151,7 +154,7 @@ def run_live_job(ctx: JobContext) -> None:
     live_map = LiveMap(ctx.data.live_dir(ctx.job_id))
 
     def on_scan() -> None:
-        ctx.progress(run.scans_done, None)
+        ctx.progress(run.scans_done, None, stage=MAPPING_SCANS)
         live_map.update(run.latest_snapshot())
 
     seq, published, last_seq = 0, -1, None
@@ -170,7 +173,7 @@ def run_live_job(ctx: JobContext) -> None:
         if config.snapshot_every_scans and run.scans_done != published:
             live_map.update(run.current_snapshot())
             published = run.scans_done
-        ctx.progress(run.scans_done, None, force=True)
+        ctx.progress(run.scans_done, None, force=True, stage=MAPPING_SCANS)
         if time.monotonic() - idle_since >= idle_timeout_s:
             ended = "idle_timeout"
             break
@@ -179,9 +182,7 @@ def run_live_job(ctx: JobContext) -> None:
     if not run.messages:
         raise JobFailed(f"live stream idle: no chunk arrived within idle_timeout_s ({idle_timeout_s:g} s), "
                         "nothing to map")
-    result, log = run.result(started_s)
-    total = 0 if log.scans is None else len(log.scans)
-    ctx.progress(total, total, force=True)
+    result, log = run.result(started_s, ctx.run_progress)
     description: dict[str, Any] = {"source": "stream", "live": True, "ended": ended, "chunks_used": seq,
                                    "messages": len(run.messages), "last_seq": last_seq}
     if ended == "idle_timeout":

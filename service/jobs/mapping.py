@@ -42,6 +42,7 @@ def load_input(ctx: JobContext) -> tuple[DriveLog, dict[str, Any]]:
             raise LogFormatError("the job's log was deleted")
         path = data.resolve(log_row.stored_path)
         log = load_log(path, format=stored_log_format(path, log_row.summary.get("format", "auto")))
+        name_as_uploaded(log, path, log_row.filename)
         return log, {"source": "log", "log_id": log_row.id, "sha256": log_row.sha256, "summary": log.summary()}
     rows = store.chunk_rows(job.session_id)
     state = stream_state(rows)
@@ -56,6 +57,13 @@ def load_input(ctx: JobContext) -> tuple[DriveLog, dict[str, Any]]:
     log = drive_log_from_messages(session.calibration, messages)
     return log, {"source": "stream", "chunks_used": state.contiguous_through + 1,
                  "messages": len(messages), "missing_seqs_after": state.missing_seqs, "summary": log.summary()}
+
+
+def name_as_uploaded(log: DriveLog, path: Path, filename: str) -> None:
+    """The log's warnings (kept in the job's input and run.json) name the upload as its user did
+    (``filename``), not by the server's path; a file inside an uploaded folder by its path there."""
+    folder = f"{path.parent}/"
+    log.warnings[:] = [warning.replace(str(path), filename).replace(folder, "") for warning in log.warnings]
 
 
 def stored_log_format(path: Path, checked_as: str) -> str:
@@ -121,7 +129,7 @@ def _run_mapping_job(ctx: JobContext) -> None:
     live = LiveMap(ctx.data.live_dir(ctx.job_id))
 
     def on_progress(progress: Any) -> None:
-        ctx.progress(progress.scans_done, progress.scans_total)
+        ctx.run_progress(progress)
         snapshot = progress.latest_snapshot
         live.update(snapshot)
         if extent is not None and snapshot is not None:
@@ -131,6 +139,4 @@ def _run_mapping_job(ctx: JobContext) -> None:
         run_from_saved_map(ctx, log, on_progress)
         return
     result = run_slam(log, config, progress=on_progress)
-    total = len(log.scans) if log.scans is not None else 0
-    ctx.progress(total, total, force=True)
     write_job_products(ctx, result, log)

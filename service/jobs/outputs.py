@@ -48,7 +48,11 @@ def write_job_products(ctx: JobContext, result: SlamResult, log: DriveLog, extra
     """Write a finished run's products into the job's folder, list them in the store (with ``extra``:
     products the caller wrote there itself), drop the live snapshot."""
     from slam_engine.products import GeoOrigin, write_products
+    from slam_engine.progress import WRITING_PRODUCTS
 
+    ctx.stage(WRITING_PRODUCTS)
+    server_folder = f"{ctx.data.root}/"  # no server path in run.json, whatever said it
+    result.warnings[:] = [warning.replace(server_folder, "") for warning in result.warnings]
     peak = ctx.peak_memory_bytes()
     if peak:  # this job's own peak (the engine's getrusage figure spans the worker's whole life)
         result.peak_memory_bytes = peak

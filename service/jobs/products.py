@@ -13,6 +13,7 @@ import numpy as np
 
 from api_schemas.jobs import JobStatus
 from service.http_errors import NotFound, NotReady
+from service.jobs.context import STAGE_FILE
 from service.storage.data_dir import DataDir
 from service.storage.rows import JobRow
 from slam_engine.model.result import OccupancyGrid, TextureMap
@@ -40,6 +41,16 @@ def engine_compiling(data: DataDir, job: JobRow) -> bool:
     """Whether a running job's engine is compiling its numba kernels right now (first use without a
     warm cache: no scans are mapped meanwhile, so no ETA can be given)."""
     return job.status is JobStatus.RUNNING and (data.live_dir(job.id) / COMPILING_FILE).exists()
+
+
+def running_stage(data: DataDir, job: JobRow) -> str | None:
+    """What a running job does now (its worker's last stage, :data:`service.jobs.context.STAGE_FILE`)."""
+    if job.status is not JobStatus.RUNNING:
+        return None
+    try:
+        return (data.job_dir(job.id) / STAGE_FILE).read_text()[:100] or None
+    except OSError:
+        return None
 
 
 def live_product_names(data: DataDir, job: JobRow) -> list[str]:

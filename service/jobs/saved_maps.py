@@ -16,6 +16,7 @@ from service.storage.data_dir import DataDir
 from service.storage.store import JobStore
 from slam_engine.errors import MapBundleError
 from slam_engine.model.drive_log import DriveLog
+from slam_engine.progress import WRITING_PRODUCTS, run_fraction
 
 BUNDLE = "map_bundle.npz"
 
@@ -62,7 +63,7 @@ def _localize(ctx: JobContext, bundle: Any, log: DriveLog, config: Any) -> None:
     drive = DriveScans.from_log(log, config)
     total = len(drive)
     result = localize(bundle, drive, config, threads=1)
-    ctx.progress(total, total, force=True)
+    ctx.progress(total, total, force=True, stage=WRITING_PRODUCTS, fraction=run_fraction(WRITING_PRODUCTS, 0.0))
     summary = result.summary()
     if not result.localised:
         raise MapBundleError(f"refused: the drive has no place in the saved map (best score {summary['best_score']}, "
@@ -81,8 +82,6 @@ def _extend(ctx: JobContext, bundle: Any, log: DriveLog, config: Any, progress: 
     own = run_slam(log, config, progress=progress)
     assert own.bundle is not None  # a run with scans always makes one
     joined = join(bundle, own.bundle, config)
-    total = len(log.scans) if log.scans is not None else 0
-    ctx.progress(total, total, force=True)
     if not joined.connected:
         raise MapBundleError(f"refused: the drive could not be placed in the saved map (best score "
                              f"{joined.placement.best_score:.3f}); map it on its own, or extend with a drive that "

@@ -37,6 +37,7 @@ from celery import Celery, signals
 from api_schemas.jobs import JobStatus
 from service.http_errors import Unavailable
 from service.jobs.context import JobContext, JobFunction
+from service.jobs.events import job_event
 from service.runners.base import DEFAULT_JOB_FUNCTION, RunnerHealth
 from service.runners.heartbeat import with_heartbeat
 from service.runners.worker import execute_job, import_function
@@ -67,6 +68,7 @@ def make_celery(settings: Any, job_function: str | None = None, concurrency: int
         broker_connection_retry_on_startup=True,
         worker_hijack_root_logger=False,
         worker_redirect_stdouts=False,
+        worker_max_tasks_per_child=settings.worker_max_jobs or None,  # a fresh pool process: the memory back
         lidarmap_data_dir=str(settings.data_dir),
         lidarmap_database_url=settings.database_url,
         lidarmap_job_function=job_function or DEFAULT_JOB_FUNCTION,
@@ -84,8 +86,9 @@ def make_celery(settings: Any, job_function: str | None = None, concurrency: int
                    args: Any = None, **_: Any) -> None:
         if isinstance(exception, WorkerLostError) and args:
             job_id = str(args[0])
-            if _store_of(app.conf).finish(job_id, JobStatus.FAILED, f"worker lost: {exception}".strip()):
-                logger.warning("job %s: %s", job_id, exception)
+            reason = f"worker lost: {exception}".strip()
+            if _store_of(app.conf).finish(job_id, JobStatus.FAILED, reason):
+                job_event(JobStatus.FAILED.value, job_id, logging.WARNING, error=reason)
 
     signals.task_failure.connect(on_failure, sender=run_job, weak=False)
     return app
@@ -181,7 +184,7 @@ class CeleryRunner:
         while not self._stopping.wait(self._settings.heartbeat_s):
             try:
                 for job_id in self._store.fail_lost(self._settings.worker_lost_s):
-                    logger.warning("job %s: worker lost (no heartbeat for %.0f s): failed", job_id,
-                                   self._settings.worker_lost_s)
+                    job_event(JobStatus.FAILED.value, job_id, logging.WARNING,
+                              error=f"worker lost: no heartbeat for {self._settings.worker_lost_s:.0f} s")
             except Exception:  # the reaper must survive a locked database
                 logger.exception("reaper pass failed")

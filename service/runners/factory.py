@@ -17,7 +17,7 @@ def create_runner(settings: Any, data: DataDir, store: JobStore, job_function: s
         return LocalProcessRunner(data, store, settings.workers, settings.cancel_grace_s,
                                   job_function or DEFAULT_JOB_FUNCTION,
                                   memory_limit_mb=settings.job_memory_limit(), heartbeat_s=settings.heartbeat_s,
-                                  worker_lost_s=settings.worker_lost_s)
+                                  worker_lost_s=settings.worker_lost_s, max_jobs_per_worker=settings.worker_max_jobs)
     if settings.runner == "celery":
         from service.runners.celery_runner import CeleryRunner  # celery is an optional dependency
 

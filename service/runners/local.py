@@ -8,6 +8,9 @@ the grace period. Each running job writes a heartbeat every ``heartbeat_s``; a j
 older than ``worker_lost_s`` (its worker was stopped with SIGSTOP, or hangs with the interpreter
 lock held) is failed "worker lost: no heartbeat for ..." and its worker killed and replaced.
 Workers die with the API process (:mod:`service.process_guard`).
+A worker that has run ``max_jobs_per_worker`` jobs is asked to exit and replaced by a fresh one, so an
+idle worker does not hold the memory its jobs left behind (the heap of a finished run is not given back
+to the system).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from api_schemas.jobs import JobStatus
+from service.jobs.events import job_event
 from service.runners.base import DEFAULT_JOB_FUNCTION, RunnerHealth
 from service.storage.data_dir import DataDir
 from service.storage.store import JobStore
@@ -54,6 +58,8 @@ class _Slot:
     started_s: float
     job_id: str | None = None
     respawn_at_s: float | None = None
+    jobs_done: int = 0
+    retiring: bool = False  # asked to exit after its jobs (max_jobs_per_worker): replaced when it has
 
 
 class LocalProcessRunner:
@@ -61,11 +67,12 @@ class LocalProcessRunner:
 
     def __init__(self, data: DataDir, store: JobStore, workers: int, cancel_grace_s: float = 5.0,
                  job_function: str = DEFAULT_JOB_FUNCTION, poll_s: float = 0.05, memory_limit_mb: int = 0,
-                 heartbeat_s: float = 5.0, worker_lost_s: float = 60.0):
+                 heartbeat_s: float = 5.0, worker_lost_s: float = 60.0, max_jobs_per_worker: int = 0):
         self._data = data
         self._heartbeat_s = heartbeat_s
         self._worker_lost_s = worker_lost_s
         self._next_reap_s = 0.0
+        self._max_jobs_per_worker = max_jobs_per_worker
         self._memory_limit_mb = memory_limit_mb
         self._store = store
         self._job_function = job_function
@@ -121,8 +128,9 @@ class LocalProcessRunner:
                     slot.process.kill()
                     slot.process.join(timeout=2.0)
                 if slot.job_id is not None:
-                    self._store.finish(slot.job_id, JobStatus.FAILED, "interrupted: the service stopped while the job "
-                                       "was running")
+                    reason = "interrupted: the service stopped while the job was running"
+                    self._store.finish(slot.job_id, JobStatus.FAILED, reason)
+                    job_event(JobStatus.FAILED.value, slot.job_id, logging.WARNING, error=reason)
             for slot in self._slots:
                 slot.inbox.close()
                 slot.inbox.join_thread()
@@ -183,18 +191,27 @@ class LocalProcessRunner:
                 slot = self._slots[index] if index < len(self._slots) else None
                 if slot is not None and slot.job_id == job_id:
                     slot.job_id = None
+                    slot.jobs_done += 1
+                    if self._max_jobs_per_worker and slot.jobs_done >= self._max_jobs_per_worker:
+                        slot.retiring = True  # it exits at this; _replace_dead starts a fresh one
+                        slot.inbox.put(None)
                 self._cancel_asked.pop(job_id, None)
 
     def _replace_dead(self, slot: _Slot) -> None:
         slot.process.join(timeout=0)
+        if slot.retiring and slot.job_id is None and not self._stopping.is_set():
+            slot.inbox.close()
+            self._slots[slot.index] = self._spawn(slot.index)
+            return
         reason = exit_reason(slot.process.exitcode)
         if slot.job_id is not None:
             asked = slot.job_id in self._cancel_asked
             if asked:
                 self._store.finish(slot.job_id, JobStatus.CANCELLED, "cancelled by request (worker stopped)")
+                job_event(JobStatus.CANCELLED.value, slot.job_id, error="cancelled by request (worker stopped)")
             else:
                 self._store.finish(slot.job_id, JobStatus.FAILED, reason)
-            logger.warning("job %s: %s", slot.job_id, reason)
+                job_event(JobStatus.FAILED.value, slot.job_id, logging.WARNING, error=reason)
             self._cancel_asked.pop(slot.job_id, None)
             slot.job_id = None
         if self._stopping.is_set():
@@ -218,7 +235,7 @@ class LocalProcessRunner:
                 slot.process.kill()
 
     def _assign_pending(self) -> None:
-        idle = [s for s in self._slots if s.job_id is None and s.process.is_alive()]
+        idle = [s for s in self._slots if s.job_id is None and s.process.is_alive() and not s.retiring]
         while idle and self._pending:
             job_id = self._pending.popleft()
             job = self._store.get_job(job_id)

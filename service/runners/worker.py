@@ -13,6 +13,7 @@ import logging
 import os
 import shutil
 import signal
+import time
 import traceback
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,7 @@ from typing import Any
 from api_schemas.jobs import JobStatus
 from service.http_errors import shorten_tokens
 from service.jobs.context import JobContext, JobFailed, JobFunction
+from service.jobs.events import job_event
 from service.memory_watchdog import MemoryGuard, limit_reason
 from service.process_guard import die_with_parent
 from service.runners.heartbeat import with_heartbeat
@@ -50,6 +52,9 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
     job = store.get_job(job_id)
     if job is None:
         return None
+    started_s = time.monotonic()
+    queued_s = None if job.started_at is None else job.started_at - job.created_at
+    job_event("started", job_id, worker_pid=os.getpid(), queued_s=queued_s)
 
     def fail_for_memory(reason: str) -> None:
         store.finish(job_id, JobStatus.FAILED, reason)
@@ -64,7 +69,8 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
             logger.warning("job %s is not this worker's any more: its products were discarded", job_id)
             current = store.get_job(job_id)
             return None if current is None else current.status
-        if not store.finish(job_id, status, error):  # failed or cancelled meanwhile: first writer wins
+        recorded = store.finish(job_id, status, error)
+        if not recorded:  # failed or cancelled meanwhile: first writer wins
             for path in moved or []:
                 if path.is_dir():
                     data.remove(path)
@@ -72,7 +78,18 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
                     path.unlink(missing_ok=True)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+    row = store.get_job(job_id)
+    if not recorded and row is not None:  # finished meanwhile by another (the memory guard, a reaper): its outcome
+        status, error = row.status, row.error
+    level = logging.WARNING if status is JobStatus.FAILED else logging.INFO
+    job_event(status.value, job_id, level, duration_s=time.monotonic() - started_s,
+              scans=None if row is None else row.scans_done, peak_memory_mb=_megabytes(ctx.peak_memory_bytes()),
+              error=error)
     return status
+
+
+def _megabytes(size: int | None) -> int | None:
+    return None if size is None else round(size / 1024**2)
 
 
 STAGING_PREFIX = ".staging-"  # + the worker's pid: a folder in the job's folder that one attempt writes into
@@ -138,7 +155,7 @@ def worker_main(data_root: str, store: JobStore, job_function: str, slot: int, i
     die_with_parent()
     # several workers share the cores: one engine thread each unless LIDARMAP_THREADS says otherwise
     os.environ.setdefault("LIDARMAP_THREADS", "1")
-    logging.basicConfig(level=logging.INFO)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)-9s %(message)s")  # as uvicorn's lines
     data = DataDir(Path(data_root))
     try:
         function = import_function(job_function)

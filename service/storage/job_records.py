@@ -89,10 +89,14 @@ class JobRecords(StoreBase):
         with self._tx() as tx:
             tx.execute(update(jobs).where(jobs.c.id == job_id).values(input_json=dump_json(input_description)))
 
-    def update_progress(self, job_id: str, scans_done: int, scans_total: int | None) -> bool:
-        """Record progress and heartbeat; returns whether the job should stop (a cancel was requested, or
-        it is not running any more: failed as lost or interrupted meanwhile)."""
-        progress = 0.0 if not scans_total else min(1.0, max(0.0, scans_done / scans_total))
+    def update_progress(self, job_id: str, scans_done: int, scans_total: int | None,
+                        progress: float | None = None) -> bool:
+        """Record progress (``progress``: the job's share done, 0..1; default the scans' share) and
+        heartbeat; returns whether the job should stop (a cancel was requested, or it is not running any
+        more: failed as lost or interrupted meanwhile)."""
+        if progress is None:
+            progress = 0.0 if not scans_total else scans_done / scans_total
+        progress = min(1.0, max(0.0, progress))
         with self._tx() as tx:
             tx.execute(update(jobs).where(jobs.c.id == job_id, jobs.c.status == _RUNNING)
                        .values(scans_done=scans_done, scans_total=scans_total, progress=progress,

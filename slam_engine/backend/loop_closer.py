@@ -29,6 +29,7 @@ building's loops close, keep it in check even where no pose closure is found.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -296,8 +297,9 @@ class LoopCloser:
         sd_th = c.motion_sd_rad + c.motion_sd_rad_per_rad * abs(float(motion[2])) + c.motion_sd_rad_per_m * d
         return np.array([sd_xy, sd_xy, sd_th])
 
-    def run(self) -> LoopClosingResult:
-        """Search every key frame for loops, in time order, and optimise the graph."""
+    def run(self, progress: Callable[[float], None] | None = None) -> LoopClosingResult:
+        """Search every key frame for loops, in time order, and optimise the graph; ``progress`` as in
+        :func:`close_loops`."""
         c = self.config
         n = len(self.path)
         est = self.path.copy()
@@ -308,6 +310,8 @@ class LoopCloser:
         # heading closure cannot vouch for a pose closure)
         pending: dict[str, _Found] = {}
         for k in range(1, n):
+            if progress is not None:
+                progress((k - 1) / n)
             est[k] = compose(est[k - 1], relative(self.path[k - 1], self.path[k]))
             if self.travel_m[k] - last_search_m < c.search_every_m or not len(self.points_v[k]):
                 continue
@@ -544,10 +548,13 @@ class LoopCloser:
 
 
 def close_loops(path: np.ndarray, points_v: list[np.ndarray], config: LoopClosingConfig, resolution_m: float,
-                unverified: np.ndarray | None = None, threads: int = 1) -> LoopClosingResult:
+                unverified: np.ndarray | None = None, threads: int = 1,
+                progress: Callable[[float], None] | None = None) -> LoopClosingResult:
     """Optimised key-frame poses for the front end's ``path`` (K, 3) and key-frame end points;
     ``unverified`` (K,) bool marks the steps whose motion the front end did not verify by a scan match.
-    Each global search runs in ``threads`` threads (same result for any: :func:`correlative.branch_and_bound`)."""
+    Each global search runs in ``threads`` threads (same result for any: :func:`correlative.branch_and_bound`).
+    ``progress`` hears the share of key frames searched (0..1) after each one (an exception raised there
+    stops the search)."""
     if not config.enabled or len(path) < 3:
         return LoopClosingResult(poses=np.asarray(path, np.float64).copy())
-    return LoopCloser(path, points_v, config, resolution_m, unverified, threads).run()
+    return LoopCloser(path, points_v, config, resolution_m, unverified, threads).run(progress)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import sys
 import types
 from pathlib import Path
@@ -10,10 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
+from log_helpers import saturated_log
 from PIL import Image
 from typer.testing import CliRunner
 
 from lidarmap.cli import app
+from slam_engine import pipeline
 from slam_engine.config import SlamConfig
 from slam_engine.evaluation.metrics import read_ground_truth, read_relations
 from slam_engine.model.result import OccupancyGrid, ScanStats, SlamResult, Trajectory
@@ -138,7 +141,7 @@ def test_run_wires_log_config_progress_relations_and_products(tmp_path: Path, da
     def run_slam(drive_log, config, rng=None, progress=None, live_previews=None):
         calls.update(config=config, scans=len(drive_log.scans), rng=rng, live_previews=live_previews)
         for done in range(0, len(drive_log.scans) + 1, 100):
-            progress(types.SimpleNamespace(scans_done=done, scans_total=len(drive_log.scans), elapsed_s=0.1))
+            progress(pipeline.RunProgress(scans_done=done, scans_total=len(drive_log.scans), elapsed_s=0.1))
         log_odds = np.zeros((80, 120))
         log_odds[10:70, 60] = 5.0
         grid = OccupancyGrid(log_odds, config.grid.resolution_m, -3.0, -2.0)
@@ -146,7 +149,8 @@ def test_run_wires_log_config_progress_relations_and_products(tmp_path: Path, da
         return SlamResult(trajectory=truth, dead_reckoning=truth, grid=grid, scan_stats=stats, config=config,
                           snapshots=[], wall_time_s=1.5)
 
-    monkeypatch.setitem(sys.modules, "slam_engine.pipeline", types.SimpleNamespace(run_slam=run_slam))
+    monkeypatch.setitem(sys.modules, "slam_engine.pipeline",
+                        types.SimpleNamespace(**{**vars(pipeline), "run_slam": run_slam}))
     out = tmp_path / "out"
     result = invoke("run", log, "--out", out, "--particles", "12", "--seed", "5", "--resolution", "0.1")
     assert result.exit_code == 0, result.output
@@ -161,6 +165,37 @@ def test_run_wires_log_config_progress_relations_and_products(tmp_path: Path, da
     assert run["input"]["format"] == "carmen" and run["input"]["streams"]["scans"] == 910
     assert ALL_PRODUCTS - {"animation.gif"} == {p.name for p in out.iterdir()}
     assert "relation error: 0.000 +- 0.000 m" in result.stdout
+
+
+def test_run_progress_bar_names_each_stage_in_order_and_ends_after_the_products(tmp_path: Path) -> None:
+    """A real run on a short simulated drive, its bar drawn as on a terminal: the stages in order, the
+    share done never backwards, 100 % only once the products are being written."""
+    from slam_engine.simulation import simulate, write_simulated
+
+    log = write_simulated(simulate("office", seed=3, rig="carmen-robot", max_duration_s=15.0), "carmen", tmp_path)
+    result = CliRunner().invoke(app, ["run", str(log), "--out", str(tmp_path / "out"), "--particles", "3"],
+                                env={"TTY_COMPATIBLE": "1", "COLUMNS": "160"})
+    assert result.exit_code == 0, result.output
+    drawn = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", result.stderr).replace("\r", "\n")  # one line a redraw
+    lines = re.findall(r"^(mapping scans|closing loops|aligning to the map|rendering the map|writing products|done)"
+                       r" +\S*\s+(\d+)%", drawn, re.MULTILINE)
+    stages, percents = [stage for stage, _ in lines], [int(percent) for _, percent in lines]
+    shown = [s for i, s in enumerate(stages) if i == 0 or s != stages[i - 1]]
+    assert shown == ["mapping scans", "closing loops", "aligning to the map", "rendering the map",
+                     "writing products", "done"]
+    assert percents == sorted(percents) and percents[-1] == 100
+    assert percents[stages.index("writing products")] == 97 and percents.count(100) == stages.count("done")
+
+
+def test_run_prints_each_run_json_warning_as_one_line_on_stderr(tmp_path: Path) -> None:
+    log = saturated_log(tmp_path / "sim")
+    result = CliRunner().invoke(app, ["run", str(log), "--out", str(tmp_path / "out"), "--particles", "3"])
+    assert result.exit_code == 0, result.output
+    recorded = json.loads((tmp_path / "out" / "run.json").read_text())["warnings"]
+    assert f"{log}: FLASER: range 30 m fills many beams; treated as no return" in recorded
+    printed = [line for line in result.stderr.splitlines() if line.startswith("warning: ")]
+    assert printed == [f"warning: {warning}" for warning in recorded]
+    assert "warning" not in result.stdout
 
 
 @pytest.mark.slow

@@ -114,7 +114,7 @@ def test_submit_maps_a_log_on_the_service_and_downloads_every_product(room_servi
                                  "--particles", "3", "--seed", "1"])
     assert result.exit_code == 0, result.output
     job_id = result.stdout.strip().splitlines()[-1].split()[1].rstrip(":")
-    job = httpx.get(f"{room_service}/v1/jobs/{job_id}").json()
+    job = httpx.get(f"{room_service}/v1/jobs/{job_id}", params={"include": "config"}).json()
     assert job["status"] == "succeeded" and job["config"]["particles"] == 3
     listed = {name for name in job["products"] if not name.startswith("tiles/")}
     assert {p.name for p in out.iterdir()} == listed

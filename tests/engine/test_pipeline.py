@@ -13,7 +13,17 @@ from slam_engine.config import SlamConfig
 from slam_engine.errors import Cancelled, ConfigError
 from slam_engine.model.drive_log import DriveLog, LidarModel, MotionModelKind, OdometryStream, ScanStream, VehicleModel
 from slam_engine.model.poses import compose, relative
-from slam_engine.pipeline import RunProgress, run_slam
+from slam_engine.pipeline import (
+    ALIGNING_TO_MAP,
+    CLOSING_LOOPS,
+    MAPPING_SCANS,
+    RENDERING_MAP,
+    STAGES,
+    WRITING_PRODUCTS,
+    RunProgress,
+    run_fraction,
+    run_slam,
+)
 
 sys.path.insert(0, str(Path(__file__).parent.parent))
 from test_scan_matcher import room_scan  # noqa: E402
@@ -60,6 +70,32 @@ def test_same_seed_same_map_and_progress_is_reported() -> None:
     np.testing.assert_array_equal(a.trajectory.poses, b.trajectory.poses)
     assert seen[-1].scans_done == seen[-1].scans_total == 15
     assert [p.scans_done for p in seen[:3]] == [1, 2, 3]
+
+
+def test_progress_goes_through_the_named_stages_in_order_and_ends_with_the_products() -> None:
+    log, _ = room_log(n_scans=40, odometry_bias=0.05)
+    seen: list[RunProgress] = []
+    run_slam(log, SlamConfig(particles=3), progress=seen.append)
+    stages = [p.stage for i, p in enumerate(seen) if i == 0 or p.stage != seen[i - 1].stage]
+    assert stages == [MAPPING_SCANS, CLOSING_LOOPS, ALIGNING_TO_MAP, RENDERING_MAP]
+    fractions = [p.fraction for p in seen]
+    assert fractions == sorted(fractions)  # never backwards
+    mapped = max(p.fraction for p in seen if p.stage == MAPPING_SCANS)
+    assert mapped == pytest.approx(0.70) and fractions[-1] == pytest.approx(0.97)  # the products are the rest
+    assert len({p.fraction for p in seen if p.stage == CLOSING_LOOPS}) > 5  # moves while loops are searched
+    assert STAGES[-1] == WRITING_PRODUCTS and run_fraction(WRITING_PRODUCTS, 0.999) < 1.0
+    assert run_fraction(WRITING_PRODUCTS, 1.0) == 1.0  # only at the very end
+
+
+def test_a_cancel_stops_the_back_end_too() -> None:
+    log, _ = room_log(n_scans=40)
+
+    def stop_in_the_back_end(p: RunProgress) -> None:
+        if p.stage == CLOSING_LOOPS and (p.stage_fraction or 0.0) > 0.3:
+            raise Cancelled("stopped by the user")
+
+    with pytest.raises(Cancelled):
+        run_slam(log, SlamConfig(particles=3), progress=stop_in_the_back_end)
 
 
 def test_snapshots_every_n_processed_scans() -> None:

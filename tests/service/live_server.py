@@ -8,11 +8,13 @@ from pathlib import Path
 
 import uvicorn
 
+from lidarmap.cli.serve import exit_normally_on_sigterm
 from service.api.app import create_app
 from service.settings import Settings
 
 if __name__ == "__main__":
     data_dir, port = Path(sys.argv[1]), int(sys.argv[2])
     job_function = sys.argv[3] if len(sys.argv) > 3 else None
+    exit_normally_on_sigterm()  # stopped with SIGTERM by the tests: as `lidarmap serve` is
     uvicorn.run(create_app(Settings(data_dir=data_dir, workers=1), job_function=job_function),
                 host="127.0.0.1", port=port, log_level="warning")

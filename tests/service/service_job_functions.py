@@ -78,3 +78,13 @@ def late_writer(ctx) -> None:
         time.sleep(0.02)
     (ctx.out_dir / "run.json").write_text(json.dumps({"steps": 2}))
     ctx.store.set_products(ctx.job_id, {"run.json": "run.json"})
+
+
+HOARD_MB = 200
+_hoard: list = []  # what a job leaves behind in its worker (as a run's caches and heap do)
+
+
+def hoarding(ctx) -> None:
+    """Leaves HOARD_MB of touched memory behind in the worker process, then succeeds."""
+    _hoard.append(bytearray(b"\x01" * (HOARD_MB * 1024 * 1024)))
+    ctx.progress(1, 1, force=True)

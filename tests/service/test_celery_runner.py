@@ -136,7 +136,9 @@ def cluster(redis_url, tmp_path_factory):
     data_dir = folder / "data"
     env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "LIDARMAP_BROKER_URL": redis_url,
            "LIDARMAP_DATA_DIR": str(data_dir), "LIDARMAP_HEARTBEAT_S": str(HEARTBEAT_S),
-           "LIDARMAP_WORKER_LOST_S": str(WORKER_LOST_S), "LIDARMAP_CANCEL_GRACE_S": str(CANCEL_GRACE_S)}
+           "LIDARMAP_WORKER_LOST_S": str(WORKER_LOST_S), "LIDARMAP_CANCEL_GRACE_S": str(CANCEL_GRACE_S),
+           # pool processes live on after their jobs: worker_of() finds a job's worker by its pool process
+           "LIDARMAP_WORKER_MAX_JOBS": "0"}
     workers = [_start_worker(f"w{i}", env, folder) for i in range(2)]
     settings = Settings(data_dir=data_dir, runner="celery", broker_url=redis_url, heartbeat_s=HEARTBEAT_S,
                         worker_lost_s=WORKER_LOST_S, cancel_grace_s=CANCEL_GRACE_S)

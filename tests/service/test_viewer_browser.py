@@ -279,6 +279,9 @@ def test_known_room_through_the_page_with_an_api_key(tmp_path) -> None:
         page.wait_for_function("() => { const w = parseFloat(document.getElementById('job-progress').style.width);"
                                " return w > 0 && w < 100; }")
         page.wait_for_selector(".tiles-occupancy img.leaflet-tile-loaded")
+        # The stage the job is in, in its header and its row in the list.
+        page.wait_for_function("document.getElementById('job-scans').textContent.startsWith('mapping scans · ')")
+        assert "mapping scans · " in page.inner_text(".job.selected .job-meta")
         # Tiles of the live map carry the job's state and scan count (?v=running-<scans>), refreshed as it goes.
         live = {u.rsplit("v=", 1)[1] for u in tile_urls if "/tiles/occupancy/" in u and "v=running-" in u}
         assert live, tile_urls

@@ -19,6 +19,7 @@ from service.jobs.settings import engine_config
 from slam_engine.config import SlamConfig
 from slam_engine.model.result import OccupancyGrid, ScanStats, SlamResult, TextureMap, Trajectory
 from slam_engine.products import write_products
+from slam_engine.progress import MAPPING_SCANS, WRITING_PRODUCTS, run_fraction
 
 ROOM_X_M, ROOM_Y_M = 12.0, 8.0
 PILLAR_XY_M, PILLAR_SIZE_M = (8.0, 5.0), 1.0
@@ -97,8 +98,9 @@ def synthetic_room(ctx) -> None:
     for i in range(1, steps + 1):
         if live_map:
             save_grid(room_grid(resolution_m, i / steps), live / GRID_FILE)
-        ctx.progress(i, steps, force=True)
+        ctx.progress(i, steps, force=True, stage=MAPPING_SCANS, fraction=run_fraction(MAPPING_SCANS, i / steps))
         time.sleep(step_s)
+    ctx.stage(WRITING_PRODUCTS)
     result = room_result(resolution_m, steps)
     written = write_products(result, ctx.out_dir)
     save_grid(result.grid, ctx.out_dir / GRID_FILE)

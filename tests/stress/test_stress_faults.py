@@ -80,7 +80,7 @@ def test_restart_mid_job_lists_and_serves_only_whole_artifacts(tmp_path) -> None
 
     # what a crash mid-write leaves: the job still 'running', half-written and temporary files
     store = JobStore(DataDir(data_dir).database)
-    store.mark_running(store.create_job(sid, "", JobSource.STREAM, None, done["config"]).id, worker_pid=999999)
+    store.mark_running(store.create_job(sid, "", JobSource.STREAM, None, crashed["config"]).id, worker_pid=999999)
     half = store.jobs_with_status(JobStatus.RUNNING)[-1]
     job_dir = DataDir(data_dir).job_dir(half)
     (job_dir / "products").mkdir(parents=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from enum import StrEnum
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query
@@ -12,8 +13,11 @@ from service.api.convert import job_public
 from service.api.deps import MAX_OFFSET, DataDep, JobDep, OwnerDep, RunnerDep, SessionDep, SettingsDep, StoreDep
 from service.http_errors import Conflict
 from service.jobs.creation import create_job as create
-from service.jobs.products import engine_compiling, live_product_names
+from service.jobs.events import job_event
+from service.jobs.products import engine_compiling, live_product_names, running_stage
 from service.jobs.settings import JobSettings
+from service.storage.data_dir import DataDir
+from service.storage.rows import JobRow
 
 ERRORS: dict[int | str, dict[str, Any]] = {401: {"model": ErrorResponse}, 404: {"model": ErrorResponse},
                                            422: {"model": ErrorResponse}}
@@ -34,21 +38,36 @@ def create_job(body: JobSettings, session: SessionDep, store: StoreDep, runner: 
     return job_public(create(body, session, store, data, runner.submit, settings.job_memory_limit()))
 
 
+class Include(StrEnum):
+    CONFIG = "config"
+
+
+IncludeQuery = Annotated[list[Include], Query(max_length=1, description="'config': also the job's settings "
+                                                                         "(the whole engine configuration, ~3 KB).")]
+
+
+def public(row: JobRow, data: DataDir, include: list[Include] | None = None) -> JobPublic:
+    """A job as the API shows it now: live products, compiling, stage; its settings only when asked."""
+    return job_public(row, live_product_names(data, row), engine_compiling(data, row), running_stage(data, row),
+                      include_config=Include.CONFIG in (include or []))
+
+
 @router.get("", response_model=JobsPublic)
 def list_jobs(store: StoreDep, owner: OwnerDep, data: DataDep,
               session: Annotated[str | None, Query(max_length=64, description="Only this session's jobs.")] = None,
               status: Annotated[JobStatus | None, Query(description="Only jobs in this state.")] = None,
               limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-              offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0) -> JobsPublic:
+              offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
+              include: IncludeQuery = []) -> JobsPublic:  # noqa: B006 (FastAPI copies the default)
     rows, count = store.list_jobs(owner, session, status, limit, offset)
-    return JobsPublic(data=[job_public(r, live_product_names(data, r), engine_compiling(data, r)) for r in rows],
-                      count=count)
+    return JobsPublic(data=[public(r, data, include) for r in rows], count=count)
 
 
 @router.get("/{job_id}", response_model=JobPublic)
-def get_job(job: JobDep, data: DataDep) -> JobPublic:
-    """Status, progress (0..1, scans done/total), ETA, the error reason, and the products available."""
-    return job_public(job, live_product_names(data, job), engine_compiling(data, job))
+def get_job(job: JobDep, data: DataDep, include: IncludeQuery = []) -> JobPublic:  # noqa: B006
+    """Status, stage, progress (0..1 over every stage; scans done/total), ETA, the error reason, and the
+    products available. The job's settings only with ``?include=config``."""
+    return public(job, data, include)
 
 
 @router.delete("/{job_id}", response_model=JobPublic, status_code=202, responses={409: {"model": ErrorResponse}})
@@ -57,7 +76,8 @@ def cancel_job(job: JobDep, store: StoreDep, runner: RunnerDep, data: DataDep) -
     flag at every progress report; one that does not stop is terminated after a grace period)."""
     if not job.active:
         raise Conflict(f"job already {job.status}", {"status": job.status})
-    store.request_cancel(job.id)
+    if store.request_cancel(job.id) is JobStatus.CANCELLED:  # it was queued: cancelled now, never ran
+        job_event(JobStatus.CANCELLED.value, job.id, error="cancelled by request")
     runner.cancel(job.id)
     row = store.get_job(job.id) or job  # (deleted meanwhile: the job as it was)
-    return job_public(row, live_product_names(data, row), engine_compiling(data, row))
+    return public(row, data)

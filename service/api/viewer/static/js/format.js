@@ -17,6 +17,11 @@ export function formatScans(job) {
   return job.scans_done ? `${job.scans_done} scans` : "";
 }
 
+/** What a running job does now, e.g. "closing loops" ("" when not running). */
+export function formatStage(job) {
+  return job.status === "running" && job.stage ? job.stage : "";
+}
+
 export function formatEta(job) {
   if (job.status === "running" && job.compiling) return "compiling the engine (first run)";
   return job.status === "running" && job.eta_s !== null ? `ETA ${formatDuration(job.eta_s)}` : "";

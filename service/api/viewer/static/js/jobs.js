@@ -3,7 +3,7 @@
 
 import { getBlob, getJson } from "./api.js";
 import {
-  ACTIVE_STATUSES, el, formatDuration, formatEta, formatScans, formatTime, progressPercent, shortId,
+  ACTIVE_STATUSES, el, formatDuration, formatEta, formatScans, formatStage, formatTime, progressPercent, shortId,
 } from "./format.js";
 
 /** Every product the page offers for download: [label, path under /v1/jobs/{id}/, product name, file name]. */
@@ -34,13 +34,13 @@ function progressBar(job) {
 /** What a job does: its particles for a mapping run, else its mode and the job whose map it starts from. */
 function jobKind(job) {
   if (job.source === "map") return "uploaded map";
-  const mode = job.config.mode || "map";
-  if (mode === "map") return `${job.config.particles ?? "?"} particles`;
-  return `${mode} in job ${shortId(job.config.map_job_id || "")}`;
+  const mode = job.mode || "map";
+  if (mode === "map") return `${job.particles ?? "?"} particles`;
+  return `${mode} in job ${shortId(job.map_job_id || "")}`;
 }
 
 function jobRow(job, selected, onSelect) {
-  const meta = [formatScans(job), formatEta(job)].filter(Boolean).join(" · ");
+  const meta = [formatStage(job), formatScans(job), formatEta(job)].filter(Boolean).join(" · ");
   return el("li", {
     class: `job${selected ? " selected" : ""}`, dataset: { jobId: job.id, status: job.status },
     title: `job ${job.id}`, onclick: () => onSelect(job.id),
@@ -140,7 +140,7 @@ export class JobHeader {
     this.name.textContent = `${session ? session.name : "session " + shortId(job.session_id)} · job ${shortId(job.id)}`;
     this.status.textContent = job.status;
     this.status.className = `pill ${job.status}`;
-    this.scans.textContent = formatScans(job);
+    this.scans.textContent = [formatStage(job), formatScans(job)].filter(Boolean).join(" · ");
     this.eta.textContent = formatEta(job);
     this.progress.style.width = `${progressPercent(job).toFixed(1)}%`;
     this.progress.className = `progress-fill ${job.status}`;

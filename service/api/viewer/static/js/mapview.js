@@ -246,7 +246,7 @@ export class JobMap {
     // Trajectories while a job runs only when the service lists them among the products available now.
     const listed = (name) => job.status === "succeeded" || job.products.includes(name);
     // An extension: the saved map's drives and the new drive (its log's time span) in two colours.
-    const span = job.config.mode === "extend" && job.input && job.input.summary && job.input.summary.time_span_s;
+    const span = job.mode === "extend" && job.input && job.input.summary && job.input.summary.time_span_s;
     const isNew = (t) => !!span && t >= span[0] && t <= span[1];
     const [trajectory, deadReckoning, savedDrives, closures] = await Promise.all([
       listed("trajectory.json") ? posesOf(`/v1/jobs/${job.id}/trajectory`, (t) => !span || isNew(t)) : null,
