@@ -12,6 +12,7 @@ if [[ "${LIDARMAP_SETUP_TEST_DEPS:-0}" == "1" ]]; then
     compgen -G "/usr/lib/postgresql/*/bin/initdb" >/dev/null || command -v initdb >/dev/null 2>&1 \
         || need_pkgs+=(postgresql)  # the PostgreSQL job store tests start a throw-away server
     command -v chromium >/dev/null 2>&1 || need_pkgs+=(chromium)
+    command -v docker-compose >/dev/null 2>&1 || need_pkgs+=(docker-compose)  # `compose config` of the README's deploy
 fi
 if ((${#need_pkgs[@]})); then
     if [[ "$(id -u)" == "0" ]] && command -v apt-get >/dev/null 2>&1; then
