@@ -16,7 +16,7 @@ class ChunkCreate(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    seq: int = Field(ge=0, le=10_000_000, description="Sequence number, 0, 1, 2, ... per session.")
+    seq: int = Field(strict=True, ge=0, le=10_000_000, description="Sequence number, 0, 1, 2, ... per session.")
     messages: list[Message] = Field(min_length=1, max_length=MAX_MESSAGES_PER_CHUNK)
 
 
@@ -25,7 +25,8 @@ class StreamFinish(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    last_seq: int | None = Field(None, ge=0, le=10_000_000, description="The stream's last seq (default: the "
+    last_seq: int | None = Field(None, strict=True,
+                                 ge=0, le=10_000_000, description="The stream's last seq (default: the "
                                  "highest received). Chunks up to it that have not arrived yet are still "
                                  "accepted (a live job waits for them); chunks beyond it are refused (409).")
 

@@ -22,7 +22,7 @@ STREAM_COLUMNS = {
     "odometry": ("t_s", "poses"),
 }
 
-Matrix4 = Annotated[list[Annotated[list[float], Field(min_length=4, max_length=4)]],
+Matrix4 = Annotated[list[Annotated[list[float], Field(strict=True, min_length=4, max_length=4)]],
                     Field(min_length=4, max_length=4, description="4x4 rigid transform, row-major, metres")]
 
 
@@ -129,28 +129,29 @@ class DriveLogManifest(BaseModel):
 
 class EncoderMessageModel(BaseModel):
     type: Literal["encoder"] = "encoder"
-    t_s: float = Field(allow_inf_nan=False)
-    ticks: list[int] = Field(min_length=1, max_length=8, description="cumulative ticks, vehicle wheel_names order")
+    t_s: float = Field(strict=True, allow_inf_nan=False)
+    ticks: list[int] = Field(strict=True,
+                             min_length=1, max_length=8, description="cumulative ticks, vehicle wheel_names order")
 
 
 class GyroMessageModel(BaseModel):
     type: Literal["gyro"] = "gyro"
-    t_s: float = Field(allow_inf_nan=False)
-    yaw_rate_rad_s: float = Field(allow_inf_nan=False)
+    t_s: float = Field(strict=True, allow_inf_nan=False)
+    yaw_rate_rad_s: float = Field(strict=True, allow_inf_nan=False)
 
 
 class OdometryMessageModel(BaseModel):
     type: Literal["odometry"] = "odometry"
-    t_s: float = Field(allow_inf_nan=False)
-    x_m: float = Field(allow_inf_nan=False)
-    y_m: float = Field(allow_inf_nan=False)
-    theta_rad: float = Field(allow_inf_nan=False)
+    t_s: float = Field(strict=True, allow_inf_nan=False)
+    x_m: float = Field(strict=True, allow_inf_nan=False)
+    y_m: float = Field(strict=True, allow_inf_nan=False)
+    theta_rad: float = Field(strict=True, allow_inf_nan=False)
 
 
 class ScanMessageModel(BaseModel):
     type: Literal["scan"] = "scan"
-    t_s: float = Field(allow_inf_nan=False)
-    ranges_m: list[Annotated[float, Field(ge=0, allow_inf_nan=False)] | None] = Field(
+    t_s: float = Field(strict=True, allow_inf_nan=False)
+    ranges_m: list[Annotated[float, Field(strict=True, ge=0, allow_inf_nan=False)] | None] = Field(strict=True,
         min_length=1, max_length=100_000, description="metres in beam order; null = no return")
 
 

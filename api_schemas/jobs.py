@@ -43,17 +43,20 @@ class JobCreate(BaseModel):
                                  "SlamConfig has them, any subset, e.g. {\"grid\": {\"no_return_clear_m\": 4.0}, "
                                  "\"matcher\": {\"search_xy_m\": 0.5}}; the rest keep their defaults.")
     # Shortcuts for the settings most runs change; each overrides its slam.* counterpart.
-    particles: int | None = Field(None, description="= slam.particles (default 30).")
-    seed: int | None = Field(None, description="= slam.seed (default 0).")
-    resolution_m: float | None = Field(None, description="= slam.grid.resolution_m: grid cell size [m] "
+    particles: int | None = Field(None, strict=True, description="= slam.particles (default 30).")
+    seed: int | None = Field(None, strict=True, description="= slam.seed (default 0).")
+    resolution_m: float | None = Field(None, strict=True, description="= slam.grid.resolution_m: grid cell size [m] "
                                        "(default 0.05).")
-    max_range_m: float | None = Field(None, description="= slam.grid.max_range_m: beams are used up to this "
+    max_range_m: float | None = Field(None, strict=True,
+                                      description="= slam.grid.max_range_m: beams are used up to this "
                                       "range [m] (default 30).")
-    linear_update_m: float | None = Field(None, description="= slam.scheduling.linear_update_m: process a "
+    linear_update_m: float | None = Field(None, strict=True, description="= slam.scheduling.linear_update_m: process a "
                                           "scan after this much travel [m] (default 0.2).")
-    angular_update_rad: float | None = Field(None, description="= slam.scheduling.angular_update_rad: ... or "
+    angular_update_rad: float | None = Field(None, strict=True,
+                                             description="= slam.scheduling.angular_update_rad: ... or "
                                              "this much rotation [rad] (default 0.1).")
-    snapshot_every_scans: int | None = Field(None, description="= slam.snapshot_every_scans: live map preview "
+    snapshot_every_scans: int | None = Field(None, strict=True,
+                                             description="= slam.snapshot_every_scans: live map preview "
                                              "and animation frame every n processed scans (0 = none; default "
                                              "for a job 50).")
     live: bool = Field(False, description="Follow the session's stream: map chunks in seq order as they "
@@ -68,7 +71,8 @@ class JobCreate(BaseModel):
     map_job_id: str | None = Field(None, max_length=64, description="The finished job (a mapping or "
                                    "extension job, or an uploaded map) whose map_bundle.npz the job starts from: "
                                    "required for 'localize' and 'extend'.")
-    idle_timeout_s: float = Field(600.0, ge=1.0, le=86_400.0, description="Live jobs: with no new chunk to map "
+    idle_timeout_s: float = Field(600.0, strict=True,
+                                  ge=1.0, le=86_400.0, description="Live jobs: with no new chunk to map "
                                   "for this long [s], the job ends and writes the products of what it mapped "
                                   "(fails when it mapped nothing).")
 

@@ -14,10 +14,11 @@ class GeoOrigin(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    lat_deg: float = Field(ge=-80.0, le=84.0, description="WGS84 latitude of the map origin [deg] "
+    lat_deg: float = Field(strict=True, ge=-80.0, le=84.0, description="WGS84 latitude of the map origin [deg] "
                            "(the UTM domain, -80..84).")
-    lon_deg: float = Field(ge=-180.0, le=180.0, description="WGS84 longitude of the map origin [deg].")
-    heading_deg: float = Field(0.0, ge=0.0, lt=360.0, description="Compass heading of the vehicle's x axis "
+    lon_deg: float = Field(strict=True, ge=-180.0, le=180.0, description="WGS84 longitude of the map origin [deg].")
+    heading_deg: float = Field(0.0, strict=True,
+                               ge=0.0, lt=360.0, description="Compass heading of the vehicle's x axis "
                                "(forward) at the first pose, clockwise from true north [deg].")
 
 

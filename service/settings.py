@@ -65,6 +65,11 @@ class Settings(BaseSettings):
                                             "Default: 80 % of the machine's memory split between the jobs that "
                                             "run at once ('workers'; a Celery worker: its --concurrency).")
     api_keys: str = Field("", description="Comma-separated API keys; empty = no authentication.")
+    open_paths: str = Field("/healthz", max_length=2000, description="Comma-separated paths that need no API "
+                            "key when keys are set (a path opens itself and everything below it, e.g. "
+                            "'/healthz,/viewer,/docs,/openapi.json'); every other path needs a key.")
+    max_header_bytes: int = Field(64 * 1024, ge=4096, le=16 * 1024**2, description="Largest request head "
+                                  "(request line and headers) `lidarmap serve` reads; past it: 431.")
 
     @model_validator(mode="after")
     def _heartbeat_below_loss(self) -> Settings:
@@ -80,6 +85,10 @@ class Settings(BaseSettings):
         from service.memory_watchdog import default_limit_mb
 
         return default_limit_mb(jobs_at_once or self.workers)
+
+    def open_path_list(self) -> list[str]:
+        """The paths open without a key (blank entries dropped, no trailing slash)."""
+        return [path.strip().rstrip("/") or "/" for path in self.open_paths.split(",") if path.strip()]
 
     def api_key_list(self) -> list[str]:
         """The configured keys (blank entries dropped)."""

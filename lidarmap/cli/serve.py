@@ -61,9 +61,8 @@ def register(app: typer.Typer) -> None:
         port: int = typer.Option(8000, min=1, max=65535, help="TCP port."),
     ) -> None:
         """Start the mapping service (embedded defaults: SQLite, local disk, local workers)."""
-        import uvicorn
-
         from service.api.app import create_app
+        from service.api.server import serve as run_server
         from service.settings import get_settings
 
         settings = get_settings()
@@ -71,4 +70,5 @@ def register(app: typer.Typer) -> None:
         if warning:
             typer.echo(warning, err=True)
         exit_normally_on_sigterm()
-        uvicorn.run(create_app(settings), host=host, port=port, log_config=log_config())
+        run_server(create_app(settings), host=host, port=port, max_head_bytes=settings.max_header_bytes,
+                   log_config=log_config())

@@ -4,6 +4,7 @@ and download every product, with a progress bar."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import typer
 
@@ -54,7 +55,7 @@ def register(app: typer.Typer) -> None:
             raise fail(str(error)) from None
         if not log.exists():
             raise fail(f"{log}: no such file or folder")
-        given = {"particles": particles, "seed": seed, "resolution_m": resolution_m}
+        given: dict[str, Any] = {"particles": particles, "seed": seed, "resolution_m": resolution_m}
         try:  # settings out of the engine's bounds fail here, before anything is uploaded
             settings = JobCreate(**{k: v for k, v in given.items() if v is not None}, mode=mode, map_job_id=map_job)
             validate_config(shortcut_overrides(given), "job settings")  # the engine's own bounds

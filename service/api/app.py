@@ -9,8 +9,10 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from api_schemas.jobs import JobStatus
+from service.api.access import KeyGateMiddleware
 from service.api.error_handlers import install_error_handlers
 from service.api.limits import BodyLimitMiddleware
+from service.api.methods import AllowedMethodsMiddleware
 from service.api.openapi_errors import document_errors
 from service.api.routers import api_docs, chunks, formats, health, jobs, logs, maps, products, sessions
 from service.api.routers.tile_schemes import router as tile_schemes_router
@@ -79,6 +81,8 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
         return settings.max_chunk_bytes
 
     app.add_middleware(BodyLimitMiddleware, limit_for=body_limit, stall_timeout_s=settings.body_stall_timeout_s)
+    app.add_middleware(AllowedMethodsMiddleware, openapi=app.openapi)
+    app.add_middleware(KeyGateMiddleware, keys=settings.api_key_list(), open_paths=settings.open_path_list())
     app.include_router(health.router)
     for module in (sessions, logs, maps, chunks, formats, products):
         app.include_router(module.router)

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import hashlib
-import hmac
 from typing import Annotated
 
 from fastapi import Depends, Path, Request
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
+from service.api.access import is_known_key, offered_key
 from service.http_errors import NotFound, Unauthorized
 from service.runners.base import JobRunner
 from service.settings import Settings
@@ -45,18 +45,19 @@ DataDep = Annotated[DataDir, Depends(get_data)]
 RunnerDep = Annotated[JobRunner, Depends(get_runner)]
 
 
-def get_owner(settings: SettingsDep, api_key: Annotated[str | None, Depends(_api_key_header)],
-              bearer: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> str:
+def get_owner(request: Request, settings: SettingsDep, _key: Annotated[str | None, Depends(_api_key_header)],
+              _token: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> str:
     """Who calls: with no keys configured everyone is the same anonymous owner; otherwise the key
-    (X-API-Key header or Bearer token) must match one, and its hash names the owner."""
+    (X-API-Key header, Bearer token, or Basic password) must match one, and its hash names the owner.
+    (The two security parameters document the schemes in OpenAPI.)"""
     keys = settings.api_key_list()
     if not keys:
         return ANONYMOUS
-    offered = api_key or (bearer.credentials if bearer else None)
+    offered = offered_key(request.headers)
     if not offered:
         raise Unauthorized("an API key is required (header X-API-Key or Authorization: Bearer)",
                            headers={"WWW-Authenticate": "Bearer"})
-    if not any(hmac.compare_digest(offered.encode(), key.encode()) for key in keys):
+    if not is_known_key(offered, keys):
         raise Unauthorized("unknown API key", headers={"WWW-Authenticate": "Bearer"})
     return "key:" + hashlib.sha256(offered.encode()).hexdigest()[:32]
 

@@ -157,13 +157,15 @@ def _serve(data_dir: Path, job_function: str | None = None, **settings) -> Itera
 
 
 @contextlib.contextmanager
-def _browser_page(name: str) -> Iterator:
-    """A fresh page in headless chromium; on failure its screenshot goes to tests/artifacts/<name>.png."""
+def _browser_page(name: str, http_credentials: dict[str, str] | None = None) -> Iterator:
+    """A fresh page in headless chromium (answering a login prompt with ``http_credentials``); on failure
+    its screenshot goes to tests/artifacts/<name>.png."""
     sync_playwright = _require_browser()
     with sync_playwright() as playwright:
         executable = str(CHROMIUM if CHROMIUM.exists() else shutil.which("chromium"))
         browser = playwright.chromium.launch(executable_path=executable, args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1280, "height": 800}, accept_downloads=True)
+        page = browser.new_page(viewport={"width": 1280, "height": 800}, accept_downloads=True,
+                                http_credentials=http_credentials)
         page.set_default_timeout(30_000)
         errors: list[str] = []
         page.on("pageerror", lambda error: errors.append(str(error)))
@@ -222,7 +224,8 @@ def _simulated_log(tmp_path: Path) -> Path:
 
 def test_known_room_through_the_page_with_an_api_key(tmp_path) -> None:
     log = _simulated_log(tmp_path)  # accepted by the upload check; the room job does not read it
-    with _serve(tmp_path / "data", ROOM_JOB, api_keys=API_KEY) as url, _browser_page("viewer-room") as page:
+    login = {"username": "viewer", "password": API_KEY}  # the browser's prompt for the page itself
+    with _serve(tmp_path / "data", ROOM_JOB, api_keys=API_KEY) as url, _browser_page("viewer-room", login) as page:
         tile_urls: list[str] = []
         page.on("request", lambda request: tile_urls.append(request.url) if "/tiles/" in request.url else None)
         page.goto(url + "/")

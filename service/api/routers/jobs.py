@@ -64,6 +64,7 @@ def list_jobs(store: StoreDep, owner: OwnerDep, data: DataDep,
 
 
 @router.get("/{job_id}", response_model=JobPublic)
+@router.head("/{job_id}", response_model=JobPublic, name="get_job (head)")
 def get_job(job: JobDep, data: DataDep, include: IncludeQuery = []) -> JobPublic:  # noqa: B006
     """Status, stage, progress (0..1 over every stage; scans done/total), ETA, the error reason, and the
     products available. The job's settings only with ``?include=config``."""

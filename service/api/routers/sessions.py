@@ -36,7 +36,9 @@ def list_sessions(store: StoreDep, owner: OwnerDep, limit: Annotated[int, Query(
 
 
 @router.get("/{session_id}", response_model=SessionPublic)
+@router.head("/{session_id}", response_model=SessionPublic, name="get_session (head)")
 def get_session(session: SessionDep) -> SessionPublic:
+    """The session (HEAD: its headers only)."""
     return session_public(session)
 
 
