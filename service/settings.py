@@ -39,6 +39,9 @@ class Settings(BaseSettings):
     max_extracted_bytes: int = Field(8 * 1024**3, ge=1024, le=4 * 1024**4,
                                      description="Largest total size of an uploaded zip once extracted, "
                                      "or of a gzipped log once inflated.")
+    max_zip_ratio: int = Field(100, ge=1, le=100_000, description="An uploaded zip whose members declare more "
+                               "than this many times its own size once extracted (past 64 MiB) is refused (413) "
+                               "before anything is written: a zip bomb.")
     inspection_memory_limit_mb: int = Field(2048, ge=128, le=1024**2, description="Memory [MB] one upload's "
                                             "inspection (loading the log to check it) may use; past it: 422.")
     inspection_timeout_s: float = Field(120.0, ge=1.0, le=86_400.0, description="Time one upload's "

@@ -199,16 +199,21 @@ def is_zip_upload(received: ReceivedFile) -> bool:
 
 
 MAX_NAME_BYTES = 255  # one path component, as most file systems allow
+MAX_ZIP_RATIO = 100  # extracted size / zip size past which a zip is a bomb (real logs compress ~2-20 times)
+RATIO_FLOOR_BYTES = 64 * 1024**2  # extracting less than this is never refused for its ratio
 MAX_PATH_CHARS = 1024
 
 
 def extract_zip(zip_path: Path, dest: Path, max_entries: int, max_total_bytes: int,
-                space: Callable[[int], None] | None = None) -> Path:
+                space: Callable[[int], None] | None = None, max_ratio: int = MAX_ZIP_RATIO) -> Path:
     """Extract ``zip_path`` into ``dest`` refusing absolute paths, '..', symlinks and special files,
     encrypted members, over-long names, members that clash (a file and a folder of one name),
-    more than ``max_entries`` members or more than ``max_total_bytes`` (counted as written, so a
-    lying header cannot bomb the disk). ``space(n)`` raises (507) when ``n`` more bytes would eat
-    into the disk reserve: called with the declared total, then every few MB as it is written.
+    more than ``max_entries`` members or more than ``max_total_bytes``. The members' declared sizes are
+    checked before any byte is written: 413 when they add up past ``max_total_bytes`` or to more than
+    ``max_ratio`` times the zip's own size (past :data:`RATIO_FLOOR_BYTES`; a zip bomb); while writing,
+    a member is never read past its declared size (zipfile stops there, and the CRC check then fails)
+    and the total is counted again. ``space(n)`` raises (507) when ``n`` more bytes would eat into the
+    disk reserve: called with the declared total, then every few MB as it is written.
     Returns the log's root: the single top folder if there is one."""
     try:
         archive = zipfile.ZipFile(zip_path)
@@ -221,10 +226,11 @@ def extract_zip(zip_path: Path, dest: Path, max_entries: int, max_total_bytes: i
                                   {"limit_entries": max_entries})
         if not members:
             raise InvalidInput("the zip archive is empty")
+        check_declared_sizes(members, zip_path.stat().st_size, max_total_bytes, max_ratio)
         dest.mkdir(parents=True, exist_ok=True)
         root = dest.resolve()
         if space is not None:
-            space(min(sum(m.file_size for m in members), max_total_bytes))
+            space(sum(m.file_size for m in members))
         written, checked_at = 0, 0
         for member in members:
             target = _member_target(root, member)
@@ -255,6 +261,20 @@ def extract_zip(zip_path: Path, dest: Path, max_entries: int, max_total_bytes: i
                     f"zip member {member.filename!r} cannot be extracted: {exc.strerror}") from None
     entries = [p for p in root.iterdir()]
     return entries[0] if len(entries) == 1 and entries[0].is_dir() else root
+
+
+def check_declared_sizes(members: list[zipfile.ZipInfo], zip_bytes: int, max_total_bytes: int,
+                         max_ratio: int) -> None:
+    """413 when the members declare more than ``max_total_bytes`` in all, or more than ``max_ratio``
+    times the zip's size ``zip_bytes`` (and more than RATIO_FLOOR_BYTES): nothing is written then."""
+    declared = sum(m.file_size for m in members)
+    if declared > max_total_bytes:
+        raise PayloadTooLarge(f"zip members declare {declared} bytes in all; the limit is {max_total_bytes} bytes",
+                              {"limit_bytes": max_total_bytes, "declared_bytes": declared})
+    if declared > max(RATIO_FLOOR_BYTES, max_ratio * zip_bytes):
+        raise PayloadTooLarge(f"zip of {zip_bytes} bytes declares {declared} bytes once extracted, more than "
+                              f"{max_ratio} times its size (a zip bomb?)",
+                              {"limit_ratio": max_ratio, "declared_bytes": declared, "zip_bytes": zip_bytes})
 
 
 def _member_target(root: Path, member: zipfile.ZipInfo) -> Path:

@@ -264,3 +264,53 @@ def test_a_lane_stopped_from_two_threads_at_once_is_stopped_once(tmp_path) -> No
     for t in threads:
         t.join(timeout=30)
     assert not errors and lane._process is None and lane._conn is None
+
+
+def zip_bomb(member_mb: int) -> bytes:
+    """A zip of one member of ``member_mb`` MB of zeros (deflated about 1000 times), written in 1 MB blocks."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive, archive.open("log/zeros.bin", "w") as out:
+        block = bytes(1024**2)
+        for _ in range(member_mb):
+            out.write(block)
+    return buffer.getvalue()
+
+
+def _stored_bytes(data_dir: Path) -> int:
+    return sum(p.stat().st_size for p in data_dir.rglob("*") if p.is_file() and p.suffix not in (".sqlite3", ".db")
+               and "-wal" not in p.name and "-shm" not in p.name)
+
+
+def test_a_zip_bomb_is_refused_from_its_declared_sizes_before_anything_is_written(tmp_path) -> None:
+    """The issue's 9.4 MB zip that expands to 8 GiB, scaled: 100 KB declaring 100 MB. Before: every byte
+    was extracted (then the upload was refused as no log); now 413 before the first byte is written."""
+    bomb = zip_bomb(100)
+    assert len(bomb) < 200_000
+    written: list[int] = []
+    with service_client(tmp_path) as client:
+        sid = new_session(client)
+        stop = threading.Event()
+
+        def watch() -> None:  # the most the data folder held while the upload was handled
+            while not stop.is_set():
+                written.append(_stored_bytes(tmp_path))
+                time.sleep(0.01)
+
+        watcher = threading.Thread(target=watch, daemon=True)
+        watcher.start()
+        start = time.monotonic()
+        try:
+            response = upload(client, sid, "bomb.zip", bomb)
+        finally:
+            stop.set()
+            watcher.join()
+        err = assert_error(response, 413, "payload_too_large")
+        assert "100 times its size" in err["message"] and err["detail"]["declared_bytes"] == 100 * 1024**2
+        assert time.monotonic() - start < 30.0
+        assert max(written) < 2 * len(bomb) + 1024**2, max(written)  # the upload itself, nothing extracted
+        assert client.get(f"/v1/sessions/{sid}/logs").json()["count"] == 0
+
+    with service_client(tmp_path / "small", max_extracted_bytes=10 * 1024**2, max_zip_ratio=100_000) as client:
+        sid = new_session(client)
+        err = assert_error(upload(client, sid, "big.zip", zip_bomb(20)), 413, "payload_too_large")
+        assert err["detail"] == {"limit_bytes": 10 * 1024**2, "declared_bytes": 20 * 1024**2}

@@ -58,7 +58,8 @@ async def upload_log(request: Request, session: SessionDep, store: StoreDep, dat
         if archive:
             log_path = await run_in_threadpool(extract_zip, received.path, upload_dir / "tree",
                                                settings.max_zip_entries, settings.max_extracted_bytes,
-                                               partial(ensure_free_space, data, settings.min_free_bytes))
+                                               partial(ensure_free_space, data, settings.min_free_bytes),
+                                               settings.max_zip_ratio)
             received.path.unlink(missing_ok=True)
         else:
             log_path = upload_dir / f"log{safe_suffix(received.filename)}"
