@@ -80,8 +80,23 @@ class Unavailable(ServiceError):
     status_code, code = 503, "unavailable"
 
 
-def is_disk_full(exc: BaseException) -> bool:
-    """An OSError ENOSPC/EDQUOT, or SQLite's 'database or disk is full'."""
+LOW_SPACE_BYTES = 16 * 1024**2  # below this much free space an SQLite "disk I/O error" means a full disk
+SQLITE_IOERR, SQLITE_FULL = 10, 13  # primary result codes (an extended code's low byte)
+POSTGRES_DISK_FULL = "53100"  # SQLSTATE disk_full
+
+
+def is_disk_full(exc: BaseException, free_bytes: int | None = None) -> bool:
+    """Whether ``exc`` says the disk is full: an OSError ENOSPC/EDQUOT, SQLite's 'database or disk is
+    full', PostgreSQL's disk_full; or SQLite's 'disk I/O error' while the data folder has less than
+    LOW_SPACE_BYTES free (``free_bytes``; what SQLite answers when its write-ahead log cannot grow)."""
     if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
         return True
-    return isinstance(exc, sqlite3.OperationalError) and "full" in str(exc)
+    if getattr(exc, "sqlstate", None) == POSTGRES_DISK_FULL:
+        return True
+    if not isinstance(exc, sqlite3.Error):
+        return False
+    code = (getattr(exc, "sqlite_errorcode", None) or 0) & 0xFF
+    if code == SQLITE_FULL or "full" in str(exc):
+        return True
+    io_error = code == SQLITE_IOERR or "disk I/O error" in str(exc)
+    return io_error and free_bytes is not None and free_bytes < LOW_SPACE_BYTES

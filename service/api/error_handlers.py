@@ -85,15 +85,31 @@ def install_error_handlers(app: FastAPI) -> None:
                               headers=getattr(exc, "headers", None))
 
     @app.exception_handler(OSError)
-    @app.exception_handler(sqlite3.OperationalError)
+    @app.exception_handler(sqlite3.Error)
     async def _disk_full(request: Request, exc: Exception) -> JSONResponse:
-        if not is_disk_full(exc):
+        if not disk_full(request, exc):
             raise exc  # to the 500 handler below
-        logger.error("disk full on %s %s: %s", request.method, request.url.path, exc)
-        return error_response(507, "insufficient_storage", "the server's disk is full: nothing was stored; "
-                              "retry later")
+        return _insufficient_storage(request, exc)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        if disk_full(request, exc):  # e.g. PostgreSQL's disk_full
+            return _insufficient_storage(request, exc)
         logger.exception("unhandled error on %s %s", request.method, request.url.path)
         return error_response(500, "internal_error", "internal error (logged on the server)")
+
+
+def disk_full(request: Request, exc: BaseException) -> bool:
+    """Whether ``exc`` means a full disk (see :func:`is_disk_full`; the data folder's free space decides
+    an SQLite I/O error)."""
+    data = getattr(request.app.state, "data", None)
+    try:
+        free = data.free_bytes() if data is not None else None
+    except OSError:
+        free = None
+    return is_disk_full(exc, free)
+
+
+def _insufficient_storage(request: Request, exc: BaseException) -> JSONResponse:
+    logger.error("disk full on %s %s: %s", request.method, request.url.path, exc)
+    return error_response(507, "insufficient_storage", "the server's disk is full: nothing was stored; retry later")

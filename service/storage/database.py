@@ -32,7 +32,7 @@ from urllib.parse import unquote
 from sqlalchemy import Connection, Engine, create_engine, event, func, select
 from sqlalchemy import exc as sa_exc
 
-from service.http_errors import Unavailable
+from service.http_errors import POSTGRES_DISK_FULL, Unavailable
 from service.storage.migration import upgrade_schema
 
 POSTGRES_CONNECT_TIMEOUT_S = 10
@@ -173,6 +173,8 @@ class PostgresBackend(_EnginePerProcess):
             with self._borrow() as conn, conn.begin():  # commits when the block succeeds, else rolls back
                 yield conn
         except sa_exc.OperationalError as exc:  # the server went away, or refused the connection
+            if getattr(exc.orig, "sqlstate", None) == POSTGRES_DISK_FULL:
+                raise exc.orig from exc  # a full disk: 507, not 503
             raise self._unavailable(exc.orig or exc) from None
 
     def _borrow(self) -> Connection:
