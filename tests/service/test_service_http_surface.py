@@ -11,8 +11,9 @@ import time
 
 import httpx
 import pytest
-from served import lidarmap_serve
 from service_helpers import CALIBRATION, assert_error, new_session, service_client
+
+from bench.api_attacks import lidarmap_serve
 
 
 def _raw_request_with_header(url: str, header_bytes: int) -> tuple[bytes, float]:

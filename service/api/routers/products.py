@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import functools
-import json
-from collections.abc import Callable
 from enum import StrEnum
 from functools import partial
 from typing import Annotated, Any
@@ -12,7 +9,7 @@ from typing import Annotated, Any
 import numpy as np
 from fastapi import APIRouter, Path, Query, Request
 from fastapi.encoders import jsonable_encoder
-from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from api_schemas.error_body import ErrorResponse
@@ -21,6 +18,7 @@ from api_schemas.products import Pose, TrajectoryPublic
 from service.api.deps import DataDep, JobDep, StoreDep
 from service.http_errors import InvalidInput
 from service.jobs.products import MEDIA_TYPES, product_path, tile_source
+from service.jobs.trajectory_body import trajectory_body
 from service.storage.data_dir import DataDir
 from service.storage.rows import JobRow
 from service.storage.store import JobStore
@@ -68,16 +66,31 @@ def _file(data: DataDir, job: JobRow, name: str) -> FileResponse:
     return FileResponse(path, media_type=MEDIA_TYPES[name], headers=headers)
 
 
-def _trajectory(data: DataDir, job: JobRow, stem: str, kind: str,
-                fmt: TrajectoryFormat) -> FileResponse | TrajectoryPublic:
+def _trajectory(request: Request, data: DataDir, job: JobRow, stem: str, kind: str,
+                fmt: TrajectoryFormat) -> Response | TrajectoryPublic:
+    """A trajectory from the file the job wrote: TUM as the file; JSON streamed from the file's poses
+    (HEAD: the size from the file, no body built); files of the first trajectory format converted."""
     from slam_engine.products import read_trajectory
 
     if fmt is TrajectoryFormat.TUM:
         return _file(data, job, f"{stem}.tum")
-    traj = read_trajectory(product_path(data, job, f"{stem}.json"))
+    path = product_path(data, job, f"{stem}.json")
+    body = trajectory_body(path, job.id, kind)
+    if body is not None:
+        headers = {"Content-Length": str(body.size_bytes)}
+        if job.status is JobStatus.RUNNING:
+            headers["Cache-Control"] = "no-store"
+        if request.method == "HEAD":
+            body.close()
+            return Response(media_type="application/json", headers=headers)
+        return StreamingResponse(body.blocks(), media_type="application/json", headers=headers)
+    traj = read_trajectory(path)
     poses = [Pose(t_s=float(t), x_m=float(p[0]), y_m=float(p[1]), theta_rad=float(p[2]))
              for t, p in zip(traj.t_s, traj.poses, strict=True)]
-    return TrajectoryPublic(job_id=job.id, kind=kind, count=len(poses), poses=poses)
+    answer = TrajectoryPublic(job_id=job.id, kind=kind, count=len(poses), poses=poses)
+    if request.method == "HEAD":
+        return _head_of_json(answer)
+    return answer
 
 
 TrajectoryFormatQuery = Annotated[TrajectoryFormat, Query(alias="format", description="json or tum (text)")]
@@ -85,34 +98,25 @@ TEXT: dict[int | str, dict[str, Any]] = {200: {"content": {"text/plain": {}},
                                                "description": "JSON, or TUM text with ?format=tum."}}
 
 
-def _head_of(endpoint: Callable[..., Any]) -> Callable[..., Response]:
-    """The HEAD twin of a JSON (or file) GET endpoint: the same status and headers, no body."""
-
-    @functools.wraps(endpoint)
-    def head(*args: Any, **kwargs: Any) -> Response:
-        answer = endpoint(*args, **kwargs)
-        if isinstance(answer, FileResponse):
-            return answer  # sends its headers only for a HEAD request
-        body = JSONResponse(jsonable_encoder(answer)).body
-        return Response(media_type="application/json", headers={"Content-Length": str(len(body))})
-
-    return head
+def _head_of_json(answer: Any) -> Response:
+    """The headers of a JSON answer, without its body."""
+    body = JSONResponse(jsonable_encoder(answer)).body
+    return Response(media_type="application/json", headers={"Content-Length": str(len(body))})
 
 
 @router.get("/trajectory", response_model=TrajectoryPublic, responses=TEXT)
-def trajectory(job: JobDep, data: DataDep, fmt: TrajectoryFormatQuery = TrajectoryFormat.JSON):
+@router.head("/trajectory", response_model=TrajectoryPublic, responses=TEXT, name="trajectory (head)")
+def trajectory(request: Request, job: JobDep, data: DataDep, fmt: TrajectoryFormatQuery = TrajectoryFormat.JSON):
     """The SLAM trajectory: JSON poses, or TUM (``t x y z qx qy qz qw``) with ?format=tum."""
-    return _trajectory(data, job, "trajectory", "slam", fmt)
+    return _trajectory(request, data, job, "trajectory", "slam", fmt)
 
 
 @router.get("/dead-reckoning", response_model=TrajectoryPublic, responses=TEXT)
-def dead_reckoning(job: JobDep, data: DataDep, fmt: TrajectoryFormatQuery = TrajectoryFormat.JSON):
+@router.head("/dead-reckoning", response_model=TrajectoryPublic, responses=TEXT, name="dead_reckoning (head)")
+def dead_reckoning(request: Request, job: JobDep, data: DataDep,
+                   fmt: TrajectoryFormatQuery = TrajectoryFormat.JSON):
     """Odometry alone, for comparison."""
-    return _trajectory(data, job, "dead_reckoning", "dead_reckoning", fmt)
-
-
-router.head("/trajectory", name="trajectory (head)", responses=TEXT)(_head_of(trajectory))
-router.head("/dead-reckoning", name="dead_reckoning (head)", responses=TEXT)(_head_of(dead_reckoning))
+    return _trajectory(request, data, job, "dead_reckoning", "dead_reckoning", fmt)
 
 
 def _file_route(name: str, summary: str) -> None:
@@ -159,13 +163,12 @@ for _name, _summary in PRODUCT_SUMMARIES.items():
     _file_route(_name, _summary)
 
 
-@router.get("/run", response_model=dict[str, Any])
-def run_record(job: JobDep, data: DataDep) -> dict[str, Any]:
-    """The run record: configuration used, timings, scan statistics, input summary."""
-    return json.loads(product_path(data, job, "run.json").read_text())
-
-
-router.head("/run", name="run_record (head)")(_head_of(run_record))
+@router.get("/run", response_model=dict[str, Any], response_class=FileResponse,
+            responses={200: {"content": {"application/json": {}}}})
+@router.head("/run", response_model=dict[str, Any], response_class=FileResponse, name="run_record (head)")
+def run_record(job: JobDep, data: DataDep) -> FileResponse:
+    """The run record: configuration used, timings, scan statistics, input summary (the file run.json)."""
+    return _file(data, job, "run.json")
 
 
 @router.get("/tiles/{layer}/{z}/{x}/{y}.png", response_class=Response,
