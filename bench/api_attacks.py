@@ -77,6 +77,30 @@ def long_trajectory_job(data_dir: Path, poses: int) -> str:
     return stored_job(data_dir, write)
 
 
+def grid_job(data_dir: Path, cells: int, legacy: bool = False) -> str:
+    """A finished job whose occupancy grid is ``cells`` x ``cells`` float32 (a square room's walls and a
+    diagonal), written as the worker writes it, or (``legacy``) as a plain .npz of the grid, the way
+    versions before tile pyramids did."""
+    from service.jobs.products import GRID_FILE, save_grid
+    from slam_engine.model.result import OccupancyGrid
+
+    def write(job_dir: Path) -> dict[str, str]:
+        log_odds = np.zeros((cells, cells), np.float32)
+        log_odds[[0, -1], :] = 4.0
+        log_odds[:, [0, -1]] = 4.0
+        idx = np.arange(cells)
+        log_odds[idx, idx] = 3.0
+        log_odds[cells // 4: 3 * cells // 4, cells // 4: 3 * cells // 4] = -2.0
+        job_dir.mkdir(parents=True, exist_ok=True)
+        if legacy:
+            np.savez(job_dir / GRID_FILE, log_odds=log_odds, resolution_m=0.05, origin_x_m=0.0, origin_y_m=0.0)
+        else:
+            save_grid(OccupancyGrid(log_odds, 0.05, 0.0, 0.0), job_dir / GRID_FILE)
+        return {}
+
+    return stored_job(data_dir, write)
+
+
 # ---- the service and what it costs --------------------------------------------------------------------
 
 
@@ -171,6 +195,16 @@ def concurrently(requests: list[Callable[[], int]]) -> list[int]:
     """Run the requests at once; their statuses."""
     with ThreadPoolExecutor(len(requests)) as pool:
         return list(pool.map(lambda request: request(), requests))
+
+
+def tile_requests(url: str, job_id: str, tiles: list[tuple[int, int, int]]) -> list[Callable[[], int]]:
+    """One request per occupancy tile (z, x, y)."""
+
+    def one(z: int, x: int, y: int) -> int:
+        with httpx.Client(timeout=600) as client:
+            return client.get(f"{url}/v1/jobs/{job_id}/tiles/occupancy/{z}/{x}/{y}.png").status_code
+
+    return [lambda z=z, x=x, y=y: one(z, x, y) for z, x, y in tiles]
 
 
 def trajectory_requests(url: str, job_id: str, method: str, count: int, route: str = "trajectory"

@@ -5,9 +5,7 @@ the worker) and, while the job runs, the live snapshot (``live/occupancy.png`` a
 from __future__ import annotations
 
 import threading
-from collections import OrderedDict
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -17,7 +15,7 @@ from service.jobs.context import STAGE_FILE
 from service.storage.data_dir import DataDir
 from service.storage.rows import JobRow
 from slam_engine.model.result import OccupancyGrid, TextureMap
-from slam_engine.products.files import atomic_path
+from slam_engine.products.tile_pyramid import TilePyramid, write_tile_pyramid
 
 MEDIA_TYPES = {  # every file product a job can list; each is served at GET /v1/jobs/{id}/{name}
     "trajectory.json": "application/json", "trajectory.tum": "text/plain",
@@ -86,71 +84,56 @@ def product_path(data: DataDir, job: JobRow, name: str) -> Path:
                    {"product": name, "status": job.status})
 
 
-class _GridCache:
-    """A few recently used grids, keyed by file and modification time (tiles hit the same grid)."""
-
-    def __init__(self, size: int = 8):
-        self._items: OrderedDict[tuple[str, int], Any] = OrderedDict()
-        self._size = size
-        self._lock = threading.Lock()
-
-    def get(self, path: Path, loader) -> Any:
-        key = (str(path), path.stat().st_mtime_ns)
-        with self._lock:
-            if key in self._items:
-                self._items.move_to_end(key)
-                return self._items[key]
-        value = loader(path)
-        with self._lock:
-            self._items[key] = value
-            while len(self._items) > self._size:
-                self._items.popitem(last=False)
-        return value
-
-
-_cache = _GridCache()
-
-
 def save_grid(grid: OccupancyGrid, path: Path) -> None:
-    """Write a grid as .npz atomically (the tile source)."""
-    with atomic_path(path) as tmp:
-        np.savez(tmp, log_odds=grid.log_odds, resolution_m=grid.resolution_m, origin_x_m=grid.origin_x_m,
-                 origin_y_m=grid.origin_y_m)
+    """Write a grid as the tile source: a tile pyramid file, atomically (the map and its pooled levels)."""
+    write_tile_pyramid(grid, path)
 
 
 def save_texture(texture: TextureMap, path: Path) -> None:
-    with atomic_path(path) as tmp:
-        np.savez(tmp, colors=texture.colors, counts=texture.counts, resolution_m=texture.resolution_m,
-                 origin_x_m=texture.origin_x_m, origin_y_m=texture.origin_y_m)
+    write_tile_pyramid(texture, path)
 
 
-def _load_grid(path: Path) -> OccupancyGrid:
+_build_lock = threading.Lock()  # one legacy map converted at a time: the API holds one map, at most
+
+
+def open_pyramid(path: Path) -> TilePyramid:
+    """The tile pyramid at ``path``. A map file written before pyramids (no levels) is converted once
+    into ``<name>.pyramid.npz`` beside it, however many requests ask at once (the others wait for it)."""
+    pyramid = TilePyramid.open(path)
+    if pyramid is not None:
+        return pyramid
+    converted = path.with_name(path.stem + ".pyramid.npz")
+    with _build_lock:
+        if not converted.exists() or converted.stat().st_mtime_ns < path.stat().st_mtime_ns:
+            write_tile_pyramid(_load_map(path), converted)
+    pyramid = TilePyramid.open(converted)
+    assert pyramid is not None
+    return pyramid
+
+
+def _load_map(path: Path) -> OccupancyGrid | TextureMap:
     with np.load(path) as z:
-        return OccupancyGrid(log_odds=z["log_odds"], resolution_m=float(z["resolution_m"]),
-                             origin_x_m=float(z["origin_x_m"]), origin_y_m=float(z["origin_y_m"]))
+        placement = {"resolution_m": float(z["resolution_m"]), "origin_x_m": float(z["origin_x_m"]),
+                     "origin_y_m": float(z["origin_y_m"])}
+        if "log_odds" in z.files:
+            return OccupancyGrid(log_odds=z["log_odds"], **placement)
+        return TextureMap(colors=z["colors"], counts=z["counts"], **placement)
 
 
-def _load_texture(path: Path) -> TextureMap:
-    with np.load(path) as z:
-        return TextureMap(colors=z["colors"], counts=z["counts"], resolution_m=float(z["resolution_m"]),
-                          origin_x_m=float(z["origin_x_m"]), origin_y_m=float(z["origin_y_m"]))
-
-
-def tile_source(data: DataDir, job: JobRow, layer: str) -> tuple[OccupancyGrid | TextureMap, tuple]:
-    """The grid (or texture) that tiles of ``layer`` are cut from, and a version key for the tile cache
-    (changes whenever the file does)."""
+def tile_source(data: DataDir, job: JobRow, layer: str) -> tuple[TilePyramid, tuple]:
+    """The tile pyramid that tiles of ``layer`` are cut from (read by window, never whole), and a version
+    key for the tile cache (changes whenever the file does)."""
     job_dir = data.job_dir(job.id)
     if job.status is JobStatus.SUCCEEDED:
         path = job_dir / (GRID_FILE if layer == "occupancy" else TEXTURE_FILE)
         if not path.exists():
             raise NotFound(f"this job has no {layer} layer", {"layer": layer})
-        return _cache.get(path, _load_grid if layer == "occupancy" else _load_texture), _version(path)
+        pyramid = open_pyramid(path)
+        return pyramid, (str(path), pyramid.version)
     if job.status is JobStatus.RUNNING and layer == "occupancy":
         path = data.live_dir(job.id) / GRID_FILE
         if path.exists():
-            return _cache.get(path, _load_grid), _version(path)
+            pyramid = open_pyramid(path)
+            return pyramid, (str(path), pyramid.version)
     raise NotReady(f"no {layer} tiles while the job is {job.status}", {"layer": layer, "status": job.status})
 
-
-def _version(path: Path) -> tuple:
-    return (str(path), path.stat().st_mtime_ns)

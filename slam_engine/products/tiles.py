@@ -16,6 +16,9 @@ larger than a grid cell; x/y limited to the tiles touching the map. Resampled ne
 pooled grid.
 
 Texture tiles: mean colour of the seen cells, transparent where the ground was never seen.
+
+The map may be a :class:`~slam_engine.products.tile_pyramid.TilePyramid` (a file read by window): a tile
+then reads at most its own window of one pooled level, whatever the map's size.
 """
 
 from __future__ import annotations
@@ -33,13 +36,13 @@ from slam_engine.errors import ConfigError, TileOutOfRangeError
 from slam_engine.model.result import OccupancyGrid, TextureMap
 from slam_engine.products.georeference import Georeference, _transformer
 from slam_engine.products.rendering import occupancy_gray, png_bytes, pool_occupancy, pool_texture
+from slam_engine.products.tile_pyramid import TILE_SIZE, TilePyramid
 
-TILE_SIZE = 256
 SCHEMES = ("simple", "webmercator")
 WEB_MERCATOR_HALF_WORLD_M = 20037508.342789244  # pi * 6378137
-MAX_CACHED_TILES = 2048
+MAX_CACHED_TILE_BYTES = 32 * 1024**2  # the rendered tiles kept, in bytes of PNG
 
-MapSource = OccupancyGrid | TextureMap
+MapSource = OccupancyGrid | TextureMap | TilePyramid  # a pyramid: read by window, never whole
 
 
 @dataclass(frozen=True)
@@ -174,7 +177,7 @@ def render_tile(source: MapSource, z: int, x: int, y: int, layer: str | None = N
     return png
 
 
-def map_image_at_zoom(source: MapSource, z: int) -> np.ndarray:
+def map_image_at_zoom(source: OccupancyGrid | TextureMap, z: int) -> np.ndarray:
     """The whole map at simple-scheme zoom ``z`` as an RGBA array (what the tiles at z show, stitched)."""
     scheme = TileScheme.for_map(source)
     if not 0 <= z <= scheme.max_zoom:
@@ -184,10 +187,11 @@ def map_image_at_zoom(source: MapSource, z: int) -> np.ndarray:
 
 
 class _LruCache:
-    """Thread-safe least-recently-used cache of tile bytes."""
+    """Thread-safe least-recently-used cache of tile bytes, bounded in bytes."""
 
-    def __init__(self, max_items: int):
-        self.max_items = max_items
+    def __init__(self, max_bytes: int):
+        self.max_bytes = max_bytes
+        self.bytes = 0
         self._items: OrderedDict[Hashable, bytes] = OrderedDict()
         self._lock = threading.Lock()
 
@@ -199,34 +203,41 @@ class _LruCache:
             return value
 
     def put(self, key: Hashable, value: bytes) -> None:
+        if len(value) > self.max_bytes:
+            return
         with self._lock:
+            old = self._items.pop(key, None)
+            self.bytes += len(value) - (len(old) if old is not None else 0)
             self._items[key] = value
-            self._items.move_to_end(key)
-            while len(self._items) > self.max_items:
-                self._items.popitem(last=False)
+            while self.bytes > self.max_bytes:
+                _, dropped = self._items.popitem(last=False)
+                self.bytes -= len(dropped)
 
     def __len__(self) -> int:
         return len(self._items)
 
 
-_CACHE = _LruCache(MAX_CACHED_TILES)
+_CACHE = _LruCache(MAX_CACHED_TILE_BYTES)
 
 
 def _layer(source: MapSource, layer: str | None) -> str:
     actual = "occupancy" if isinstance(source, OccupancyGrid) else "texture" if isinstance(source, TextureMap) \
-        else None
+        else source.layer if isinstance(source, TilePyramid) else None
     if actual is None:
-        raise ConfigError(f"tiles are made from an OccupancyGrid or a TextureMap, not {type(source).__name__}")
+        raise ConfigError(f"tiles are made from an OccupancyGrid, a TextureMap or a TilePyramid, not "
+                          f"{type(source).__name__}")
     if layer is not None and layer != actual:
         raise ConfigError(f"layer {layer!r} does not match the map given ({actual})")
     return actual
 
 
 def _shape(source: MapSource) -> tuple[int, int]:
+    if isinstance(source, TilePyramid):
+        return source.shape
     return source.log_odds.shape if isinstance(source, OccupancyGrid) else np.asarray(source.counts).shape
 
 
-def _window(source: MapSource, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, ...]:
+def _window(source: OccupancyGrid | TextureMap, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, ...]:
     """North-up window rows [r0, r1), cols [c0, c1) of the map (may reach outside it): for a grid
     (log_odds, known, inside), for a texture (colors, seen, inside); outside cells padded."""
     h, w = _shape(source)
@@ -255,7 +266,19 @@ def _window(source: MapSource, r0: int, r1: int, c0: int, c1: int) -> tuple[np.n
     return tuple(embedded)
 
 
-def _pool(source: MapSource, window: tuple[np.ndarray, ...], factor: int) -> tuple[np.ndarray, ...]:
+def _pooled_window(source: MapSource, factor: int, r0: int, r1: int, c0: int, c1: int
+                   ) -> tuple[np.ndarray, ...]:
+    """Rows [r0, r1), columns [c0, c1) of the map (north up, multiples of ``factor``) pooled by ``factor``;
+    from a pyramid, read from its level for ``factor`` (the same pixels, never the whole map)."""
+    if isinstance(source, TilePyramid):
+        if factor > 1:
+            return source.pooled_window(factor, r0, r1, c0, c1)
+        source = source.base()
+    return _pool(source, _window(source, r0, r1, c0, c1), factor)
+
+
+def _pool(source: OccupancyGrid | TextureMap, window: tuple[np.ndarray, ...], factor: int
+          ) -> tuple[np.ndarray, ...]:
     if isinstance(source, OccupancyGrid):
         values, known, inside = window
         return pool_occupancy(values, known, inside, factor)
@@ -267,7 +290,7 @@ def _pool(source: MapSource, window: tuple[np.ndarray, ...], factor: int) -> tup
 
 def _shade(source: MapSource, pooled: tuple[np.ndarray, ...]) -> np.ndarray:
     """RGBA uint8 pixels of pooled values."""
-    if isinstance(source, OccupancyGrid):
+    if _layer(source, None) == "occupancy":
         log_odds, known, inside = pooled
         with np.errstate(over="ignore"):  # unknown blocks hold -inf
             probability = 1.0 / (1.0 + np.exp(-log_odds.astype(np.float64)))
@@ -285,8 +308,7 @@ def _simple_tile(source: MapSource, z: int, x: int, y: int) -> np.ndarray:
     scheme.check(z, x, y)
     f = scheme.cells_per_pixel(z)
     span = TILE_SIZE * f
-    window = _window(source, y * span, (y + 1) * span, x * span, (x + 1) * span)
-    return _shade(source, _pool(source, window, f))
+    return _shade(source, _pooled_window(source, f, y * span, (y + 1) * span, x * span, (x + 1) * span))
 
 
 def _web_mercator_tile(source: MapSource, georef: Georeference | None, z: int, x: int, y: int) -> np.ndarray:
@@ -321,6 +343,6 @@ def _web_mercator_tile(source: MapSource, georef: Georeference | None, z: int, x
     c1 = min((math.floor(col[near].max() / f) + 1) * f, math.ceil(w / f) * f)
     hit = near & (row >= r0) & (row < r1) & (col >= c0) & (col < c1)
     if r1 > r0 and c1 > c0 and hit.any():
-        pooled = _shade(source, _pool(source, _window(source, r0, r1, c0, c1), f))
+        pooled = _shade(source, _pooled_window(source, f, r0, r1, c0, c1))
         rgba[hit] = pooled[(row[hit] - r0) // f, (col[hit] - c0) // f]
     return rgba
