@@ -15,7 +15,7 @@ from service.jobs.context import STAGE_FILE
 from service.storage.data_dir import DataDir
 from service.storage.rows import JobRow
 from slam_engine.model.result import OccupancyGrid, TextureMap
-from slam_engine.products.tile_pyramid import TilePyramid, write_tile_pyramid
+from slam_engine.products.tile_pyramid import TilePyramid, open_map, write_tile_pyramid
 
 MEDIA_TYPES = {  # every file product a job can list; each is served at GET /v1/jobs/{id}/{name}
     "trajectory.json": "application/json", "trajectory.tum": "text/plain",
@@ -105,7 +105,7 @@ def open_pyramid(path: Path) -> TilePyramid:
     converted = path.with_name(path.stem + ".pyramid.npz")
     with _build_lock:
         if not converted.exists() or converted.stat().st_mtime_ns < path.stat().st_mtime_ns:
-            write_tile_pyramid(_load_map(path), converted)
+            write_tile_pyramid(open_map(path) or _load_map(path), converted)  # mapped: read band by band
     pyramid = TilePyramid.open(converted)
     assert pyramid is not None
     return pyramid

@@ -30,7 +30,7 @@ from slam_engine.products.files import atomic_path
 
 TILE_SIZE = 256
 PYRAMID_VERSION = 1
-BAND_ROWS = 1024  # level 1 is pooled from the map this many rows at a time (an even number)
+BAND_ROWS = 256  # the map is read, pooled and written this many rows at a time (an even number)
 _SUM_UINT32_LEVELS = 12  # colour sums of 4^k cells fit uint32 up to this level (255 * 4^12 < 2^32)
 
 
@@ -49,12 +49,24 @@ def _pad_reduce(array: np.ndarray, fill, reducer: np.ufunc) -> np.ndarray:
     return reducer.reduce(by_columns.reshape(h // 2, 2, w // 2, *array.shape[2:]), axis=1)
 
 
+def _rows(array: np.ndarray, lo: int, hi: int) -> np.ndarray:
+    """Rows [lo, hi) of ``array`` as an array of their own; of a memory-mapped array, read through a
+    mapping of those rows alone (dropped at once), so reading a mapped map band by band never holds it."""
+    if isinstance(array, np.memmap) and array.filename and array.flags.c_contiguous and hi > lo:
+        part = np.memmap(array.filename, dtype=array.dtype, mode="r", offset=array.offset + lo * array.strides[0],
+                         shape=(hi - lo, *array.shape[1:]))
+        rows = np.array(part)
+        del part
+        return rows
+    return np.asarray(array[lo:hi])
+
+
 def _occupancy_level_1(log_odds: np.ndarray) -> np.ndarray:
     """Level 1 of a grid (rows bottom-up), pooled BAND_ROWS north-up rows at a time."""
     h = log_odds.shape[0]
     bands = []
     for top in range(0, h, BAND_ROWS):
-        rows = np.flipud(log_odds[max(h - top - BAND_ROWS, 0):h - top])  # north-up rows [top, top + BAND_ROWS)
+        rows = np.flipud(_rows(log_odds, max(h - top - BAND_ROWS, 0), h - top))  # north-up [top, top + BAND_ROWS)
         bands.append(_pad_reduce(np.where(rows != 0.0, rows, -np.inf).astype(log_odds.dtype), -np.inf, np.maximum))
     return np.concatenate(bands) if bands else np.zeros((0, 0), log_odds.dtype)
 
@@ -65,8 +77,8 @@ def _texture_level_1(colors: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray
     sums, seens = [], []
     for top in range(0, h, BAND_ROWS):
         lo, hi = max(h - top - BAND_ROWS, 0), h - top
-        seen = np.flipud(np.asarray(counts[lo:hi]) > 0)
-        rgb = np.flipud(np.asarray(colors[lo:hi]))
+        seen = np.flipud(_rows(counts, lo, hi) > 0)
+        rgb = np.flipud(_rows(colors, lo, hi))
         if rgb.ndim == 2:
             rgb = np.repeat(rgb[:, :, None], 3, axis=2)
         sums.append(_pad_reduce(rgb.astype(np.uint32) * seen[..., None], 0, np.add))
@@ -91,9 +103,9 @@ def write_tile_pyramid(source: OccupancyGrid | TextureMap, path: str | Path) -> 
                 level = _pad_reduce(level, -np.inf, np.maximum)
                 arrays[f"level_{k}"] = level
     else:
-        counts = np.asarray(source.counts)
+        counts = source.counts
         shape = counts.shape
-        arrays["colors"], arrays["counts"] = np.asarray(source.colors), counts
+        arrays["colors"], arrays["counts"] = source.colors, counts
         levels = level_count(shape)
         if levels:
             sums, seen = _texture_level_1(source.colors, counts)
@@ -104,8 +116,46 @@ def write_tile_pyramid(source: OccupancyGrid | TextureMap, path: str | Path) -> 
                 seen = _pad_reduce(seen, 0, np.add)
                 arrays[f"sum_{k}"], arrays[f"seen_{k}"] = sums, seen
     with atomic_path(path) as tmp:
-        np.savez(tmp, **{**meta, **arrays})
+        _write_npz(tmp, {**meta, **arrays})
     return Path(path)
+
+
+def _write_npz(path: Path, arrays: dict[str, Any]) -> None:
+    """An uncompressed .npz as ``np.savez`` writes it, each array written BAND_ROWS rows at a time."""
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED, allowZip64=True) as archive:
+        for name, value in arrays.items():
+            array = value if isinstance(value, np.ndarray) else np.asarray(value)
+            header = {"descr": np.lib.format.dtype_to_descr(array.dtype), "fortran_order": False,
+                      "shape": array.shape}
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as out:
+                np.lib.format.write_array_header_1_0(out, header)
+                if array.ndim == 0:
+                    out.write(array.tobytes())
+                    continue
+                for lo in range(0, array.shape[0], BAND_ROWS):
+                    out.write(np.ascontiguousarray(_rows(array, lo, min(lo + BAND_ROWS, array.shape[0]))).tobytes())
+
+
+def open_map(path: str | Path) -> OccupancyGrid | TextureMap | None:
+    """The map in an uncompressed .npz (a pyramid file, or a map file of an earlier version: ``log_odds``
+    or ``colors`` and ``counts``, with the placement), its arrays memory-mapped; None when they are
+    compressed."""
+    with open(path, "rb") as file:
+        members = _members(file)
+        file.seek(0)
+        with np.load(file) as z:
+            placement = {name: float(z[name]) for name in ("resolution_m", "origin_x_m", "origin_y_m")}
+
+    def mapped(name: str) -> np.memmap:
+        member = members[name]
+        return np.memmap(path, dtype=member.dtype, mode="r", offset=member.offset, shape=member.shape,
+                         order="F" if member.fortran_order else "C")
+
+    if "log_odds" in members:
+        return OccupancyGrid(log_odds=mapped("log_odds"), **placement)
+    if "colors" in members and "counts" in members:
+        return TextureMap(colors=mapped("colors"), counts=mapped("counts"), **placement)
+    return None
 
 
 @dataclass(frozen=True)

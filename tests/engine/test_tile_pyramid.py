@@ -14,7 +14,7 @@ from PIL import Image
 from slam_engine.errors import TileOutOfRangeError
 from slam_engine.model.result import OccupancyGrid, TextureMap
 from slam_engine.products import GeoOrigin, Georeference, TileScheme, WebMercatorScheme, render_tile
-from slam_engine.products.tile_pyramid import TilePyramid, level_count, write_tile_pyramid
+from slam_engine.products.tile_pyramid import TilePyramid, level_count, open_map, write_tile_pyramid
 
 
 def grid_of(h: int, w: int, seed: int = 5, dtype=np.float32) -> OccupancyGrid:
@@ -81,10 +81,16 @@ def test_web_mercator_tiles_from_the_pyramid_are_the_grids(tmp_path: Path) -> No
                 pixels(render_tile(grid, z, x, y, scheme="webmercator", georef=georef)), err_msg=f"{z}/{x}/{y}")
 
 
-def test_a_map_file_without_levels_is_not_a_pyramid(tmp_path: Path) -> None:
-    grid = grid_of(600, 600)
-    np.savez(tmp_path / "old.npz", log_odds=grid.log_odds, resolution_m=0.05, origin_x_m=0.0, origin_y_m=0.0)
+def test_a_map_file_without_levels_converts_from_its_mapping(tmp_path: Path) -> None:
+    grid = grid_of(600, 1000)
+    np.savez(tmp_path / "old.npz", log_odds=grid.log_odds, resolution_m=0.05, origin_x_m=-3.0, origin_y_m=-7.0)
     assert TilePyramid.open(tmp_path / "old.npz") is None
+    mapped = open_map(tmp_path / "old.npz")
+    assert isinstance(mapped, OccupancyGrid) and isinstance(mapped.log_odds, np.memmap)
+    pyramid = TilePyramid.open(write_tile_pyramid(mapped, tmp_path / "new.npz"))
+    assert pyramid is not None
+    for z, x, y in [(0, 0, 0), (1, 1, 0), (2, 3, 2)]:
+        np.testing.assert_array_equal(pixels(render_tile(pyramid, z, x, y)), pixels(render_tile(grid, z, x, y)))
 
 
 def test_a_single_wall_cell_survives_every_level(tmp_path: Path) -> None:
