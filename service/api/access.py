@@ -1,9 +1,10 @@
 """Which requests need an API key: every path but the configured open ones (``open_paths``, by
 default only /healthz), checked before any route runs, pages and the OpenAPI documents included.
 
-A key comes as ``X-API-Key``, ``Authorization: Bearer KEY`` or ``Authorization: Basic`` with the key
-as the password (what a browser sends after its login prompt: pages outside /v1 answer 401 with a
-Basic challenge, so the viewer and /docs stay usable in a browser)."""
+A key comes as ``X-API-Key`` or ``Authorization: Bearer KEY``; for the pages outside the API (the viewer,
+/docs, /openapi.json, /redoc) also as ``Authorization: Basic`` with the key as the password: those answer
+401 with a Basic challenge, so a browser asks for it with its login prompt. (The API's own routes take no
+Basic credentials: the viewer sends its key as ``X-API-Key``.)"""
 
 from __future__ import annotations
 
@@ -19,15 +20,16 @@ from service.api.error_handlers import error_response
 API_PREFIXES = ("/v1/", "/readyz")  # machine routes: a Bearer challenge (no browser prompt)
 
 
-def offered_key(headers: Headers) -> str | None:
-    """The key a request offers, in any of the accepted headers (None: none offered)."""
+def offered_key(headers: Headers, basic: bool = False) -> str | None:
+    """The key a request offers (None: none offered): ``X-API-Key``, a Bearer token, or with ``basic``
+    the password of Basic credentials."""
     key = headers.get("x-api-key")
     if key:
         return key
     scheme, _, credentials = headers.get("authorization", "").partition(" ")
     if scheme.lower() == "bearer" and credentials.strip():
         return credentials.strip()
-    if scheme.lower() == "basic" and credentials.strip():
+    if basic and scheme.lower() == "basic" and credentials.strip():
         try:
             decoded = base64.b64decode(credentials.strip(), validate=True).decode("utf-8")
         except (binascii.Error, UnicodeDecodeError):
@@ -58,11 +60,11 @@ class KeyGateMiddleware:
         if scope["type"] != "http" or not self.keys or is_open(scope["path"], self.open_paths):
             await self.app(scope, receive, send)
             return
-        offered = offered_key(Headers(scope=scope))
+        api = scope["path"].startswith(API_PREFIXES)
+        offered = offered_key(Headers(scope=scope), basic=not api)
         if offered is not None and is_known_key(offered, self.keys):
             await self.app(scope, receive, send)
             return
-        api = scope["path"].startswith(API_PREFIXES)
         challenge = "Bearer" if api else 'Basic realm="lidarmap", charset="UTF-8"'
         message = ("an API key is required (header X-API-Key or Authorization: Bearer)" if offered is None
                    else "unknown API key")

@@ -48,7 +48,7 @@ RunnerDep = Annotated[JobRunner, Depends(get_runner)]
 def get_owner(request: Request, settings: SettingsDep, _key: Annotated[str | None, Depends(_api_key_header)],
               _token: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> str:
     """Who calls: with no keys configured everyone is the same anonymous owner; otherwise the key
-    (X-API-Key header, Bearer token, or Basic password) must match one, and its hash names the owner.
+    (X-API-Key header or Bearer token) must match one, and its hash names the owner.
     (The two security parameters document the schemes in OpenAPI.)"""
     keys = settings.api_key_list()
     if not keys:

@@ -109,7 +109,7 @@ def test_only_healthz_is_open_by_default_and_browsers_get_a_login_prompt(tmp_pat
         basic = {"Authorization": "Basic " + base64.b64encode(b"anyone:k-one").decode()}
         assert client.get("/viewer/", headers=basic).status_code == 200
         assert client.get("/openapi.json", headers={"X-API-Key": "k-one"}).status_code == 200
-        assert client.get("/v1/sessions", headers=basic).status_code == 200  # the password is the key
+        assert_error(client.get("/v1/sessions", headers=basic), 401)  # the API takes X-API-Key or Bearer
         assert_error(client.get("/docs", headers={"X-API-Key": "wrong"}), 401)
     with service_client(tmp_path / "open", api_keys="k-one", open_paths="/healthz,/viewer,/docs,/openapi.json") \
             as client:
