@@ -4,6 +4,8 @@ Scaled cases with generous bounds; bench/api_attacks.py runs the full-size ones.
 
 from __future__ import annotations
 
+import json
+
 import httpx
 
 from bench.api_attacks import (
@@ -73,3 +75,24 @@ def test_a_grid_written_before_pyramids_is_converted_once(tmp_path) -> None:
     assert set(cost.statuses) == {200}, cost.statuses
     assert len(list(data_dir.rglob("grid.pyramid.npz"))) == 1
     assert cost.rss_peak - cost.rss_before < 120 * MB, (cost.rss_peak - cost.rss_before) / MB  # the grid: 144 MB
+
+
+def test_a_trajectory_file_of_the_first_format_is_still_served(tmp_path) -> None:
+    """Version 1 files (pose fields t, x, y, theta) are converted, GET and HEAD agreeing on the length."""
+    from service_helpers import service_client
+
+    from bench.api_attacks import stored_job
+
+    def write(job_dir):
+        (job_dir / "products").mkdir(parents=True)
+        (job_dir / "products" / "trajectory.json").write_text(json.dumps(
+            {"format": "lidarmap-trajectory", "version": 1, "poses": [{"t": 0.5, "x": 1.0, "y": 2.0, "theta": 0.1}]}))
+        return {"trajectory.json": "products/trajectory.json"}
+
+    job_id = stored_job(tmp_path, write)
+    with service_client(tmp_path) as client:
+        got = client.get(f"/v1/jobs/{job_id}/trajectory")
+        head = client.head(f"/v1/jobs/{job_id}/trajectory")
+    assert got.json() == {"job_id": job_id, "kind": "slam", "count": 1,
+                          "poses": [{"t_s": 0.5, "x_m": 1.0, "y_m": 2.0, "theta_rad": 0.1}]}
+    assert head.status_code == 200 and head.headers["content-length"] == str(len(got.content))

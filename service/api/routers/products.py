@@ -67,7 +67,7 @@ def _file(data: DataDir, job: JobRow, name: str) -> FileResponse:
 
 
 def _trajectory(request: Request, data: DataDir, job: JobRow, stem: str, kind: str,
-                fmt: TrajectoryFormat) -> Response | TrajectoryPublic:
+                fmt: TrajectoryFormat) -> Response:
     """A trajectory from the file the job wrote: TUM as the file; JSON streamed from the file's poses
     (HEAD: the size from the file, no body built); files of the first trajectory format converted."""
     from slam_engine.products import read_trajectory
@@ -87,21 +87,16 @@ def _trajectory(request: Request, data: DataDir, job: JobRow, stem: str, kind: s
     traj = read_trajectory(path)
     poses = [Pose(t_s=float(t), x_m=float(p[0]), y_m=float(p[1]), theta_rad=float(p[2]))
              for t, p in zip(traj.t_s, traj.poses, strict=True)]
-    answer = TrajectoryPublic(job_id=job.id, kind=kind, count=len(poses), poses=poses)
-    if request.method == "HEAD":
-        return _head_of_json(answer)
+    answer = JSONResponse(jsonable_encoder(TrajectoryPublic(job_id=job.id, kind=kind, count=len(poses),
+                                                            poses=poses)))
+    if request.method == "HEAD":  # the same headers as the GET's
+        return Response(media_type="application/json", headers={"Content-Length": str(len(answer.body))})
     return answer
 
 
 TrajectoryFormatQuery = Annotated[TrajectoryFormat, Query(alias="format", description="json or tum (text)")]
 TEXT: dict[int | str, dict[str, Any]] = {200: {"content": {"text/plain": {}},
                                                "description": "JSON, or TUM text with ?format=tum."}}
-
-
-def _head_of_json(answer: Any) -> Response:
-    """The headers of a JSON answer, without its body."""
-    body = JSONResponse(jsonable_encoder(answer)).body
-    return Response(media_type="application/json", headers={"Content-Length": str(len(body))})
 
 
 @router.get("/trajectory", response_model=TrajectoryPublic, responses=TEXT)
