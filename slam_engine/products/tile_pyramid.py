@@ -44,9 +44,7 @@ def _pad_reduce(array: np.ndarray, fill, reducer: np.ufunc) -> np.ndarray:
     pad = [(0, array.shape[0] % 2), (0, array.shape[1] % 2)] + [(0, 0)] * (array.ndim - 2)
     if pad[0][1] or pad[1][1]:
         array = np.pad(array, pad, constant_values=fill)
-    h, w = array.shape[:2]
-    by_columns = reducer.reduce(array.reshape(h, w // 2, 2, *array.shape[2:]), axis=2)
-    return reducer.reduce(by_columns.reshape(h // 2, 2, w // 2, *array.shape[2:]), axis=1)
+    return reducer(reducer(array[0::2, 0::2], array[0::2, 1::2]), reducer(array[1::2, 0::2], array[1::2, 1::2]))
 
 
 def _rows(array: np.ndarray, lo: int, hi: int) -> np.ndarray:
