@@ -90,7 +90,10 @@ def test_options_head_and_wrong_methods_say_what_is_allowed(tmp_path) -> None:
         wrong = client.put(f"/v1/sessions/{sid}")
         err = assert_error(wrong, 405, "method_not_allowed")
         assert wrong.headers["allow"] == "DELETE, GET, HEAD, OPTIONS" and "PUT" in err["message"]
-        assert client.options("/v1/sessions").headers["allow"] == "GET, OPTIONS, POST"
+        assert client.options("/v1/sessions").headers["allow"] == "GET, HEAD, OPTIONS, POST"
+        listed, head = client.get("/v1/sessions"), client.head("/v1/sessions")  # HEAD of every GET
+        assert head.status_code == 200 and head.content == b""
+        assert head.headers["content-length"] == listed.headers["content-length"]
         assert client.head("/v1/jobs/no-such-job").status_code == 404
         job = client.post(f"/v1/sessions/{sid}/jobs", json={})
         if job.status_code == 202:
