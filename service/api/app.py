@@ -81,7 +81,7 @@ def create_app(settings: Settings | None = None, job_function: str | None = None
         return settings.max_chunk_bytes
 
     app.add_middleware(BodyLimitMiddleware, limit_for=body_limit, stall_timeout_s=settings.body_stall_timeout_s)
-    app.add_middleware(AllowedMethodsMiddleware, openapi=app.openapi)
+    app.add_middleware(AllowedMethodsMiddleware, openapi=lambda: app.openapi())  # the documented schema, at first use
     app.add_middleware(KeyGateMiddleware, keys=settings.api_key_list(), open_paths=settings.open_path_list())
     app.include_router(health.router)
     for module in (sessions, logs, maps, chunks, formats, products):

@@ -95,6 +95,8 @@ def test_options_head_and_wrong_methods_say_what_is_allowed(tmp_path) -> None:
         assert head.status_code == 200 and head.content == b""
         assert head.headers["content-length"] == listed.headers["content-length"]
         assert client.head("/v1/jobs/no-such-job").status_code == 404
+        finish = client.get("/openapi.json").json()["paths"]["/v1/sessions/{session_id}/chunks/finish"]["post"]
+        assert {"400", "507"} <= set(finish["responses"])  # the table above did not hide the documented errors
         job = client.post(f"/v1/sessions/{sid}/jobs", json={})
         if job.status_code == 202:
             assert client.head(f"/v1/jobs/{job.json()['id']}").status_code == 200
