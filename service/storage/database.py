@@ -173,7 +173,7 @@ class PostgresBackend(_EnginePerProcess):
             with self._borrow() as conn, conn.begin():  # commits when the block succeeds, else rolls back
                 yield conn
         except sa_exc.OperationalError as exc:  # the server went away, or refused the connection
-            if getattr(exc.orig, "sqlstate", None) == POSTGRES_DISK_FULL:
+            if isinstance(exc.orig, Exception) and getattr(exc.orig, "sqlstate", None) == POSTGRES_DISK_FULL:
                 raise exc.orig from exc  # a full disk: 507, not 503
             raise self._unavailable(exc.orig or exc) from None
 
