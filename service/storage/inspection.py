@@ -185,18 +185,29 @@ def _child_main(conn: Any, memory_limit_mb: int) -> None:
     retire_above = (resident_bytes() + memory_limit_mb * MB) // 2
 
     over = {"error": "memory", "message": "", "location": None}
+    sending = threading.Lock()  # the watchdog's thread and this one may both answer: one answer per request
+    answered = False
+
+    def answer(message: dict[str, Any]) -> None:
+        nonlocal answered
+        with sending:
+            if not answered:
+                answered = True
+                conn.send(message)
+
     while True:
         try:
             name, args = conn.recv()
         except (EOFError, OSError):
             return
-        with MemoryGuard(memory_limit_mb, on_exceeded=lambda _reason: conn.send(over)):
+        answered = False
+        with MemoryGuard(memory_limit_mb, on_exceeded=lambda _reason: answer(over)):
             try:
                 result = _CALLS[name](*args)
             except MemoryError:
                 result = over
         retire = resident_bytes() > retire_above  # memory a big log left behind would count against the next
-        conn.send({**result, "retire": retire})
+        answer({**result, "retire": retire})
         if retire:
             return
 
