@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from api_schemas.jobs import JobStatus
-from service.http_errors import shorten_tokens
+from service.http_errors import is_disk_full, shorten_tokens
 from service.jobs.context import JobContext, JobFailed, JobFunction
 from service.jobs.events import job_event
 from service.memory_watchdog import MemoryGuard, limit_reason
@@ -112,6 +112,9 @@ def publish(store: JobStore, data: DataDir, job_id: str, staging: Path) -> list[
     return moved
 
 
+DISK_FULL_REASON = "disk full: the service's data folder has no space left for the job's products"
+
+
 def run_job_function(function: JobFunction, ctx: JobContext, memory_limit_mb: int) -> tuple[JobStatus, str | None]:
     """The terminal status of ``function(ctx)`` and the error its user sees (None when it succeeded)."""
 
@@ -134,6 +137,9 @@ def run_job_function(function: JobFunction, ctx: JobContext, memory_limit_mb: in
     except SlamEngineError as exc:
         return JobStatus.FAILED, public(f"{type(exc).__name__}: {exc}")
     except Exception as exc:  # the job's bug must not kill the worker
+        if is_disk_full(getattr(exc, "orig", None) or exc, free_bytes=shutil.disk_usage(ctx.data.root).free):
+            logger.error("job %s: the disk is full: %s", ctx.job_id, exc)
+            return JobStatus.FAILED, DISK_FULL_REASON
         logger.error("job %s crashed:\n%s", ctx.job_id, traceback.format_exc())
         return JobStatus.FAILED, internal_error(exc)
     return JobStatus.SUCCEEDED, None

@@ -88,3 +88,11 @@ def hoarding(ctx) -> None:
     """Leaves HOARD_MB of touched memory behind in the worker process, then succeeds."""
     _hoard.append(bytearray(b"\x01" * (HOARD_MB * 1024 * 1024)))
     ctx.progress(1, 1, force=True)
+
+
+def disk_full_writer(ctx) -> None:
+    """Fails as writing a product on a full disk does (ENOSPC from the file system)."""
+    import errno
+
+    ctx.progress(1, 2, force=True)
+    raise OSError(errno.ENOSPC, "No space left on device", str(ctx.out_dir / "products" / "occupancy.png"))

@@ -102,3 +102,15 @@ def test_a_worker_never_writes_into_a_job_that_is_no_longer_its_own(tmp_path) ->
         job_dir = tmp_path / "jobs" / job["id"]
         assert not (job_dir / "run.json").exists()
         assert not any(job_dir.glob(".staging-*"))  # the attempt's own folder is removed too
+
+
+def test_a_job_that_meets_a_full_disk_fails_saying_so(tmp_path) -> None:
+    """Before: 'internal error (OSError)' (or, where the store write failed too, 'worker process exited
+    with code 1'). Now: the job fails with the reason, and its worker goes on to the next job."""
+    with service_client(tmp_path, job_function=f"{FUNCS}:disk_full_writer") as client:
+        sid = streaming_session(client)
+        first = wait_for(client, start(client, sid, 1, 1)["id"], {"failed"}, timeout_s=60)
+        assert first["error"].startswith("disk full: the service's data folder has no space left"), first
+        assert str(tmp_path) not in first["error"]
+        second = wait_for(client, start(client, sid, 1, 1)["id"], {"failed"}, timeout_s=60)
+        assert second["error"] == first["error"]
