@@ -5,8 +5,10 @@ Where a run's memory goes (whole process, measured on the benchmark logs):
 
 - the interpreter and the libraries the front end needs (numpy, numba/llvmlite, pydantic): ~115 MB,
   numba's compiler context and the kernels loaded from the cache: ~70 MB. The back end's GTSAM
-  (~40 MB) and the products' libraries are imported when first used, after the front end's peak;
-  OpenCV (~15 MB) only for camera data, pyproj and Open3D only for geo origins and tilted LiDARs;
+  (~40 MB) and the products' libraries are imported when first used, after the front end's peak:
+  every run writes a GeoTIFF (rasterio and GDAL, 20-35 MB) and a point cloud (Open3D, 60-90 MB),
+  so the product phase holds :data:`PRODUCT_LIBRARIES_BYTES` more; OpenCV (~15 MB) only for camera
+  data, pyproj only for geo origins;
 - the log: its arrays, plus the parser's temporaries while loading (about 3x the arrays);
 - per scan: the key frames' ranges (the log's own rows), the back end's end points and the
   trajectories (:data:`SCAN_BYTES_PER_BEAM` a beam, an upper bound);
@@ -37,6 +39,8 @@ from slam_engine.model.drive_log import DriveLog
 # peaked at 211-240 MB in a fresh process (its own high-water mark: see peak_resident_bytes), and at
 # 289 MB inside CI's session
 BASE_BYTES = 250 * 1024**2
+# rasterio/GDAL and Open3D, imported to write the products (a fresh install's process: +35 and +87 MB)
+PRODUCT_LIBRARIES_BYTES = 120 * 1024**2
 LOG_LOAD_FACTOR = 3.0  # peak while loading / the log's arrays
 SCAN_BYTES_PER_BEAM = 48  # key frames, the back end's end points (float64 x, y, and their copies)
 DENSE_BYTES_PER_CELL = 4 + 3 + 3  # final grid float32 + product rasters + the product map's tiles
@@ -131,6 +135,6 @@ def estimate_job_memory_bytes(config: SlamConfig, log: DriveLog | DriveFigures) 
     pool = (tiles + private) * TILE_BYTES * POOL_SLACK
     tables = tiles * config.particles * 5  # int32 table + uint8 marks per particle
     dense = cells * DENSE_BYTES_PER_CELL
-    total = (BASE_BYTES + LOG_LOAD_FACTOR * figures.array_bytes + SCAN_BYTES_PER_BEAM * figures.beams + pool
-             + tables + dense)
+    total = (BASE_BYTES + PRODUCT_LIBRARIES_BYTES + LOG_LOAD_FACTOR * figures.array_bytes
+             + SCAN_BYTES_PER_BEAM * figures.beams + pool + tables + dense)
     return int(MARGIN * total)
