@@ -65,6 +65,8 @@ class _Laser:
     robot_pose: list[tuple[float, float, float]] = field(default_factory=list)
     lines: list[int] = field(default_factory=list)
     geometry: tuple[float, float, float] | None = None  # (start angle, resolution, max range) of the first record
+    starts: list[float] = field(default_factory=list)  # each record's start angle [rad] (ROBOTLASER/RAWLASER)
+    increments: list[float] = field(default_factory=list)  # each FLASER record's beam spacing [rad]
 
 
 def sniff(path: Path) -> bool:
@@ -125,6 +127,10 @@ def _parse_old_laser(tokens: list[str], laser: _Laser, path: Path, line_no: int)
     _finite(values[n:], "laser/robot pose", path, line_no)
     _plausible_pose(values[n:n + 3], "laser pose", path, line_no)
     _plausible_pose(values[n + 3:n + 6], "robot pose", path, line_no)
+    if n and laser.increments and abs(_flaser_increment(n) - laser.increments[0]) > 1e-9:
+        raise LogFormatError(f"{tokens[0]} beam spacing changes within the log ({n} beams over 180 deg, "
+                             f"{len(laser.ranges[0])} before)", path=str(path), location=f"line {line_no}")
+    laser.increments.append(_flaser_increment(n) if n else 0.0)
     laser.ranges.append(values[:n])
     laser.laser_pose.append(tuple(values[n:n + 3]))
     laser.robot_pose.append(tuple(values[n + 3:n + 6]))
@@ -152,11 +158,22 @@ def _parse_new_laser(tokens: list[str], laser: _Laser, path: Path, line_no: int,
     laser.t.append(float(rest[-1]))
     laser.lines.append(line_no)
     start, _fov, resolution, max_range = (float(v) for v in header)
+    if not abs(start) <= 2 * np.pi:
+        raise LogFormatError(f"start angle is {start:g} rad, beyond +-2 pi", path=str(path),
+                             location=f"line {line_no}")
     if laser.geometry is None:
         laser.geometry = (start, resolution, max_range)
-    elif abs(start - laser.geometry[0]) > 1e-6 or abs(resolution - laser.geometry[1]) > 1e-9:
-        raise LogFormatError("laser geometry (start angle / resolution) changes within the log",
-                             path=str(path), location=f"line {line_no}")
+    elif abs(resolution - laser.geometry[1]) > 1e-9:
+        # a start angle or beam count may change from scan to scan (interlacing, firmware modes); the
+        # beam spacing may not
+        raise LogFormatError(f"laser resolution changes within the log: {resolution:g} rad, "
+                             f"{laser.geometry[1]:g} rad before", path=str(path), location=f"line {line_no}")
+    laser.starts.append(start)
+
+
+def _flaser_increment(n: int) -> float:
+    """FLASER beam spacing [rad] of ``n`` beams over 180 deg."""
+    return np.pi / (n - 1) if n % 2 == 1 and n > 1 else np.pi / n
 
 
 def load(path: Path, no_return_m: float | None = None) -> DriveLog:
@@ -242,28 +259,24 @@ def _line_label(lines: list[int]):
 
 def _laser_stream(path: Path, kind: str, laser: _Laser, params: dict[str, str], no_return_m: float | None,
                   warnings: list[str]) -> tuple[LidarModel, ScanStream]:
-    counts = {len(r) for r in laser.ranges}
-    if len(counts) != 1:
-        first = laser.ranges[0].size
-        bad = next(i for i, r in enumerate(laser.ranges) if r.size != first)
-        raise LogFormatError(f"{kind} beam count changes from {first} to {laser.ranges[bad].size}",
-                             path=str(path), location=f"line {laser.lines[bad]}")
-    n = counts.pop()
-    if n == 0:
-        raise LogFormatError(f"{kind} scans have no beams", path=str(path), location=f"line {laser.lines[0]}")
+    counts = np.array([len(r) for r in laser.ranges])
+    n = int(counts.max())
+    if counts.min() == 0:
+        bad = int(np.argmin(counts))
+        raise LogFormatError(f"{kind} scan has no beams", path=str(path), location=f"line {laser.lines[bad]}")
     side = "rear" if kind in ("RLASER", "ROBOTLASER2") else "front"
     if laser.geometry is not None:
         angle_min, increment, max_range = laser.geometry
         threshold = max_range if max_range and max_range > 0 else DEFAULT_NO_RETURN_M
     else:
         angle_min = -np.pi / 2
-        increment = np.pi / (n - 1) if n % 2 == 1 and n > 1 else np.pi / n
+        increment = laser.increments[0]
         threshold = DEFAULT_NO_RETURN_M
     if f"robot_{side}_laser_max" in params:
         threshold = _param_float(params, f"robot_{side}_laser_max", path)
     if no_return_m is not None:
         threshold = no_return_m
-    raw = np.array(laser.ranges)
+    raw = _padded(laser.ranges, n)
     label = _line_label(laser.lines)
     saturation = _saturation_value(raw, threshold)
     if saturation is not None:
@@ -274,7 +287,23 @@ def _laser_stream(path: Path, kind: str, laser: _Laser, params: dict[str, str], 
     lidar = LidarModel(num_beams=n, angle_min_rad=float(angle_min), angle_increment_rad=float(increment),
                        range_min_m=0.0, range_max_m=float(threshold),
                        T_vehicle_from_lidar=_mounting(path, side, laser, params), name=f"carmen {kind}")
-    return lidar, ScanStream(t_s=np.array(laser.t)[order], ranges_m=ranges[order])
+    offsets = np.array(laser.starts) - angle_min if laser.starts else np.zeros(len(laser.t))
+    changing = bool(np.any(offsets != 0.0))
+    if changing or (counts != n).any():
+        warnings.append(f"{path}: {kind}: beam geometry changes from scan to scan ({len(np.unique(offsets))} "
+                        f"start angles, {counts.min()}-{n} beams); carried per scan")
+    return lidar, ScanStream(t_s=np.array(laser.t)[order], ranges_m=ranges[order],
+                             angle_offset_rad=offsets[order] if changing else None)
+
+
+def _padded(ranges: list[np.ndarray], n: int) -> np.ndarray:
+    """(N, n) ranges: scans with fewer beams padded with ``inf`` (no return) at their end."""
+    if all(r.size == n for r in ranges):
+        return np.array(ranges)
+    out = np.full((len(ranges), n), np.inf)
+    for k, r in enumerate(ranges):
+        out[k, :r.size] = r
+    return out
 
 
 def _saturation_value(raw: np.ndarray, threshold: float) -> float | None:
@@ -320,7 +349,8 @@ def _flaser_geometry(lidar: LidarModel) -> bool:
 def write(log: DriveLog, out_dir: Path, name: str = "log") -> Path:
     """Write ``out_dir/<name>.clf``: PARAM lines, ODOM lines at the odometry stamps (dead-reckoned
     from the encoders when the log has no odometry), and one FLASER (or ROBOTLASER1 when the beams
-    do not follow the FLASER convention) per scan. Ranges in mm precision, poses in micrometres."""
+    do not follow the FLASER convention or their start angle changes from scan to scan) per scan.
+    Ranges in mm precision, poses in micrometres."""
     odometry = odometry_poses(log)
     path = Path(out_dir) / f"{name}.clf"
     lines = [f"# written by lidarmap from a {log.source_format} log",
@@ -351,7 +381,8 @@ def _laser_lines(lidar: LidarModel, scans: ScanStream, odometry: OdometryStream,
     robot = interpolate(odometry.t_s, odometry.poses, scans.t_s)
     laser = compose(robot, mount)
     no_return = max(lidar.range_max_m, DEFAULT_NO_RETURN_M) + 1.91
-    flaser = _flaser_geometry(lidar)
+    flaser = _flaser_geometry(lidar) and scans.angle_offset_rad is None
+    offsets = np.zeros(len(scans)) if scans.angle_offset_rad is None else scans.angle_offset_rad
     out = []
     for k in range(len(scans)):
         t = float(scans.t_s[k])
@@ -362,7 +393,8 @@ def _laser_lines(lidar: LidarModel, scans: ScanStream, odometry: OdometryStream,
             line = f"FLASER {lidar.num_beams} {ranges} {poses} {t:.6f} lidarmap {t:.6f}"
         else:
             fov = lidar.num_beams * lidar.angle_increment_rad
-            line = (f"ROBOTLASER1 0 {lidar.angle_min_rad:.9f} {fov:.9f} {lidar.angle_increment_rad:.12f} "
+            start = lidar.angle_min_rad + float(offsets[k])
+            line = (f"ROBOTLASER1 0 {start:.9f} {fov:.9f} {lidar.angle_increment_rad:.12f} "
                     f"{no_return:.3f} 0.01 0 {lidar.num_beams} {ranges} 0 {poses} 0 0 0 0 0 "
                     f"{t:.6f} lidarmap {t:.6f}")
         out.append((t, 1, line))

@@ -78,17 +78,28 @@ class ScanProjector:
         self.ceiling_z_m = float(ceiling_z_m)
         self.free_from_m = free_space_start_m(lidar.num_beams, lidar.angle_increment_rad, resolution_m)
 
-    def project(self, ranges_m: np.ndarray, beam_poses: np.ndarray | None = None) -> ProjectedScan:
+    def project(self, ranges_m: np.ndarray, beam_poses: np.ndarray | None = None,
+                angle_offset_rad: float = 0.0) -> ProjectedScan:
         """(num_beams,) ranges [m] -> :class:`ProjectedScan`. ``beam_poses`` (num_beams, 3): where the
         vehicle was when each beam was measured, in its frame at the scan's reference time (de-skew,
         :func:`slam_engine.frontend.time_offset.sweep_poses`); each end point is moved by its beam's pose (the
-        rays still start at ``origin_v``)."""
-        scan = self._project(ranges_m)
+        rays still start at ``origin_v``). ``angle_offset_rad``: this scan's beams point that much further
+        counter-clockwise than the model's [rad] (:class:`~slam_engine.model.drive_log.ScanStream`)."""
+        scan = self._project(ranges_m, *self._directions(angle_offset_rad))
         if beam_poses is None or scan.beams is None:
             return scan
         return _moved(scan, np.asarray(beam_poses, dtype=np.float64)[scan.beams])
 
-    def _project(self, ranges_m: np.ndarray) -> ProjectedScan:
+    def _directions(self, angle_offset_rad: float) -> tuple[np.ndarray, np.ndarray]:
+        """The beams' unit directions in the LiDAR and the vehicle frame, (num_beams, 2) each, for a scan
+        whose beams are turned by ``angle_offset_rad`` [rad] (0: the model's, computed once)."""
+        if angle_offset_rad == 0.0:
+            return self.dirs_lidar, self.dirs_v
+        angles = self.lidar.beam_angles_rad + float(angle_offset_rad)
+        dirs_lidar = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        return dirs_lidar, dirs_lidar @ self.T[:2, :2].T
+
+    def _project(self, ranges_m: np.ndarray, dirs_lidar: np.ndarray, dirs_v: np.ndarray) -> ProjectedScan:
         r = np.asarray(ranges_m, dtype=np.float64)
         if r.shape != (self.lidar.num_beams,):
             raise ValueError(f"scan has {r.shape} ranges, the LiDAR model {self.lidar.name!r} "
@@ -97,23 +108,24 @@ class ScanProjector:
         is_hit = returned & (r <= self.max_range_m)
         no_return_m = np.full(r.shape, self.no_return_clear_m)
         if self.no_return_bounded and self.planar and self.no_return_clear_m > 0 and not returned.all():
-            bound = bracketed_no_return_m(r, returned, self.dirs_lidar) - self.no_return_stop_short_m
+            bound = bracketed_no_return_m(r, returned, dirs_lidar) - self.no_return_stop_short_m
             no_return_m = np.minimum(no_return_m, np.maximum(bound, 0.0))
         length = np.where(is_hit, r, np.where(returned, self.clear_range_m, no_return_m))
         keep = length > 0
         if not keep.all():
             length, is_hit = length[keep], is_hit[keep]
         if self.planar:
-            ends = self.origin_v + self.dirs_v[keep] * length[:, None]
+            ends = self.origin_v + dirs_v[keep] * length[:, None]
             return ProjectedScan(ends_v=ends, is_hit=is_hit, free_from_m=self.free_from_m[keep],
                                  beams=np.flatnonzero(keep))
-        return self._project_tilted(length, is_hit, keep)
+        return self._project_tilted(length, is_hit, keep, dirs_lidar)
 
-    def _project_tilted(self, length: np.ndarray, is_hit: np.ndarray, beams: np.ndarray) -> ProjectedScan:
+    def _project_tilted(self, length: np.ndarray, is_hit: np.ndarray, beams: np.ndarray,
+                        dirs_lidar: np.ndarray) -> ProjectedScan:
         import open3d as o3d
 
         pts_lidar = np.zeros((length.shape[0], 3))
-        pts_lidar[:, :2] = self.dirs_lidar[beams] * length[:, None]
+        pts_lidar[:, :2] = dirs_lidar[beams] * length[:, None]
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts_lidar))
         cloud.transform(self.T)
         pts_v = np.asarray(cloud.points)

@@ -136,13 +136,18 @@ class ProjectedScans(Sequence[ProjectedScan]):
     keeps its ranges (4-8 bytes a beam, usually views into the log) instead of projected end points
     (about 25 bytes a beam)."""
 
-    def __init__(self, projector: ScanProjector, ranges: list[np.ndarray], sweeps: list[np.ndarray | None]):
+    def __init__(self, projector: ScanProjector, ranges: list[np.ndarray], sweeps: list[np.ndarray | None],
+                 angle_offsets: list[float]):
         self.projector = projector
         self.ranges = ranges
         self.sweeps = sweeps  # per scan: its beams' de-skew poses, or None
+        self.angle_offsets = angle_offsets  # per scan: its beams' angle offset [rad] (ScanMessage)
 
     def __len__(self) -> int:
         return len(self.ranges)
+
+    def _one(self, i: int) -> ProjectedScan:
+        return self.projector.project(self.ranges[i], self.sweeps[i], self.angle_offsets[i])
 
     @overload
     def __getitem__(self, index: int) -> ProjectedScan: ...
@@ -152,12 +157,12 @@ class ProjectedScans(Sequence[ProjectedScan]):
 
     def __getitem__(self, index: int | slice) -> ProjectedScan | list[ProjectedScan]:
         if isinstance(index, slice):
-            return [self.projector.project(r, p) for r, p in zip(self.ranges[index], self.sweeps[index], strict=True)]
-        return self.projector.project(self.ranges[index], self.sweeps[index])
+            return [self._one(i) for i in range(*index.indices(len(self.ranges)))]
+        return self._one(index)
 
     def __iter__(self) -> Iterator[ProjectedScan]:
-        for r, p in zip(self.ranges, self.sweeps, strict=True):
-            yield self.projector.project(r, p)
+        for i in range(len(self.ranges)):
+            yield self._one(i)
 
 
 @dataclass
@@ -213,8 +218,10 @@ class SlamFilter:
         self._records: list[_ScanRecord] = []
         self.key_frame_ranges: list[np.ndarray] = []  # the ranges [m] of every processed step's scan
         self.key_frame_sweeps: list[np.ndarray | None] = []  # its beams' de-skew poses (None: not de-skewed)
+        self.key_frame_angle_offsets: list[float] = []  # its beams' angle offset [rad] (ScanMessage)
         # its projected scan (for the back end), projected again when read
-        self.key_frame_scans = ProjectedScans(self.projector, self.key_frame_ranges, self.key_frame_sweeps)
+        self.key_frame_scans = ProjectedScans(self.projector, self.key_frame_ranges, self.key_frame_sweeps,
+                                              self.key_frame_angle_offsets)
         self.key_frame_odometry: list[np.ndarray] = []  # the odometry pose at it (uncorrected)
         # the wheels' and gyro's cumulative readings at it (None without both: OdometryIntegrator.wheel_check)
         self.key_frame_wheels: list[np.ndarray | None] = []
@@ -294,8 +301,9 @@ class SlamFilter:
         if self._beam_offsets_s is not None and len(self.odometry_history):
             self._beam_poses = sweep_poses(self.odometry_history, scan.t_s + offset_s, self._beam_offsets_s,
                                            self.heading_calibration.applied_scale)
-        projected = self.projector.project(scan.ranges_m, self._beam_poses)
+        projected = self.projector.project(scan.ranges_m, self._beam_poses, scan.angle_offset_rad)
         self._ranges_m = scan.ranges_m
+        self._angle_offset_rad = scan.angle_offset_rad
         if self._last_odom is not None and offset_s != self._last_odom_offset_s and self._last_t_s is not None \
                 and self.odometry_history.covers(self._last_t_s + offset_s):
             # the offset changed since the last processed scan: take its odometry pose with the new one
@@ -342,6 +350,7 @@ class SlamFilter:
         self.key_frame_wheels.append(self.integrator.wheel_check())
         self.key_frame_ranges.append(self._ranges_m)
         self.key_frame_sweeps.append(self._beam_poses)
+        self.key_frame_angle_offsets.append(self._angle_offset_rad)
         self._parents.append(self._next_parents)
         self._next_parents = np.arange(self.config.particles)
         self._records.append(_ScanRecord(t_s, len(self._history) - 1, np.zeros(3)))
@@ -579,7 +588,7 @@ class SlamFilter:
         if not self.config.grid.no_return_bounded:
             return self.key_frame_scans
         bounded = make_projector(self.projector.lidar, self.config, no_return_bounded=True)
-        return ProjectedScans(bounded, self.key_frame_ranges, self.key_frame_sweeps)
+        return ProjectedScans(bounded, self.key_frame_ranges, self.key_frame_sweeps, self.key_frame_angle_offsets)
 
     def best_grid(self) -> OccupancyGrid:
         return self.grids.occupancy_grid(self.best_particle())

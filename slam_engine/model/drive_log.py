@@ -98,10 +98,17 @@ class VehicleModel:
 
 @dataclass(frozen=True)
 class ScanStream:
-    """LiDAR scans: ``t_s`` (N,) seconds, ``ranges_m`` (N, num_beams) float32; ``inf`` = no return."""
+    """LiDAR scans: ``t_s`` (N,) seconds, ``ranges_m`` (N, num_beams) float32; ``inf`` = no return.
+
+    ``angle_offset_rad`` (N,) [rad], for a laser whose beam geometry changes from scan to scan: scan
+    ``k``'s beam ``i`` points at ``angle_min_rad + angle_offset_rad[k] + i * angle_increment_rad``
+    (an interlaced SICK cycles through start angles 0.25 deg apart). A scan with fewer beams than
+    ``num_beams`` is padded with ``inf`` (no return) at its end. None: every scan has the model's
+    geometry."""
 
     t_s: np.ndarray
     ranges_m: np.ndarray
+    angle_offset_rad: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -304,6 +311,8 @@ class DriveLog:
             ranges = np.asarray(self.scans.ranges_m)
             check("scans", "range", ranges, MAX_RANGE_M, "m", columns=ranges.shape[1] if ranges.ndim == 2 else 1,
                   allow_inf=True)
+        if self.scans is not None and self.scans.angle_offset_rad is not None:
+            check("scans", "scan angle offset", self.scans.angle_offset_rad, 2 * np.pi, "rad")
         if self.gyro is not None:
             check("gyro", "yaw rate", self.gyro.yaw_rate_rad_s, MAX_YAW_RATE_RAD_S, "rad/s")
 
@@ -358,7 +367,10 @@ def _message_at(stream: object, i: int) -> Message:
         x, y, theta = stream.poses[i]
         return OdometryMessage(t_s=float(stream.t_s[i]), x_m=float(x), y_m=float(y), theta_rad=float(theta))
     if isinstance(stream, ScanStream):
-        return ScanMessage(t_s=float(stream.t_s[i]), ranges_m=stream.ranges_m[i])
+        if stream.angle_offset_rad is None:
+            return ScanMessage(t_s=float(stream.t_s[i]), ranges_m=stream.ranges_m[i])
+        return ScanMessage(t_s=float(stream.t_s[i]), ranges_m=stream.ranges_m[i],
+                           angle_offset_rad=float(stream.angle_offset_rad[i]))
     if isinstance(stream, StereoStream):
         return StereoMessage(t_s=float(stream.t_s[i]), left=stream.left_images[i], right=stream.right_images[i])
     if isinstance(stream, RgbdStream):

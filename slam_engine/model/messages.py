@@ -39,10 +39,13 @@ class OdometryMessage:
 
 @dataclass(frozen=True)
 class ScanMessage:
-    """One LiDAR scan: ranges [m] in the log's :class:`LidarModel` beam order; inf = no return."""
+    """One LiDAR scan: ranges [m] in the log's :class:`LidarModel` beam order; inf = no return.
+    ``angle_offset_rad``: this scan's beams point ``angle_offset_rad`` further counter-clockwise than
+    the model's (a laser whose start angle changes from scan to scan, e.g. an interlaced SICK)."""
 
     t_s: float
     ranges_m: np.ndarray
+    angle_offset_rad: float = 0.0
 
 
 @dataclass(frozen=True)

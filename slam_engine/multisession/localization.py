@@ -159,7 +159,9 @@ class DriveScans:
             raise ConfigError("the log has no LiDAR scans: there is nothing to localise with")
         odometry = dead_reckoning(log)
         projector = make_projector(log.lidar, config, no_return_bounded=False)
-        hits = [projector.project(ranges).hits_v for ranges in log.scans.ranges_m]
+        offsets = np.zeros(len(log.scans)) if log.scans.angle_offset_rad is None else log.scans.angle_offset_rad
+        hits = [projector.project(ranges, angle_offset_rad=float(offset)).hits_v
+                for ranges, offset in zip(log.scans.ranges_m, offsets, strict=True)]
         drive = cls(np.asarray(odometry.t_s, np.float64), np.asarray(odometry.poses, np.float64), hits)
         return drive.scan_matched(config.grid.resolution_m, config.localization.local_map_m)
 

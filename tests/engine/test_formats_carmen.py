@@ -145,3 +145,60 @@ def test_registry_lists_every_format() -> None:
     names = [f.name for f in list_formats()]
     assert names == ["carmen", "breezyslam", "thor", "ece276a-car", "rosbag", "drivelog"]
     assert all(f.can_write for f in list_formats())
+
+
+def _interlaced_line(k: int, t: float, start_deg: float, n: int, resolution_deg: float = 1.0) -> str:
+    ranges = " ".join(f"{2.0 + 0.01 * i:.2f}" for i in range(n))
+    return (f"ROBOTLASER1 0 {np.radians(start_deg):.9f} {np.radians(180.0):.9f} {np.radians(resolution_deg):.12f} "
+            f"80.0 0.01 0 {n} {ranges} 0 {0.1 * k} 0 0 {0.1 * k} 0 0 0 0 0 0 0 {t} host {t}")
+
+
+def test_interlaced_robotlaser_carries_each_scans_start_angle_and_beam_count(tmp_path) -> None:
+    # an interlaced SICK: four start angles 0.25 deg apart, cycling; 181 beams, or 180 for the last phase
+    starts = [-90.0, -89.75, -89.5, -89.25]
+    lines = [_interlaced_line(k, 1.0 + 0.1 * k, starts[k % 4], 180 if k % 4 == 3 else 181) for k in range(8)]
+    log = load_log(write_clf(tmp_path, *lines))
+    assert log.lidar.num_beams == 181
+    assert np.degrees(log.lidar.angle_min_rad) == pytest.approx(-90.0)
+    assert np.degrees(log.scans.angle_offset_rad) == pytest.approx([0.0, 0.25, 0.5, 0.75] * 2)
+    assert log.scans.ranges_m.shape == (8, 181)
+    assert np.isinf(log.scans.ranges_m[3, 180]) and log.scans.ranges_m[3, 179] == pytest.approx(3.79)
+    assert np.isfinite(log.scans.ranges_m[[0, 1, 2, 4, 5, 6]]).all()
+    assert any("carried per scan" in w for w in log.warnings)
+    messages = [m for m in log.messages() if hasattr(m, "ranges_m")]
+    assert np.degrees([m.angle_offset_rad for m in messages]) == pytest.approx([0.0, 0.25, 0.5, 0.75] * 2)
+
+
+def test_interlaced_log_round_trips_through_robotlaser1(tmp_path) -> None:
+    starts = [-90.0, -89.75, -89.5, -89.25]
+    lines = [_interlaced_line(k, 1.0 + 0.1 * k, starts[k % 4], 181) for k in range(8)]
+    log = load_log(write_clf(tmp_path, *lines))
+    written = write_log(log, "carmen", tmp_path / "out")
+    assert "\nROBOTLASER1 " in written.read_text() and "\nFLASER " not in written.read_text()
+    again = load_log(written)
+    np.testing.assert_allclose(again.scans.angle_offset_rad, log.scans.angle_offset_rad, atol=1e-8)
+    np.testing.assert_allclose(again.scans.ranges_m, log.scans.ranges_m, atol=1e-3)
+
+
+def test_fixed_geometry_has_no_per_scan_offsets(tmp_path) -> None:
+    lines = [_interlaced_line(k, 1.0 + 0.1 * k, -90.0, 181) for k in range(4)]
+    log = load_log(write_clf(tmp_path, *lines))
+    assert log.scans.angle_offset_rad is None
+    assert not any("carried per scan" in w for w in log.warnings)
+
+
+def test_a_changing_resolution_is_refused_naming_the_line(tmp_path) -> None:
+    lines = [_interlaced_line(0, 1.0, -90.0, 181), _interlaced_line(1, 1.1, -90.0, 361, resolution_deg=0.5)]
+    with pytest.raises(LogFormatError, match="line 2: laser resolution changes"):
+        load_log(write_clf(tmp_path, *lines))
+
+
+def test_flaser_beam_count_may_change_when_the_spacing_does_not(tmp_path) -> None:
+    f181 = "FLASER 181 " + " ".join(["2.0"] * 181) + " 0 0 0 0 0 0 {t} host {t}"
+    f180 = "FLASER 180 " + " ".join(["2.0"] * 180) + " 0 0 0 0 0 0 {t} host {t}"
+    log = load_log(write_clf(tmp_path, f181.format(t=1.0), f180.format(t=2.0)))
+    assert log.lidar.num_beams == 181 and log.scans.angle_offset_rad is None
+    assert np.isinf(log.scans.ranges_m[1, 180]) and np.isfinite(log.scans.ranges_m[1, :180]).all()
+    f361 = "FLASER 361 " + " ".join(["2.0"] * 361) + " 0 0 0 0 0 0 {t} host {t}"
+    with pytest.raises(LogFormatError, match="line 2: FLASER beam spacing changes"):
+        load_log(write_clf(tmp_path, f181.format(t=1.0), f361.format(t=2.0)))

@@ -68,6 +68,27 @@ def test_projector_keeps_no_return_beams_as_free_rays() -> None:
     np.testing.assert_allclose(scan.hits_v, [[0.0, -2.0]], atol=1e-12)
 
 
+def test_projector_turns_each_scan_by_its_own_angle_offset() -> None:
+    # a LiDAR mounted 0.5 m ahead, turned 90 deg left; a scan whose beams start 0.25 deg further left
+    mount = np.eye(4)
+    mount[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]
+    mount[0, 3] = 0.5
+    lidar = LidarModel(num_beams=3, angle_min_rad=-np.pi / 2, angle_increment_rad=np.pi / 2, range_min_m=0.1,
+                       range_max_m=20.0, T_vehicle_from_lidar=mount)
+    projector = ScanProjector(lidar, max_range_m=10.0, ground_z_m=0.2, ceiling_z_m=3.0, resolution_m=0.05)
+    ranges = np.array([2.0, 3.0, 4.0])
+    plain = projector.project(ranges)
+    np.testing.assert_allclose(plain.ends_v, [[2.5, 0.0], [0.5, 3.0], [-3.5, 0.0]], atol=1e-12)
+    offset = np.radians(0.25)
+    turned = projector.project(ranges, angle_offset_rad=offset)
+    angles = np.array([-np.pi / 2, 0.0, np.pi / 2]) + offset + np.pi / 2  # in the vehicle frame
+    expected = np.array([0.5, 0.0]) + ranges[:, None] * np.column_stack([np.cos(angles), np.sin(angles)])
+    np.testing.assert_allclose(turned.ends_v, expected, atol=1e-12)
+    assert not np.allclose(turned.ends_v, plain.ends_v, atol=1e-3)
+    # an offset of zero is the model's geometry exactly
+    np.testing.assert_array_equal(projector.project(ranges, angle_offset_rad=0.0).ends_v, plain.ends_v)
+
+
 def test_projector_drops_ground_hits_of_a_tilted_lidar() -> None:
     # LiDAR 1 m up, pitched down 10 deg: a return at 3 m lands at z = 1 - 3 sin(10 deg) = 0.48 m (kept),
     # one at 8 m at z = -0.39 m (ground: dropped)
