@@ -147,6 +147,10 @@ def load_log(path: str | Path, format: str = "auto") -> DriveLog:
     return log
 
 
+# The formats whose writers keep each scan's own start angle (ScanStream.angle_offset_rad).
+PER_SCAN_GEOMETRY_FORMATS = ("carmen",)
+
+
 def write_log(log: DriveLog, format: str, out_dir: str | Path) -> Path:
     """Write ``log`` in ``format`` into ``out_dir`` (created); returns the log's path (file or folder).
 
@@ -159,6 +163,9 @@ def write_log(log: DriveLog, format: str, out_dir: str | Path) -> Path:
         stream = getattr(log, name)
         if stream is not None and not np.isfinite(np.asarray(stream.t_s, dtype=np.float64)).all():
             raise LogFormatError(f"cannot write a log whose {name} have non-finite timestamps", location=name)
+    if log.scans is not None and log.scans.angle_offset_rad is not None and format not in PER_SCAN_GEOMETRY_FORMATS:
+        raise LogFormatError(f"format {format!r} cannot store a start angle that changes from scan to scan; "
+                             f"formats that can: {', '.join(PER_SCAN_GEOMETRY_FORMATS)}", location="scans")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     return _module(format).write(log, out_dir)

@@ -106,7 +106,7 @@ def simulate(scenario: str | None = "office", seed: int = 0, rig: str = "robot",
     t_measured = sample_times(motion, scan_hz or the_rig.scan_hz, the_rig.t0_s, rng)
     scans = scan_stream(world, motion, t_measured, the_rig, rng)
     t_scan = np.round(t_measured + scan_lag_s, 6) if scan_lag_s else t_measured
-    scans = ScanStream(t_s=t_scan, ranges_m=scans.ranges_m)
+    scans = ScanStream(t_s=t_scan, ranges_m=scans.ranges_m, angle_offset_rad=scans.angle_offset_rad)
     encoders = gyro = odometry = None
     if the_rig.encoders_at_scan_times:  # read on each scan's line, at its stamp
         encoders = encoder_stream(motion, t_scan, the_rig, rng)

@@ -3,6 +3,7 @@ calibration that format declares (``vehicle``, ``lidar``) and the hidden errors 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,6 +66,16 @@ class Rig:
     stereo: StereoCalibration | None = None
     rgbd: RgbdCalibration | None = None
     camera_hz: float | None = None
+    # an interlaced LiDAR: scan k starts (k % interlace_phases) * interlace_step_rad later than the
+    # model's start angle (the logs carry each scan's start angle)
+    interlace_phases: int = 1
+    interlace_step_rad: float = 0.0
+
+    def scan_angle_offsets_rad(self, n_scans: int) -> np.ndarray | None:
+        """(n_scans,) each scan's start-angle offset [rad]; None for a LiDAR whose beams never move."""
+        if self.interlace_phases <= 1:
+            return None
+        return (np.arange(n_scans) % self.interlace_phases) * self.interlace_step_rad
 
 
 def _two_wheels(ticks: float, d_left: float, d_right: float, track: float, name: str) -> VehicleModel:
@@ -123,7 +134,15 @@ def _rigs() -> dict[str, Rig]:
     }
 
 
-RIGS: dict[str, Rig] = _rigs()
+def _with_interlaced(rigs: dict[str, Rig]) -> dict[str, Rig]:
+    """``rigs`` plus ``carmen-interlaced``: the CARMEN robot with an interlaced SICK (four start angles
+    0.25 deg apart, cycling), otherwise the same rig (same seed, same drive and noise)."""
+    rigs["carmen-interlaced"] = dataclasses.replace(rigs["carmen-robot"], name="carmen-interlaced",
+                                                    interlace_phases=4, interlace_step_rad=_deg(0.25))
+    return rigs
+
+
+RIGS: dict[str, Rig] = _with_interlaced(_rigs())
 # The rig whose sensors each log format can hold.
 FORMAT_RIGS = {"carmen": "carmen-robot", "breezyslam": "mines-rover", "thor": "thor", "ece276a-car": "car",
                "rosbag": "ros-robot", "drivelog": "robot"}

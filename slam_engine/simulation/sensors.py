@@ -90,15 +90,22 @@ def odometry_stream(motion: Motion, t_s: np.ndarray, rig: Rig, rng: np.random.Ge
 def scan_stream(world: World, motion: Motion, t_s: np.ndarray, rig: Rig, rng: np.random.Generator) -> ScanStream:
     """LiDAR ranges [m] (float32, inf = no return) cast in the world from the true poses at ``t_s``,
     the time of each scan's middle beam. A LiDAR model with a ``time_increment_s`` sweeps: each beam
-    is cast from the pose at its own time (the scans are skewed as a real scanner's are)."""
+    is cast from the pose at its own time (the scans are skewed as a real scanner's are). An interlaced
+    rig's scans each start at their own angle (:meth:`Rig.scan_angle_offsets_rad`, carried in the stream)."""
     lidar = rig.lidar
     T = lidar.T_vehicle_from_lidar
-    angles = lidar.beam_angles_rad
-    beams_vehicle = (T[:3, :3] @ np.vstack([np.cos(angles), np.sin(angles), np.zeros_like(angles)])).T
+    offsets = rig.scan_angle_offsets_rad(t_s.size)
+
+    def beams_at(offset_rad: float) -> np.ndarray:
+        angles = lidar.beam_angles_rad + offset_rad
+        return (T[:3, :3] @ np.vstack([np.cos(angles), np.sin(angles), np.zeros_like(angles)])).T
+
+    beams_fixed = beams_at(0.0)
     x, y, theta, _ = motion.at(t_s - rig.t0_s)
     ranges = np.empty((t_s.size, lidar.num_beams), dtype=np.float32)
     sweep = beam_time_offsets_s(lidar.num_beams, lidar.time_increment_s)
     for k in range(t_s.size):
+        beams_vehicle = beams_fixed if offsets is None else beams_at(float(offsets[k]))
         if sweep is not None:
             ranges[k] = _swept_scan(world, motion, t_s[k] - rig.t0_s + sweep, T, beams_vehicle, lidar.range_max_m)
             continue
@@ -109,7 +116,7 @@ def scan_stream(world: World, motion: Motion, t_s: np.ndarray, rig: Rig, rng: np
     noisy = ranges + rig.range_noise_m * rng.standard_normal(ranges.shape).astype(np.float32)
     noisy[rng.random(ranges.shape) < rig.dropout_probability] = np.inf
     noisy[(noisy < lidar.range_min_m) | (noisy > lidar.range_max_m)] = np.inf
-    return ScanStream(t_s=t_s, ranges_m=noisy)
+    return ScanStream(t_s=t_s, ranges_m=noisy, angle_offset_rad=offsets)
 
 
 def _swept_scan(world: World, motion: Motion, beam_t_s: np.ndarray, T: np.ndarray, beams_vehicle: np.ndarray,
