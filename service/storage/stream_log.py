@@ -128,7 +128,10 @@ def engine_message(m: dict[str, Any], lidar: LidarModel | None, location: str) -
 
 
 def messages_of_log(log: DriveLog) -> list[dict[str, Any]]:
-    """A DriveLog's messages as stream JSON dicts (time-ordered): what a streaming client sends."""
+    """A DriveLog's messages as stream JSON dicts (time-ordered): what a streaming client sends.
+    ValueError for a log whose scans each have their own start angle (chunks cannot carry it yet)."""
+    if log.scans is not None and log.scans.angle_offset_rad is not None:
+        raise ValueError("streamed chunks cannot carry a start angle that changes from scan to scan")
     out: list[dict[str, Any]] = []
     for m in log.messages():
         if isinstance(m, ScanMessage):
