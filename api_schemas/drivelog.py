@@ -13,7 +13,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 FORMAT_NAME = "lidarmap-drivelog"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2 added the optional scans column angle_offset_rad
 MEMBER_PATTERN = r"^[a-z_]+/[a-z_]+\.npy$"
 STREAM_COLUMNS = {
     "scans": ("t_s", "ranges_m"),
@@ -21,6 +21,9 @@ STREAM_COLUMNS = {
     "gyro": ("t_s", "yaw_rate_rad_s"),
     "odometry": ("t_s", "poses"),
 }
+
+# optional columns: kind -> {column: first format version with it}
+OPTIONAL_STREAM_COLUMNS = {"scans": {"angle_offset_rad": 2}}
 
 Matrix4 = Annotated[list[Annotated[list[float], Field(strict=True, min_length=4, max_length=4)]],
                     Field(min_length=4, max_length=4, description="4x4 rigid transform, row-major, metres")]
@@ -92,8 +95,10 @@ class StreamSpec(BaseModel):
 
     @model_validator(mode="after")
     def _columns_match_kind(self) -> StreamSpec:
-        if set(self.columns) != set(STREAM_COLUMNS[self.kind]):
-            raise ValueError(f"columns must be exactly {sorted(STREAM_COLUMNS[self.kind])}")
+        required, optional = set(STREAM_COLUMNS[self.kind]), set(OPTIONAL_STREAM_COLUMNS.get(self.kind, {}))
+        if not required <= set(self.columns) <= required | optional:
+            raise ValueError(f"columns must be exactly {sorted(required)}"
+                             + (f", optionally with {sorted(optional)}" if optional else ""))
         return self
 
 
@@ -122,6 +127,10 @@ class DriveLogManifest(BaseModel):
             raise ValueError("each stream kind may appear once")
         if "scans" in kinds and self.lidar is None:
             raise ValueError("a scans stream needs a lidar model")
+        for stream in self.streams:
+            for column, since in OPTIONAL_STREAM_COLUMNS.get(stream.kind, {}).items():
+                if column in stream.columns and self.format_version < since:
+                    raise ValueError(f"{stream.kind} column {column} needs format_version {since}")
         return self
 
 

@@ -34,7 +34,7 @@ from slam_engine.model.drive_log import (
 )
 
 FORMAT_NAME = "lidarmap-drivelog"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2 added the optional scans column angle_offset_rad; files without it are written as 1
 MANIFEST = "manifest.json"
 MAX_ENTRIES = 64
 MAX_MANIFEST_BYTES = 1 << 20
@@ -45,6 +45,10 @@ STREAM_COLUMNS: dict[str, dict[str, tuple[str, tuple[int, ...] | None]]] = {
     "encoders": {"t_s": ("f", ()), "ticks": ("i", None)},
     "gyro": {"t_s": ("f", ()), "yaw_rate_rad_s": ("f", ())},
     "odometry": {"t_s": ("f", ()), "poses": ("f", (3,))},
+}
+# optional columns: stream kind -> {column: (dtype kind, trailing shape, first format version with it)}
+OPTIONAL_COLUMNS: dict[str, dict[str, tuple[str, tuple[int, ...], int]]] = {
+    "scans": {"angle_offset_rad": ("f", (), 2)},  # each scan's start angle beyond the lidar's [rad]
 }
 _MEMBER = re.compile(r"^[a-z_]+/[a-z_]+\.npy$")
 
@@ -161,8 +165,11 @@ def validate_manifest(manifest: Any) -> tuple[VehicleModel, LidarModel | None, l
         _require(isinstance(count, int) and not isinstance(count, bool) and count >= 0,
                  "must be a non-negative integer", f"{where}.count")
         columns = stream.get("columns")
-        _require(isinstance(columns, dict) and set(columns) == set(STREAM_COLUMNS[kind]),
-                 f"columns must be exactly {sorted(STREAM_COLUMNS[kind])}", f"{where}.columns")
+        optional = {c for c, spec in OPTIONAL_COLUMNS.get(kind, {}).items() if spec[2] <= version}
+        _require(isinstance(columns, dict) and set(STREAM_COLUMNS[kind]) <= set(columns)
+                 and set(columns) <= set(STREAM_COLUMNS[kind]) | optional,
+                 f"columns must be exactly {sorted(STREAM_COLUMNS[kind])}"
+                 + (f", optionally with {sorted(optional)}" if optional else ""), f"{where}.columns")
         for column, member in columns.items():
             _require(isinstance(member, str) and bool(_MEMBER.match(member)),
                      "member must be '<stream>/<column>.npy' (lower-case letters and _)", f"{where}.columns.{column}")
@@ -258,7 +265,9 @@ def _built(built: dict[str, ScanStream | EncoderStream | GyroStream | OdometrySt
 def _stream(kind: str, columns: dict[str, np.ndarray], count: int, lidar: LidarModel | None,
             vehicle: VehicleModel, path: Path,
             warnings: list[str]) -> ScanStream | EncoderStream | GyroStream | OdometryStream:
-    for column, (dtype_kind, trailing) in STREAM_COLUMNS[kind].items():
+    specs = {**STREAM_COLUMNS[kind],
+             **{c: spec[:2] for c, spec in OPTIONAL_COLUMNS.get(kind, {}).items() if c in columns}}
+    for column, (dtype_kind, trailing) in specs.items():
         array = columns[column]
         where = f"{kind}/{column}.npy"
         if array.dtype.kind != dtype_kind:
@@ -281,7 +290,15 @@ def _stream(kind: str, columns: dict[str, np.ndarray], count: int, lidar: LidarM
             raise LogFormatError(f"shape {ranges.shape}, expected ({count}, {lidar.num_beams}) beams",
                                  path=str(path), location="scans/ranges_m.npy")
         clean = clean_ranges(ranges, path, "scans", zero_is_no_return=False, location_of=label)
-        return ScanStream(t_s=t[order], ranges_m=clean[order])
+        offsets = columns.get("angle_offset_rad")
+        if offsets is not None:
+            offsets = offsets.astype(np.float64)
+            bad = np.flatnonzero(~(np.abs(offsets) <= 2 * np.pi))
+            if bad.size:
+                raise LogFormatError(f"angle offset {offsets[bad[0]]:g} rad is not within +-2 pi", path=str(path),
+                                     location=f"scans/angle_offset_rad.npy row {int(bad[0])}")
+            offsets = offsets[order] if np.any(offsets != 0.0) else None
+        return ScanStream(t_s=t[order], ranges_m=clean[order], angle_offset_rad=offsets)
     if kind == "encoders":
         ticks = columns["ticks"]
         wheels = len(vehicle.wheel_names)
@@ -333,7 +350,8 @@ def manifest_for(log: DriveLog, columns: dict[str, dict[str, str]]) -> dict:
     omitted = [name for name in counts if name not in STREAM_COLUMNS]
     return {
         "format": FORMAT_NAME,
-        "format_version": FORMAT_VERSION,
+        "format_version": FORMAT_VERSION if any(
+            c in OPTIONAL_COLUMNS.get(kind, {}) for kind, cols in columns.items() for c in cols) else 1,
         "vehicle": vehicle_to_json(log.vehicle),
         "lidar": lidar_to_json(log.lidar),
         "streams": [{"kind": kind, "count": counts[kind], "columns": cols} for kind, cols in columns.items()],
@@ -348,6 +366,8 @@ def write(log: DriveLog, out_dir: Path, name: str = "log") -> Path:
     arrays: dict[str, dict[str, np.ndarray]] = {}
     if log.scans is not None:
         arrays["scans"] = {"t_s": log.scans.t_s, "ranges_m": np.asarray(log.scans.ranges_m, dtype=np.float32)}
+        if log.scans.angle_offset_rad is not None:
+            arrays["scans"]["angle_offset_rad"] = np.asarray(log.scans.angle_offset_rad, dtype=np.float64)
     if log.encoders is not None:
         arrays["encoders"] = {"t_s": log.encoders.t_s, "ticks": np.asarray(log.encoders.ticks, dtype=np.int64)}
     if log.gyro is not None:

@@ -145,3 +145,36 @@ def test_message_chunk_schema_round_trips_engine_messages(log) -> None:
     schemas = json_schemas()
     assert schemas["DriveLogManifest"]["properties"]["format"]["const"] == drivelog.FORMAT_NAME
     assert set(schemas["DriveLogChunk"]["$defs"]) >= {"ScanMessageModel", "EncoderMessageModel"}
+
+
+def test_per_scan_start_angles_round_trip_as_format_version_2(log, tmp_path) -> None:
+    interlaced = simulate("office", seed=0, rig="carmen-interlaced", max_duration_s=5.0, cameras=False).log
+    path = write_log(interlaced, "drivelog", tmp_path / "interlaced")
+    manifest = manifest_of(path)
+    assert manifest["format_version"] == 2
+    assert manifest["streams"][0]["columns"]["angle_offset_rad"] == "scans/angle_offset_rad.npy"
+    DriveLogManifest.model_validate(manifest)
+    loaded = load_log(path)
+    np.testing.assert_array_equal(loaded.scans.angle_offset_rad, interlaced.scans.angle_offset_rad)
+    np.testing.assert_array_equal(loaded.scans.ranges_m, interlaced.scans.ranges_m)
+    # a log whose beams never move is written as before: version 1, which older readers take
+    assert manifest_of(write_log(log, "drivelog", tmp_path / "plain"))["format_version"] == 1
+    # the column claimed by a version-1 manifest is refused by both readers
+    manifest["format_version"] = 1
+    with pytest.raises(ValidationError, match="needs format_version 2"):
+        DriveLogManifest.model_validate(manifest)
+    with pytest.raises(LogFormatError, match=r"manifest.json streams\[0\].columns"):
+        load_log(rewrite(path, tmp_path / "v1.drivelog", manifest=manifest))
+
+
+def test_an_absurd_angle_offset_names_its_row(tmp_path) -> None:
+    interlaced = simulate("office", seed=0, rig="carmen-interlaced", max_duration_s=5.0, cameras=False).log
+    path = write_log(interlaced, "drivelog", tmp_path / "interlaced")
+    offsets = np.asarray(interlaced.scans.angle_offset_rad).copy()
+    offsets[3] = 40.0
+    data = io.BytesIO()
+    np.save(data, offsets)
+    bad = rewrite(path, tmp_path / "bad.drivelog", drop=("scans/angle_offset_rad.npy",),
+                  extra=[("scans/angle_offset_rad.npy", data.getvalue(), 0)])
+    with pytest.raises(LogFormatError, match="angle_offset_rad.npy row 3: angle offset 40 rad is not within"):
+        load_log(bad)
