@@ -8,9 +8,17 @@ a test keeps the two in agreement. The service's streamed upload chunks carry th
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 FORMAT_NAME = "lidarmap-drivelog"
 FORMAT_VERSION = 2  # 2 added the optional scans column angle_offset_rad
@@ -162,6 +170,18 @@ class ScanMessageModel(BaseModel):
     t_s: float = Field(strict=True, allow_inf_nan=False)
     ranges_m: list[Annotated[float, Field(strict=True, ge=0, allow_inf_nan=False)] | None] = Field(strict=True,
         min_length=1, max_length=100_000, description="metres in beam order; null = no return")
+    angle_offset_rad: float | None = Field(
+        default=None, strict=True, ge=-2 * math.pi, le=2 * math.pi, allow_inf_nan=False,
+        description="this scan's start angle beyond the lidar's angle_min_rad [rad] (a laser whose start "
+                    "angle changes from scan to scan, e.g. an interlaced SICK); absent = the lidar's")
+
+    @model_serializer(mode="wrap")
+    def _without_absent_offset(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        """An absent offset is left out, so a scan without one serialises as it always did."""
+        out = handler(self)
+        if out.get("angle_offset_rad", 0) is None:
+            del out["angle_offset_rad"]
+        return out
 
 
 DriveLogMessage = Annotated[EncoderMessageModel | GyroMessageModel | OdometryMessageModel | ScanMessageModel,

@@ -60,12 +60,14 @@ def drive_log_from_messages(calibration: dict[str, Any], messages: Iterable[dict
     when one does not fit the calibration (wrong beam count, wrong wheel count)."""
     lidar = lidar_from_calibration(calibration.get("lidar"))
     vehicle = vehicle_from_calibration(calibration["vehicle"])
-    cols: dict[str, list] = {k: [] for k in ("scan_t", "scan_r", "enc_t", "enc", "gyro_t", "gyro", "odo_t", "odo")}
+    cols: dict[str, list] = {k: [] for k in ("scan_t", "scan_r", "scan_a", "enc_t", "enc", "gyro_t", "gyro", "odo_t",
+                                             "odo")}
     for i, m in enumerate(messages):
         kind = check_message(m, lidar, f"message {i}")
         if kind == "scan":
             cols["scan_t"].append(m["t_s"])
             cols["scan_r"].append([np.inf if r is None else r for r in m["ranges_m"]])
+            cols["scan_a"].append(_angle_offset(m))
         elif kind == "encoder":
             cols["enc_t"].append(m["t_s"])
             cols["enc"].append(m["ticks"])
@@ -81,14 +83,22 @@ def drive_log_from_messages(calibration: dict[str, Any], messages: Iterable[dict
     def times(key: str) -> np.ndarray:
         return np.asarray(cols[key], dtype=np.float64)
 
+    offsets = times("scan_a") if any(a != 0.0 for a in cols["scan_a"]) else None
     return DriveLog(
         vehicle=vehicle, lidar=lidar,
-        scans=ScanStream(times("scan_t"), np.asarray(cols["scan_r"], dtype=np.float32)) if cols["scan_t"] else None,
+        scans=ScanStream(times("scan_t"), np.asarray(cols["scan_r"], dtype=np.float32), offsets)
+        if cols["scan_t"] else None,
         encoders=EncoderStream(times("enc_t"), np.asarray(cols["enc"], dtype=np.int64)) if cols["enc"] else None,
         gyro=GyroStream(times("gyro_t"), np.asarray(cols["gyro"], dtype=np.float64)) if cols["gyro"] else None,
         odometry=OdometryStream(times("odo_t"), np.asarray(cols["odo"], dtype=np.float64)) if cols["odo"] else None,
         source_format=source,
     )
+
+
+def _angle_offset(m: dict[str, Any]) -> float:
+    """A scan message's start angle beyond the lidar's [rad] (0 when it has none)."""
+    offset = m.get("angle_offset_rad")
+    return 0.0 if offset is None else float(np.float64(offset))
 
 
 def check_message(m: dict[str, Any], lidar: LidarModel | None, location: str) -> str:
@@ -118,7 +128,7 @@ def engine_message(m: dict[str, Any], lidar: LidarModel | None, location: str) -
     t_s = float(np.float64(m["t_s"]))
     if kind == "scan":
         return ScanMessage(t_s=t_s, ranges_m=np.asarray([np.inf if r is None else r for r in m["ranges_m"]],
-                                                        dtype=np.float32))
+                                                        dtype=np.float32), angle_offset_rad=_angle_offset(m))
     if kind == "encoder":
         return EncoderMessage(t_s=t_s, ticks=np.asarray(m["ticks"], dtype=np.int64))
     if kind == "gyro":
@@ -128,15 +138,15 @@ def engine_message(m: dict[str, Any], lidar: LidarModel | None, location: str) -
 
 
 def messages_of_log(log: DriveLog) -> list[dict[str, Any]]:
-    """A DriveLog's messages as stream JSON dicts (time-ordered): what a streaming client sends.
-    ValueError for a log whose scans each have their own start angle (chunks cannot carry it yet)."""
-    if log.scans is not None and log.scans.angle_offset_rad is not None:
-        raise ValueError("streamed chunks cannot carry a start angle that changes from scan to scan")
+    """A DriveLog's messages as stream JSON dicts (time-ordered): what a streaming client sends (a scan's
+    ``angle_offset_rad`` only where the log's scans carry their own start angles)."""
+    per_scan = log.scans is not None and log.scans.angle_offset_rad is not None
     out: list[dict[str, Any]] = []
     for m in log.messages():
         if isinstance(m, ScanMessage):
             ranges = [None if not np.isfinite(r) else float(r) for r in np.asarray(m.ranges_m)]
-            out.append({"type": "scan", "t_s": m.t_s, "ranges_m": ranges})
+            out.append({"type": "scan", "t_s": m.t_s, "ranges_m": ranges,
+                        **({"angle_offset_rad": m.angle_offset_rad} if per_scan else {})})
         elif isinstance(m, EncoderMessage):
             out.append({"type": "encoder", "t_s": m.t_s, "ticks": [int(t) for t in m.ticks]})
         elif isinstance(m, GyroMessage):

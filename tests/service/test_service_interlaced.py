@@ -1,12 +1,14 @@
 """An interlaced laser's CARMEN log uploaded and mapped through HTTP: accepted (not refused for its
-changing start angle) and mapped as well as the same simulated drive without interlacing."""
+changing start angle) and mapped as well as the same simulated drive without interlacing; streamed
+as chunks whose scans carry their start angle, the same map as the upload."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from service_helpers import new_session, service_client, wait_for
+from service_helpers import assert_error, new_session, service_client, wait_for
 
+from service.storage.stream_log import calibration_from_log, drive_log_from_messages, messages_of_log
 from slam_engine.evaluation.metrics import absolute_trajectory_error
 from slam_engine.model.result import Trajectory
 from slam_engine.simulation import simulate, write_simulated
@@ -44,3 +46,40 @@ def test_uploaded_interlaced_log_maps_as_well_as_without_interlacing(tmp_path) -
     print(f"ATE interlaced {errors['carmen-interlaced']:.4f} m, not interlaced {errors['carmen-robot']:.4f} m")
     assert errors["carmen-robot"] < 0.03
     assert errors["carmen-interlaced"] <= errors["carmen-robot"] + MARGIN_M
+
+
+def test_streamed_interlaced_chunks_give_the_same_map_as_the_upload(tmp_path) -> None:
+    from slam_engine.formats import load_log
+
+    drive = simulate("office", seed=0, rig="carmen-interlaced", max_duration_s=20.0, cameras=False)
+    log_path = write_simulated(drive, "carmen", tmp_path / "sim")
+    loaded = load_log(log_path)
+    messages = messages_of_log(loaded)
+    scans = [m for m in messages if m["type"] == "scan"]
+    assert np.degrees(sorted({round(m["angle_offset_rad"], 9) for m in scans})) == pytest.approx([0, 0.25, 0.5, 0.75])
+    chunks = [messages[i:i + 150] for i in range(0, len(messages), 150)]
+    params = {"particles": 5, "seed": 7, "resolution_m": 0.1, "snapshot_every_scans": 0}
+    with service_client(tmp_path / "data", workers=2) as client:
+        whole = new_session(client, name="whole")
+        with open(log_path, "rb") as f:
+            assert client.post(f"/v1/sessions/{whole}/logs", files={"file": (log_path.name, f)}).status_code == 201
+        streamed = new_session(client, name="streamed", calibration=calibration_from_log(loaded))
+        url = f"/v1/sessions/{streamed}/chunks"
+        bad = {**scans[0], "angle_offset_rad": 7.0}  # beyond +-2 pi
+        assert_error(client.post(url, json={"seq": 0, "messages": [bad]}), 422)
+        for seq, chunk in enumerate(chunks):
+            response = client.post(url, json={"seq": seq, "messages": chunk})
+            assert response.status_code == 201, response.text
+        job_whole = client.post(f"/v1/sessions/{whole}/jobs", json=params).json()
+        job_stream = client.post(f"/v1/sessions/{streamed}/jobs", json=params).json()
+        a, b = wait_for(client, job_whole["id"], timeout_s=600), wait_for(client, job_stream["id"], timeout_s=600)
+        assert a["status"] == b["status"] == "succeeded", (a, b)
+        ta = client.get(f"/v1/jobs/{a['id']}/trajectory").json()["poses"]
+        tb = client.get(f"/v1/jobs/{b['id']}/trajectory").json()["poses"]
+        assert ta == tb and len(ta) == len(drive.ground_truth)
+    # the same chunks with the start angles dropped map differently: the offsets reached the engine
+    plain = [[{k: v for k, v in m.items() if k != "angle_offset_rad"} for m in chunk] for chunk in chunks]
+    dropped = drive_log_from_messages(calibration_from_log(loaded), [m for chunk in plain for m in chunk])
+    kept = drive_log_from_messages(calibration_from_log(loaded), messages)
+    assert dropped.scans.angle_offset_rad is None
+    np.testing.assert_array_equal(kept.scans.angle_offset_rad, loaded.scans.angle_offset_rad)
