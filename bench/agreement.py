@@ -26,7 +26,8 @@ AGREEMENT_WINDOW_M = 0.5
 
 def scan_endpoints_world(log: DriveLog, trajectory: Trajectory, max_range_m: float) -> np.ndarray:
     """(N_scans, N_beams, 2) map-frame endpoints [m] of every scan placed at the trajectory pose
-    nearest in time; NaN for no-return beams and beams beyond ``max_range_m``."""
+    nearest in time, each scan's beams at its own angles; NaN for no-return beams and beams beyond
+    ``max_range_m``."""
     lidar, scans = log.lidar, log.scans
     if lidar is None or scans is None:
         raise ValueError("the log has no LiDAR scans")
@@ -34,6 +35,8 @@ def scan_endpoints_world(log: DriveLog, trajectory: Trajectory, max_range_m: flo
     valid = np.isfinite(ranges) & (ranges >= lidar.range_min_m) & (ranges <= min(lidar.range_max_m, max_range_m))
     ranges = np.where(valid, ranges, 0.0)  # no-return beams become NaN below, without inf * 0 warnings
     angles = lidar.beam_angles_rad
+    if scans.angle_offset_rad is not None:  # each scan's own start angle (interlaced lasers)
+        angles = angles[None, :] + np.asarray(scans.angle_offset_rad, dtype=np.float64)[:, None]
     T = np.asarray(lidar.T_vehicle_from_lidar, dtype=np.float64)
     # Beam endpoints in the vehicle frame (the 2-D part of T_vehicle_from_lidar).
     x_lidar, y_lidar = ranges * np.cos(angles), ranges * np.sin(angles)

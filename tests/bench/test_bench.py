@@ -309,3 +309,27 @@ def test_simulated_car_is_written_as_its_format_with_ground_truth(tmp_path):
     truth = read_ground_truth(case.ground_truth_path)
     assert len(truth) == len(log.scans) == 703
     assert len(read_relations(case.relations_path)) > len(log.scans)  # consecutive scans and loop closures
+
+
+def test_scan_end_points_use_each_scans_own_start_angle() -> None:
+    import dataclasses
+
+    from bench.agreement import scan_endpoints_world
+    from slam_engine.simulation import simulate
+
+    drive = simulate("office", seed=0, rig="carmen-interlaced", max_duration_s=5.0, cameras=False)
+    segments = drive.world.segments
+
+    def median_wall_distance_m(log: DriveLog) -> float:
+        points = scan_endpoints_world(log, drive.ground_truth, 30.0).reshape(-1, 2)
+        points = points[np.isfinite(points).all(axis=1)]
+        p, e = segments[:, :2], segments[:, 2:] - segments[:, :2]
+        u = np.clip(((points[:, None, :] - p[None]) * e[None]).sum(-1) / (e * e).sum(-1)[None], 0.0, 1.0)
+        return float(np.median(np.min(np.linalg.norm(points[:, None, :] - p[None] - u[..., None] * e[None],
+                                                     axis=-1), axis=1)))
+
+    turned = median_wall_distance_m(drive.log)
+    unturned = median_wall_distance_m(dataclasses.replace(
+        drive.log, scans=dataclasses.replace(drive.log.scans, angle_offset_rad=None)))
+    print(f"median end point to wall: {turned:.4f} m with each scan's start angle, {unturned:.4f} m without")
+    assert turned < 0.008 < unturned
