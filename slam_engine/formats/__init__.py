@@ -148,7 +148,7 @@ def load_log(path: str | Path, format: str = "auto") -> DriveLog:
 
 
 # The formats whose writers keep each scan's own start angle (ScanStream.angle_offset_rad).
-PER_SCAN_GEOMETRY_FORMATS = ("carmen", "drivelog")
+PER_SCAN_GEOMETRY_FORMATS = ("carmen", "drivelog", "rosbag")
 
 
 def write_log(log: DriveLog, format: str, out_dir: str | Path) -> Path:

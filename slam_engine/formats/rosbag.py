@@ -107,6 +107,7 @@ def load(path: Path) -> DriveLog:
                 raise LogFormatError("bag has no LaserScan, Odometry, Imu or tf_static messages", path=str(path))
             scans_t: list[float] = []
             ranges: list[np.ndarray] = []
+            starts: list[float] = []  # each scan's angle_min [rad]
             first_scan: Any = None  # a deserialized sensor_msgs/LaserScan
             scan_frame: str | None = None
             odom_t: list[float] = []
@@ -127,11 +128,15 @@ def load(path: Path) -> DriveLog:
                 if conn.msgtype == SCAN:
                     first_scan = first_scan or msg
                     scan_frame = scan_frame or msg.header.frame_id
-                    if len(msg.ranges) != len(first_scan.ranges):
-                        raise LogFormatError(f"scan has {len(msg.ranges)} beams, the first had "
-                                             f"{len(first_scan.ranges)}", path=str(path), location=where)
+                    if abs(float(msg.angle_increment) - float(first_scan.angle_increment)) > 1e-9:
+                        raise LogFormatError(f"scan angle_increment {msg.angle_increment:g} rad, the first had "
+                                             f"{first_scan.angle_increment:g} rad", path=str(path), location=where)
+                    if not abs(float(msg.angle_min)) <= 2 * np.pi or len(msg.ranges) == 0:
+                        raise LogFormatError(f"scan angle_min {msg.angle_min:g} rad with {len(msg.ranges)} beams: "
+                                             "not a real scan", path=str(path), location=where)
                     scans_t.append(_stamp(msg.header, bag_ns))
                     ranges.append(np.asarray(msg.ranges, dtype=np.float32))
+                    starts.append(float(msg.angle_min))
                 elif conn.msgtype == ODOMETRY:
                     base_frame = base_frame or msg.child_frame_id
                     q = msg.pose.pose.orientation
@@ -165,15 +170,25 @@ def load(path: Path) -> DriveLog:
         if T_base_from_lidar is None:
             warnings.append(f"{path}: no tf_static from {scan_frame!r} to {base!r}; LiDAR assumed at the base origin")
             T_base_from_lidar = np.eye(4)
-        lidar = LidarModel(num_beams=len(first_scan.ranges), angle_min_rad=float(first_scan.angle_min),
+        beams = max(len(r) for r in ranges)  # a scan with fewer beams is padded with no-return
+        lidar = LidarModel(num_beams=beams, angle_min_rad=float(first_scan.angle_min),
                            angle_increment_rad=float(first_scan.angle_increment),
                            range_min_m=float(first_scan.range_min), range_max_m=float(first_scan.range_max),
                            T_vehicle_from_lidar=T_base_from_lidar, name=f"ROS {scan_topic}",
                            time_increment_s=float(first_scan.time_increment) or None)
-        values = np.array(ranges, dtype=np.float32)
+        values = np.full((len(ranges), beams), np.inf, dtype=np.float32)
+        for k, r in enumerate(ranges):
+            values[k, :r.size] = r
+        offsets = np.array(starts) - lidar.angle_min_rad
+        changing = bool(np.any(offsets != 0.0))
+        if changing or any(r.size != beams for r in ranges):
+            warnings.append(f"{path}: {scan_topic}: beam geometry changes from scan to scan "
+                            f"({len(np.unique(offsets))} start angles, {min(r.size for r in ranges)}-{beams} beams); "
+                            "carried per scan")
         values[~np.isfinite(values) | (values < lidar.range_min_m) | (values > lidar.range_max_m)] = np.inf
         order = time_order(np.array(scans_t), path, scan_topic, warnings, lambda i: f"{scan_topic} message {i}")
-        scans = ScanStream(t_s=np.array(scans_t)[order], ranges_m=values[order])
+        scans = ScanStream(t_s=np.array(scans_t)[order], ranges_m=values[order],
+                           angle_offset_rad=offsets[order] if changing else None)
     odometry = None
     if odom_t:
         order = time_order(np.array(odom_t), path, odom_topic, warnings, lambda i: f"{odom_topic} message {i}")
@@ -258,9 +273,11 @@ def write(log: DriveLog, out_dir: Path, name: str = "log") -> Path:
             transform=types["geometry_msgs/msg/Transform"](translation=vector(x=T[0, 3], y=T[1, 3], z=T[2, 3]),
                                                             rotation=quaternion(*_rotation_quaternion(T[:3, :3]))))
         records.append((int(round(log.scans.t_s[0] * 1e9)), "/tf_static", types[TF](transforms=[tf])))
-        for t, r in zip(log.scans.t_s, log.scans.ranges_m, strict=True):
-            msg = types[SCAN](header=header(float(t), "laser"), angle_min=lidar.angle_min_rad,
-                              angle_max=float(lidar.beam_angles_rad[-1]), angle_increment=lidar.angle_increment_rad,
+        offsets = np.zeros(len(log.scans)) if log.scans.angle_offset_rad is None else log.scans.angle_offset_rad
+        for t, r, offset in zip(log.scans.t_s, log.scans.ranges_m, offsets, strict=True):
+            msg = types[SCAN](header=header(float(t), "laser"), angle_min=lidar.angle_min_rad + float(offset),
+                              angle_max=float(lidar.beam_angles_rad[-1] + offset),
+                              angle_increment=lidar.angle_increment_rad,
                               time_increment=float(lidar.time_increment_s or 0.0), scan_time=0.0,
                               range_min=lidar.range_min_m,
                               range_max=lidar.range_max_m, ranges=np.asarray(r, dtype=np.float32),

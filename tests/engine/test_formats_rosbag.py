@@ -57,3 +57,36 @@ def test_bags_without_useful_topics_and_non_bags(tmp_path) -> None:
     other.write_bytes(b"\x00\x01\x02")
     with pytest.raises(UnknownFormatError):
         load_log(other)
+
+
+def _scan_bag(folder, scans: list[tuple[float, float, int]]):
+    """A bag of LaserScans given as (angle_min, angle_increment, beams), 2 m ranges, 0.1 s apart."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    kind = "sensor_msgs/msg/LaserScan"
+    with Writer(folder, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/scan", kind, typestore=store)
+        for k, (start, increment, beams) in enumerate(scans):
+            t_ns = 1_000_000_000 + k * 100_000_000
+            header = store.types["std_msgs/msg/Header"](
+                stamp=store.types["builtin_interfaces/msg/Time"](sec=1, nanosec=k * 100_000_000), frame_id="laser")
+            msg = store.types[kind](header=header, angle_min=start, angle_max=start + increment * (beams - 1),
+                                    angle_increment=increment, time_increment=0.0, scan_time=0.0, range_min=0.1,
+                                    range_max=30.0, ranges=np.full(beams, 2.0, dtype=np.float32),
+                                    intensities=np.zeros(0, dtype=np.float32))
+            writer.write(conn, t_ns, store.serialize_cdr(msg, kind))
+    return folder
+
+
+def test_laser_scans_keep_their_own_start_angle_and_beam_count(tmp_path) -> None:
+    step = np.radians(0.25)
+    one = np.radians(1.0)
+    log = load_log(_scan_bag(tmp_path / "interlaced", [(-np.pi / 2 + (k % 4) * step, one, 181 - (k % 4 == 3))
+                                                        for k in range(8)]))
+    assert log.lidar.num_beams == 181
+    np.testing.assert_allclose(log.scans.angle_offset_rad, [0, step, 2 * step, 3 * step] * 2, atol=1e-6)
+    assert np.isinf(log.scans.ranges_m[3, 180]) and (log.scans.ranges_m[3, :180] == 2.0).all()
+    with pytest.raises(LogFormatError, match="message at 1100000000 ns: scan angle_increment"):
+        load_log(_scan_bag(tmp_path / "bad", [(-np.pi / 2, one, 181), (-np.pi / 2, one / 2, 361)]))

@@ -166,7 +166,11 @@ def test_interlaced_rig_is_the_same_drive_with_each_scan_at_its_own_start_angle(
         hit = np.isfinite(ranges)
         ends = origin + ranges[hit, None] * np.column_stack([np.cos(theta + angles[hit]), np.sin(theta + angles[hit])])
         assert np.median(point_to_segments_m(ends, walls)) < 0.008  # measured 0.004-0.005 (0.011-0.018 unturned)
-    # only CARMEN stores a start angle per scan: other formats refuse rather than lose it
+    # CARMEN, drivelog and ROS bags store a start angle per scan: the other formats refuse rather than lose it
     from slam_engine.errors import LogFormatError
     with pytest.raises(LogFormatError, match="cannot store a start angle that changes"):
-        write_simulated(interlaced, "rosbag", tmp_path / "bag")
+        write_simulated(interlaced, "breezyslam", tmp_path / "dat")
+    bag = load_log(write_simulated(interlaced, "rosbag", tmp_path / "bag"))
+    np.testing.assert_allclose(bag.scans.angle_offset_rad, offsets, atol=1e-6)  # float32 angle_min in the bag
+    np.testing.assert_array_equal(bag.scans.ranges_m, interlaced.log.scans.ranges_m)
+    assert any("carried per scan" in w for w in bag.warnings)
