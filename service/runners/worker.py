@@ -137,7 +137,7 @@ def run_job_function(function: JobFunction, ctx: JobContext, memory_limit_mb: in
     except SlamEngineError as exc:
         return JobStatus.FAILED, public(f"{type(exc).__name__}: {exc}")
     except Exception as exc:  # the job's bug must not kill the worker
-        if is_disk_full(getattr(exc, "orig", None) or exc, free_bytes=shutil.disk_usage(ctx.data.root).free):
+        if is_disk_full(exc, free_bytes=ctx.data.free_bytes()):  # the store raises its driver's errors
             logger.error("job %s: the disk is full: %s", ctx.job_id, exc)
             return JobStatus.FAILED, DISK_FULL_REASON
         logger.error("job %s crashed:\n%s", ctx.job_id, traceback.format_exc())

@@ -3,10 +3,9 @@
 
 from __future__ import annotations
 
-import errno
 from pathlib import Path
 
-from service.http_errors import InsufficientStorage
+from service.http_errors import InsufficientStorage, is_disk_full
 from service.storage.data_dir import DataDir
 
 CHECK_EVERY_BYTES = 8 * 1024**2  # while an upload streams in, free space is checked this often
@@ -28,7 +27,7 @@ def free_bytes_at(path: Path) -> int:
 
 def disk_full_error(exc: OSError, what: str) -> InsufficientStorage | None:
     """The 507 for an ENOSPC/EDQUOT ``exc`` while writing ``what``; None for other OS errors."""
-    if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+    if not is_disk_full(exc):
         return None
     return InsufficientStorage(f"the server's disk is full while writing {what}; nothing was stored, retry later",
                                {"errno": exc.errno})

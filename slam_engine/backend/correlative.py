@@ -44,6 +44,17 @@ def max_pyramid(values: np.ndarray, n_levels: int) -> np.ndarray:
     return out
 
 
+def mask_at(mask: np.ndarray, origin_m: np.ndarray, resolution_m: float, xy_m: np.ndarray) -> np.ndarray:
+    """(N,) bool: ``mask`` (H, W, row = y; cell (0, 0)'s lower corner at ``origin_m``, cells of
+    ``resolution_m``) at each point ``xy_m`` (N, 2) [m]; False off the mask."""
+    ij = np.floor((np.asarray(xy_m, np.float64) - origin_m) / resolution_m).astype(np.int64)
+    h, w = mask.shape
+    inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+    out = np.zeros(len(ij), bool)
+    out[inside] = mask[ij[inside, 1], ij[inside, 0]]
+    return out
+
+
 @dataclass
 class MatchGrid:
     """A map to match against: ``values`` (H, W) uint8 (row = y), cell (0, 0)'s lower corner at
@@ -59,14 +70,8 @@ class MatchGrid:
     def observed_at(self, xy_m: np.ndarray) -> np.ndarray:
         """(N,) bool: whether each point ``xy_m`` (N, 2) [m, grid frame] lies in a cell the map saw
         (everywhere on the grid when ``observed`` is None; nowhere off it)."""
-        ij = np.floor((np.asarray(xy_m, np.float64) - self.origin_m) / self.resolution_m).astype(np.int64)
-        h, w = self.values.shape
-        inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
-        if self.observed is None:
-            return inside
-        out = np.zeros(len(ij), bool)
-        out[inside] = self.observed[ij[inside, 1], ij[inside, 0]]
-        return out
+        mask = np.ones(self.values.shape, bool) if self.observed is None else self.observed
+        return mask_at(mask, self.origin_m, self.resolution_m, xy_m)
 
     @classmethod
     def from_values(cls, values: np.ndarray, origin_m: np.ndarray, resolution_m: float, n_levels: int = 7

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam_engine.backend.correlative import MatchGrid, angular_step_rad, fit_pose, refine_pose, search
+from slam_engine.backend.correlative import MatchGrid, angular_step_rad, fit_pose, mask_at, refine_pose, search
 from slam_engine.backend.loop_closer import thin
 from slam_engine.backend.submaps import match_grid_from_points
 from slam_engine.config import LocalizationConfig, SlamConfig
@@ -96,12 +96,7 @@ class Coverage:
 
     def covers(self, points_m: np.ndarray) -> np.ndarray:
         """(N,) bool: which map-frame points (N, 2) [m] fall on observed cells."""
-        cells = np.floor((points_m - self.origin_m) / self.resolution_m).astype(np.int64)
-        rows, cols = self.observed.shape
-        inside = (cells[:, 0] >= 0) & (cells[:, 0] < cols) & (cells[:, 1] >= 0) & (cells[:, 1] < rows)
-        out = np.zeros(len(points_m), bool)
-        out[inside] = self.observed[cells[inside, 1], cells[inside, 0]]
-        return out
+        return mask_at(self.observed, self.origin_m, self.resolution_m, points_m)
 
 
 @dataclass
