@@ -167,6 +167,8 @@ class LocalizationConfig(_Section):
     local_map_m: float = Field(8.0, gt=0.0, le=100.0, description="Each scan of the drive is first matched "
                                "against its own scans of this much travel before it, which corrects the odometry "
                                "between scans [m].")
+    local_map_resolution_m: float = Field(0.1, ge=0.02, le=1.0, description="Cell size of the grid of the "
+                                          "drive's own recent scans that each scan is matched against [m].")
     search_resolution_m: float = Field(0.2, ge=0.02, le=1.0, description="Cell size of the global search's "
                                        "grid [m] (the pose is then refined on the map's own cells).")
     min_score: float = Field(0.65, ge=0.0, le=1.0, description="Lowest mean blurred hit value under a "
@@ -190,8 +192,8 @@ class LocalizationConfig(_Section):
     window_per_m: float = Field(0.05, ge=0.0, le=1.0, description="The tracking window grows by this much per "
                                 "metre travelled since the last scan that matched [m/m] ...")
     window_rad_per_m: float = Field(0.02, ge=0.0, le=1.0, description="... and its turn by this [rad/m].")
-    lost_after_m: float = Field(10.0, gt=0.0, le=10000.0, description="No scan matched over this much travel: "
-                                "the drive is lost, and searched for over the whole map again [m].")
+    lost_after_m: float = Field(10.0, gt=0.0, le=10000.0, description="No scan matched over this much travel "
+                                "within the map's observed area: the drive is lost, and searched for again [m].")
     max_points: int = Field(250, ge=10, le=100000, description="A stretch is searched with at most this many "
                             "end points.")
     max_map_key_frames: int = Field(20000, ge=100, le=10_000_000, description="An extended or merged map "

@@ -10,9 +10,12 @@ least ``min_score``, no pose elsewhere scores nearly as well, and the next, disj
 for on its own, lands where the scans tracked from the first placement put it. From there each scan is
 fitted locally from where the drive's own motion puts it, or searched for in a small window around
 there, and scored only by its end points that fall where the saved map observed anything (a drive that
-leaves the map is carried by its own motion, not judged against cells the map never saw); with no scan
-matched over ``lost_after_m`` of travel the drive is lost, searched for near where its motion carried
-it and then over the whole map, and a match in the widened window must score as a placement does. A
+leaves the map is carried by its own motion, not judged against cells the map never saw, and is not lost
+there: back in the map, it is tracked in a window grown with the travel since its last match); with no
+scan matched over ``lost_after_m`` of travel where the map could judge it, the drive is lost, searched
+for near where its motion carried it and then over the whole map, and a match in the widened window must
+score as a placement does. The drive's own scans are matched to each other on cells of
+``local_map_resolution_m``, coarser than the map's (intel: as accurate, in less than half the time). A
 drive that is never placed is refused (``localised`` False, with the best score found), not forced in.
 
 Frames: ``map``: the bundle's; the drive's own frame: its odometry (or its map's) frame. Poses
@@ -89,10 +92,8 @@ class Coverage:
         from slam_engine.config import GridConfig
 
         grid = render_occupancy(bundle.scans(), bundle.poses, bundle.origin_v,
-                                GridConfig(resolution_m=bundle.resolution_m))
-        factor = max(1, int(round(COVERAGE_CELL_M / bundle.resolution_m)))
-        pooled = grid.pooled(factor)
-        return cls(pooled.known(), np.array([pooled.origin_x_m, pooled.origin_y_m]), pooled.resolution_m)
+                                GridConfig(resolution_m=max(COVERAGE_CELL_M, bundle.resolution_m)))
+        return cls(grid.known(), np.array([grid.origin_x_m, grid.origin_y_m]), grid.resolution_m)
 
     def covers(self, points_m: np.ndarray) -> np.ndarray:
         """(N,) bool: which map-frame points (N, 2) [m] fall on observed cells."""
@@ -158,7 +159,7 @@ class DriveScans:
         hits = [projector.project(ranges, angle_offset_rad=float(offset)).hits_v
                 for ranges, offset in zip(log.scans.ranges_m, offsets, strict=True)]
         drive = cls(np.asarray(odometry.t_s, np.float64), np.asarray(odometry.poses, np.float64), hits)
-        return drive.scan_matched(config.grid.resolution_m, config.localization.local_map_m)
+        return drive.scan_matched(config.localization.local_map_resolution_m, config.localization.local_map_m)
 
     @classmethod
     def from_bundle(cls, bundle: MapBundle) -> DriveScans:
@@ -447,25 +448,31 @@ class Localizer:
 
     def _track_forward(self, poses: np.ndarray, confidence: np.ndarray, tracked: np.ndarray, start: int,
                        events: list[dict]) -> list[int]:
-        """Track every scan from ``start`` on. With no scan matched over ``lost_after_m`` of travel the
-        drive is lost: it is still carried by its own motion and tracked in a widening window, and each
-        stretch is also searched for over the whole map; a confirmed placement puts it there (a jump).
-        Returns the scans placed by a jump."""
+        """Track every scan from ``start`` on. With no scan matched over ``lost_after_m`` of travel over
+        scans the map could judge (outside its observed area a drive is not lost) the drive is lost: it
+        is still carried by its own motion and tracked in a widening window, and each stretch is also
+        searched for over the whole map; a confirmed placement puts it there (a jump). Returns the scans
+        placed by a jump."""
         c, drive = self.config, self.drive
         travel = drive.travel_m
         last_tracked = start - 1
         lost = False
+        unmatched_m = 0.0  # travel since scan last_tracked over scans the map could judge but did not match [m]
         next_search = start
         jumps: list[int] = []
         k = start
         while k < len(drive):
             self.step(poses, confidence, tracked, k, k - 1, float(travel[k - 1] - travel[last_tracked]))
             if tracked[k]:
-                last_tracked = k
+                last_tracked, unmatched_m = k, 0.0
                 if lost:
                     lost = False
                     events.append({"event": "found", "t_s": round(float(drive.t_s[k]), 3), "scan": k})
-            elif not lost and travel[k] - travel[last_tracked] > c.lost_after_m:
+                k += 1
+                continue
+            if not self.uncovered[k]:
+                unmatched_m += float(travel[k] - travel[k - 1])
+            if not lost and unmatched_m > c.lost_after_m:
                 lost = True
                 events.append({"event": "lost", "t_s": round(float(drive.t_s[k]), 3), "scan": k})
                 next_search = k + 1
@@ -484,7 +491,7 @@ class Localizer:
                     self.step(poses, confidence, tracked, at, at)
                     if near is None:
                         jumps.append(at)
-                    lost, last_tracked, k = False, at, at
+                    lost, last_tracked, unmatched_m, k = False, at, 0.0, at
                     events.append({"event": "found", "t_s": round(float(drive.t_s[at]), 3), "scan": at})
             k += 1
         return jumps

@@ -73,6 +73,8 @@ def test_a_drive_that_leaves_the_map_is_carried_by_its_motion_not_judged(office)
     # measured: 99 of 502 scans outside, a median 10.1 m from where the map's drive went (0.7 m inside)
     assert outside.sum() > 50 and np.median(from_map_m[outside]) > 5.0 > np.median(from_map_m[~outside])
     assert not (result.tracked & outside).any() and result.summary()["scans_outside_map"] == int(outside.sum())
+    # outside the map the drive is not lost (nothing there can fail to match): no search on its way back in
+    assert [event["event"] for event in result.events] == ["found"] and result.global_searches == 2
     rotation, translation = world_from_map(small, office)
     placed = result.trajectory.poses[:, :2] @ rotation.T + translation
     assert np.hypot(*(placed - truth[:, :2]).T).max() < 0.1  # measured 0.027 m: carried, then found again
