@@ -12,7 +12,13 @@ import pytest
 from slam_engine import run_slam
 from slam_engine.config import SlamConfig
 from slam_engine.products import write_products
-from slam_engine.products.point_cloud import POINT_CLOUD_FILE, map_point_cloud, map_points
+from slam_engine.products.point_cloud import (
+    OUTLIER_NEIGHBOURS,
+    OUTLIER_STD_RATIO,
+    POINT_CLOUD_FILE,
+    map_point_cloud,
+    map_points,
+)
 from slam_engine.simulation import simulate
 
 
@@ -59,7 +65,7 @@ def test_outlier_removal_drops_stray_points(mapped) -> None:
     from scipy.ndimage import distance_transform_edt
 
     result, _ = mapped
-    clean = np.asarray(map_point_cloud(result.bundle).points)[:, :2]
+    clean = map_point_cloud(result.bundle)[:, :2]
     rng = np.random.default_rng(0)
     metres_to_wall = distance_transform_edt(result.grid.log_odds <= 0) * result.grid.resolution_m
     free = np.argwhere((result.grid.log_odds < -2.0) & (metres_to_wall > 0.5))  # open floor
@@ -80,8 +86,32 @@ def test_outlier_removal_drops_stray_points(mapped) -> None:
                                     bundle.free_from_m[k0.stop:]]),
         scan_offsets=bundle.scan_offsets + np.r_[0, np.full(len(bundle.scan_offsets) - 1, len(local))])
     assert len(map_points(bundle)) == len(map_points(result.bundle)) + len(local)
-    noisy = np.asarray(map_point_cloud(bundle).points)[:, :2]
+    noisy = map_point_cloud(bundle)[:, :2]
     kept_stray = sum(np.min(np.hypot(*(noisy - p).T)) < result.grid.resolution_m / 2 for p in stray)
     assert kept_stray <= 3, kept_stray  # of 30
     walls = near_occupied(noisy, result.grid).sum()
     assert walls >= near_occupied(clean, result.grid).sum() - 5  # the walls kept
+
+
+def open3d_filtered(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """(N, 3) ``points`` (N, 2) through Open3D's own voxel grid and statistical outlier removal."""
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.column_stack([points, np.zeros(len(points))])))
+    cloud = cloud.voxel_down_sample(voxel_m)
+    cloud, _ = cloud.remove_statistical_outlier(nb_neighbors=OUTLIER_NEIGHBOURS, std_ratio=OUTLIER_STD_RATIO)
+    return np.asarray(cloud.points)
+
+
+def sorted_rows(points: np.ndarray) -> np.ndarray:
+    return points[np.lexsort(points.T[::-1])]
+
+
+def test_the_file_holds_the_points_open3d_filters_would_give(mapped) -> None:
+    """The voxel grid and the outlier filter give Open3D's points exactly (in another order), and the
+    PLY read back with Open3D holds them, as doubles."""
+    result, written = mapped
+    expected = open3d_filtered(map_points(result.bundle), result.bundle.resolution_m)
+    assert len(expected) > 1000
+    assert np.array_equal(sorted_rows(map_point_cloud(result.bundle)), sorted_rows(expected))
+    read_back = np.asarray(o3d.io.read_point_cloud(str(written[POINT_CLOUD_FILE])).points)
+    assert np.array_equal(sorted_rows(read_back), sorted_rows(expected))
+    assert b"property double x" in written[POINT_CLOUD_FILE].read_bytes()[:200]
