@@ -13,17 +13,25 @@ import traceback
 from collections.abc import Iterator
 
 import typer
-import yaml
-from pydantic import ValidationError
 
 from slam_engine.errors import SlamEngineError
 
 BAD_INPUT_EXIT_CODE = 2
-KNOWN_ERRORS = (SlamEngineError, OSError, ValidationError, yaml.YAMLError, json.JSONDecodeError)
+
+
+def known_errors() -> tuple[type[BaseException], ...]:
+    """The errors reported as bad input. pydantic and PyYAML are imported here, once an error is
+    caught, not when the command line starts (``lidarmap --help`` needs neither)."""
+    import yaml
+    from pydantic import ValidationError
+
+    return SlamEngineError, OSError, ValidationError, yaml.YAMLError, json.JSONDecodeError
 
 
 def one_line(error: BaseException) -> str:
     """A one-line description of a known error: what is wrong and where."""
+    from pydantic import ValidationError
+
     if isinstance(error, OSError) and error.filename is not None:
         text = f"{error.filename}: {error.strerror or error}"
     elif isinstance(error, ValidationError):
@@ -38,7 +46,9 @@ def bad_input_exits(verbose: bool = False) -> Iterator[None]:
     """Wrap a command's body: known errors -> ``error: ...`` on stderr and exit code 2."""
     try:
         yield
-    except KNOWN_ERRORS as error:
+    except Exception as error:
+        if not isinstance(error, known_errors()):
+            raise
         if verbose:
             traceback.print_exc()
         typer.echo(f"error: {one_line(error)}", err=True)

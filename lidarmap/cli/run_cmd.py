@@ -11,13 +11,15 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from lidarmap.cli.bad_input import bad_input_exits
-from slam_engine.config import SlamConfig, shortcut_overrides
-from slam_engine.config import load_config as load_slam_config
 from slam_engine.errors import ConfigError
+
+if TYPE_CHECKING:
+    from slam_engine.config import SlamConfig
 
 SNAPSHOT_FRAMES = 40  # = slam_engine.products.animation.ANIMATION_FRAMES (for the help text; not imported here)
 
@@ -25,6 +27,9 @@ SNAPSHOT_FRAMES = 40  # = slam_engine.products.animation.ANIMATION_FRAMES (for t
 def load_config(path: Path | None, particles: int | None = None, seed: int | None = None,
                 resolution_m: float | None = None, snapshot_every: int | None = None) -> SlamConfig:
     """SlamConfig from a YAML/JSON file (or defaults), then the command-line overrides; validated."""
+    from slam_engine.config import load_config as load_slam_config  # imported when used (pydantic, PyYAML)
+    from slam_engine.config import shortcut_overrides
+
     shortcuts = {"particles": particles, "seed": seed, "resolution_m": resolution_m,
                  "snapshot_every_scans": snapshot_every}
     return load_slam_config(path, shortcut_overrides(shortcuts))

@@ -33,7 +33,6 @@ from sqlalchemy import Connection, Engine, create_engine, event, func, select
 from sqlalchemy import exc as sa_exc
 
 from service.http_errors import POSTGRES_DISK_FULL, Unavailable
-from service.storage.migration import upgrade_schema
 
 POSTGRES_CONNECT_TIMEOUT_S = 10
 POSTGRES_POOL_MAX_CONNECTIONS = 10  # per process: the API's request threads share them, a worker uses one
@@ -133,6 +132,8 @@ class SqliteBackend(_EnginePerProcess):
             conn.execute("PRAGMA journal_mode = WAL")  # kept by the file; not allowed inside a transaction
         finally:
             conn.close()
+        from service.storage.migration import upgrade_schema  # imported when used: Alembic, ~0.1 s a worker never needs
+
         with self.transaction() as connection:
             upgrade_schema(connection)
 
@@ -201,6 +202,8 @@ class PostgresBackend(_EnginePerProcess):
                         f"{POSTGRES_CONNECT_TIMEOUT_S} s")) from None
 
     def create_schema(self) -> None:
+        from service.storage.migration import upgrade_schema  # imported when used (Alembic)
+
         with self.transaction() as conn:
             conn.execute(select(func.pg_advisory_xact_lock(self._SCHEMA_LOCK)))
             upgrade_schema(conn)
