@@ -126,14 +126,14 @@ class SqliteBackend(_EnginePerProcess):
             raise
 
     def create_schema(self) -> None:
+        from service.storage.migration import upgrade_schema  # imported when used (Alembic)
+
         self.path.parent.mkdir(parents=True, exist_ok=True)
         conn = sqlite3.connect(self.path, timeout=SQLITE_BUSY_TIMEOUT_S, isolation_level=None)
         try:
             conn.execute("PRAGMA journal_mode = WAL")  # kept by the file; not allowed inside a transaction
         finally:
             conn.close()
-        from service.storage.migration import upgrade_schema  # imported when used: Alembic, ~0.1 s a worker never needs
-
         with self.transaction() as connection:
             upgrade_schema(connection)
 
@@ -202,7 +202,7 @@ class PostgresBackend(_EnginePerProcess):
                         f"{POSTGRES_CONNECT_TIMEOUT_S} s")) from None
 
     def create_schema(self) -> None:
-        from service.storage.migration import upgrade_schema  # imported when used (Alembic)
+        from service.storage.migration import upgrade_schema  # imported when used: Alembic, ~0.1 s a worker never needs
 
         with self.transaction() as conn:
             conn.execute(select(func.pg_advisory_xact_lock(self._SCHEMA_LOCK)))
