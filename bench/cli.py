@@ -1,6 +1,7 @@
 """The benchmark's command line (``python -m bench`` and ``lidarmap bench``): thin wrapper over
 :func:`bench.harness.run_benchmark` and :func:`bench.report.print_report`, followed by the sessions
-table (:mod:`bench.sessions`) on the shared datasets' two-session drives."""
+table (:mod:`bench.sessions`) on the shared datasets' two-session drives and the margin table
+(:mod:`bench.margin`: the sparse logs at 15 particles, seeds 0-9)."""
 
 from __future__ import annotations
 
@@ -59,6 +60,8 @@ def accuracy(
                                    "with its exact ground truth)."),
     sessions: bool = typer.Option(True, help="Then the sessions table (localise, extend, merge on the datasets' "
                                   "sessions/ drives, same seeds; not with --quick or --no-datasets)."),
+    margin: bool = typer.Option(True, help="Then the margin table (aces-rough and infinite-corridor-rough at 15 "
+                                "particles, seeds 0-9; not with --quick or --no-datasets)."),
     out: Path | None = typer.Option(None, help="Output folder (default bench/results/<date-time>)."),
     timeout_s: float = typer.Option(3600.0, min=1.0, help="Time limit per run, seconds."),
     busy: int = typer.Option(0, min=0, max=64, help="CPU-bound processes to run beside every run "
@@ -113,6 +116,10 @@ def accuracy(
     print_report(run_benchmark(cases, options, on_run=progress), console)
     if sessions and datasets and not quick and (runner, loader) == (DEFAULT_RUNNER, DEFAULT_LOADER):
         run_sessions_table(seed_list, out, overrides or {}, particles, console)
+    if margin and datasets and not quick and (runner, loader) == (DEFAULT_RUNNER, DEFAULT_LOADER):
+        from bench.margin import MARGIN_PARTICLES, MARGIN_SEEDS, run_margin_table
+
+        run_margin_table(out, parse_seeds(MARGIN_SEEDS), MARGIN_PARTICLES, overrides or {}, console)
 
 
 def run_sessions_table(seeds: list[int], out: Path, overrides: dict, particles: int | None, console) -> None:
