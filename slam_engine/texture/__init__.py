@@ -26,7 +26,7 @@ from slam_engine.texture.projection import (
     transform_points,
 )
 from slam_engine.texture.rgbd import rgbd_frame_points
-from slam_engine.texture.stereo import FramePoints, StereoRectifier, stereo_frame_points
+from slam_engine.texture.stereo import FramePoints, GroundWindow, StereoRectifier, stereo_frame_points
 from slam_engine.texture.texture_map import TextureAccumulator
 
 __all__ = ["build_texture_map", "TextureAccumulator", "FramePoints"]
@@ -36,11 +36,12 @@ GROUND_SAMPLE_FRAMES = 5
 
 @dataclass
 class _CameraSource:
-    """One camera stream: frame times [s] and a function giving frame i's points (None = unusable)."""
+    """One camera stream: frame times [s] and a function giving frame i's points (None = unusable)
+    once the ground height [m] is known (None: not yet, the whole image is used)."""
 
     name: str
     t_s: np.ndarray
-    frame_points: Callable[[int], FramePoints | None]
+    frame_points: Callable[[int, float | None], FramePoints | None]
 
 
 def build_texture_map(log: DriveLog, trajectory: Trajectory, grid: OccupancyGrid,
@@ -80,7 +81,7 @@ def build_texture_map(log: DriveLog, trajectory: Trajectory, grid: OccupancyGrid
 
     accumulator: TextureAccumulator | None = None
     frames_used = 0
-    for t_s, frame in _frames(selected, cache):
+    for t_s, frame in _frames(selected, cache, ground_z_m):
         if frame is None or len(frame.points_camera) == 0:
             continue
         pose, _ = interpolate_poses(trajectory, np.array([t_s]), cfg.max_time_gap_s)
@@ -107,18 +108,25 @@ def _camera_sources(log: DriveLog, cfg: TextureConfig) -> list[_CameraSource]:
         stereo = log.stereo
         rectifier = StereoRectifier(stereo.calibration)
 
-        def stereo_points(i: int) -> FramePoints:
+        windows: dict[float, GroundWindow | None] = {}
+
+        def stereo_points(i: int, ground_z_m: float | None) -> FramePoints:
             what = f"stereo frame {i}"
             left = read_frame(stereo.left_images[i], what + " (left)")
             right = read_frame(stereo.right_images[i], what + " (right)")
-            return stereo_frame_points(left, right, rectifier, cfg, what)
+            window = None
+            if ground_z_m is not None:
+                if ground_z_m not in windows:
+                    windows[ground_z_m] = rectifier.ground_window(ground_z_m, cfg)
+                window = windows[ground_z_m]
+            return stereo_frame_points(left, right, rectifier, cfg, what, window)
 
         sources.append(_CameraSource("stereo", np.asarray(stereo.t_s, dtype=np.float64), stereo_points))
     if log.rgbd is not None and len(log.rgbd) and len(log.rgbd.rgb_t_s):
         rgbd = log.rgbd
         rgb_t = np.asarray(rgbd.rgb_t_s, dtype=np.float64)
 
-        def rgbd_points(i: int) -> FramePoints | None:
+        def rgbd_points(i: int, ground_z_m: float | None) -> FramePoints | None:
             t = float(rgbd.depth_t_s[i])
             j = int(np.clip(np.searchsorted(rgb_t, t), 1, len(rgb_t) - 1)) if len(rgb_t) > 1 else 0
             if len(rgb_t) > 1 and abs(rgb_t[j - 1] - t) <= abs(rgb_t[j] - t):
@@ -151,16 +159,17 @@ def _estimate_ground(selected: list, cache: dict) -> float | None:
         picks = indices[np.unique(np.linspace(0, len(indices) - 1, min(GROUND_SAMPLE_FRAMES, len(indices)))
                                   .round().astype(np.int64))] if len(indices) else []
         for i in picks:
-            frame = cache.setdefault((source.name, int(i)), source.frame_points(int(i)))
+            frame = cache.setdefault((source.name, int(i)), source.frame_points(int(i), None))
             if frame is not None and len(frame.points_camera):
                 points.append(transform_points(frame.points_camera, frame.T_vehicle_from_camera))
     return estimate_ground_z(np.concatenate(points)) if points else None
 
 
-def _frames(selected: list, cache: dict) -> Iterator[tuple[float, FramePoints | None]]:
-    """(time [s], points) of every selected frame, in stream order, reusing cached frames."""
+def _frames(selected: list, cache: dict, ground_z_m: float) -> Iterator[tuple[float, FramePoints | None]]:
+    """(time [s], points) of every selected frame, in stream order, reusing cached frames; the others
+    computed where they can see ground at ``ground_z_m`` [m]."""
     for source, indices in selected:
         for i in indices:
             key = (source.name, int(i))
-            frame = cache.pop(key) if key in cache else source.frame_points(int(i))
+            frame = cache.pop(key) if key in cache else source.frame_points(int(i), ground_z_m)
             yield float(source.t_s[i]), frame

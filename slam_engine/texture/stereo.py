@@ -1,6 +1,11 @@
 """Stereo depth: rectify with the calibration, disparity with OpenCV's StereoSGBM, depth
 ``z = f * b / d`` and back-projection into the *rectified* left optical frame.
 
+Once the ground height is known, only the rows the texture can use are rectified and matched
+(:class:`GroundWindow`): those whose rays meet the ground band within the depth range, with a
+margin of context for the matcher. On the car's cameras (1280 x 560, 1.58 m up, ground seen from
+4 to 10 m) that is 219 of 560 rows.
+
 The rectified left optical frame differs from the left camera's optical frame by the rectification
 rotation ``R_left`` (``X_rect = R_left @ X_cam``); :attr:`StereoRectifier.T_vehicle_from_rectified`
 places it in the vehicle frame.
@@ -29,6 +34,19 @@ class FramePoints:
     T_vehicle_from_camera: np.ndarray
 
 
+@dataclass(frozen=True)
+class GroundWindow:
+    """The rows ``row_start:row_stop`` [px] of a rectified image pair worth matching for ground texture."""
+
+    row_start: int
+    row_stop: int
+
+
+# Rows of context kept above and below the rows that can see the ground, beyond the block's half
+# width: StereoSGBM's cost aggregation runs along image paths, so pixels next to a cut see less context.
+WINDOW_MARGIN_ROWS = 16
+
+
 class StereoRectifier:
     """Undistortion + rectification maps of one calibrated stereo pair (computed once)."""
 
@@ -45,18 +63,51 @@ class StereoRectifier:
         self.fx_px, self.fy_px, self.cx_px, self.cy_px = float(P[0, 0]), float(P[1, 1]), float(P[0, 2]), float(P[1, 2])
         self.T_vehicle_from_rectified = calibration.T_vehicle_from_camera @ homogeneous(calibration.R_left.T, (0, 0, 0))
 
-    def rectify(self, left: np.ndarray, right: np.ndarray, what: str = "stereo frame") -> tuple[np.ndarray, np.ndarray]:
-        """Rectified (left, right) images, demosaiced to RGB first for raw Bayer cameras."""
+    def rectify(self, left: np.ndarray, right: np.ndarray, what: str = "stereo frame",
+                rows: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Rectified (left, right) images, demosaiced to RGB first for raw Bayer cameras; only the
+        rectified rows ``rows`` = (start, stop) when given."""
         import cv2  # imported when used: OpenCV (~15 MB) only for camera data
         w, h = self.calibration.image_size_wh
+        start, stop = (0, h) if rows is None else rows
         out = []
         for side, image, (map_x, map_y) in (("left", left, self._maps[0]), ("right", right, self._maps[1])):
             if image.shape[:2] != (h, w):
                 raise LogFormatError(f"{side} image is {image.shape[1]}x{image.shape[0]}, the calibration "
                                      f"says {w}x{h}", None, what)
             image = demosaic(to_uint8(image), self.calibration.bayer_pattern)
-            out.append(cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT))
+            out.append(cv2.remap(image, map_x[start:stop], map_y[start:stop], cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_CONSTANT))
         return out[0], out[1]
+
+    def ground_window(self, ground_z_m: float, config: TextureConfig) -> GroundWindow | None:
+        """The rows (with the margin) where ground points (within ``config.ground_band_m`` of
+        ``ground_z_m`` [m, vehicle frame], at depths ``config.min_depth_m`` .. ``max_depth_m``) can
+        appear in the rectified left image; None when no pixel can see such a point."""
+        w, h = (int(v) for v in self.calibration.image_size_wh)
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        # a pixel's ray, per metre of depth, in the vehicle frame: only its height matters here
+        R = self.T_vehicle_from_rectified[:3, :3]
+        rise = R[2, 0] * (u - self.cx_px) / self.fx_px + R[2, 1] * (v - self.cy_px) / self.fy_px + R[2, 2]
+        height0 = float(self.T_vehicle_from_rectified[2, 3])
+        lo, hi = ground_z_m - config.ground_band_m, ground_z_m + config.ground_band_m
+        # depths at which the ray is within the band, intersected with the depth range
+        with np.errstate(divide="ignore", invalid="ignore"):
+            a = (lo - height0) / rise
+            b = (hi - height0) / rise
+        near = np.maximum(np.minimum(a, b), config.min_depth_m)
+        far = np.minimum(np.maximum(a, b), config.max_depth_m)
+        level = np.abs(rise) < 1e-12  # a ray parallel to the ground: in the band at every depth or none
+        inside = (height0 >= lo) & (height0 <= hi)
+        near = np.where(level, config.min_depth_m if inside else np.inf, near)
+        far = np.where(level, config.max_depth_m if inside else -np.inf, far)
+        sees = near <= far
+        if not sees.any():
+            return None
+        seen_rows = np.flatnonzero(sees.any(axis=1))
+        margin = WINDOW_MARGIN_ROWS + config.sgbm_block_size // 2
+        return GroundWindow(row_start=max(0, int(seen_rows[0]) - margin),
+                            row_stop=min(h, int(seen_rows[-1]) + 1 + margin))
 
 
 def compute_disparity(left_rect: np.ndarray, right_rect: np.ndarray, config: TextureConfig) -> np.ndarray:
@@ -91,22 +142,26 @@ def depth_from_disparity(disparity_px: np.ndarray, focal_px: float, baseline_m: 
     return depth
 
 
-def back_project(depth_m: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
-    """(H, W, 3) points [m] in the optical frame of a pinhole camera from a depth image."""
+def back_project(depth_m: np.ndarray, fx: float, fy: float, cx: float, cy: float, row0: int = 0) -> np.ndarray:
+    """(H, W, 3) points [m] in the optical frame of a pinhole camera from a depth image whose first
+    row is image row ``row0``."""
     h, w = depth_m.shape
-    v, u = np.mgrid[0:h, 0:w]
+    v, u = np.mgrid[row0:row0 + h, 0:w]
     return np.stack(((u - cx) * depth_m / fx, (v - cy) * depth_m / fy, depth_m), axis=-1)
 
 
 def stereo_frame_points(left: np.ndarray, right: np.ndarray, rectifier: StereoRectifier, config: TextureConfig,
-                        what: str = "stereo frame") -> FramePoints:
+                        what: str = "stereo frame", window: GroundWindow | None = None) -> FramePoints:
     """Coloured 3-D points of one stereo pair within the configured depth range, in the rectified
-    left optical frame; colours come from the rectified left image (gray for gray cameras)."""
-    left_rect, right_rect = rectifier.rectify(left, right, what)
+    left optical frame; colours come from the rectified left image (gray for gray cameras). With a
+    ``window`` (:meth:`StereoRectifier.ground_window`) only its rows are rectified and matched."""
+    rows = None if window is None else (window.row_start, window.row_stop)
+    left_rect, right_rect = rectifier.rectify(left, right, what, rows)
     disparity = compute_disparity(left_rect, right_rect, config)
     depth = depth_from_disparity(disparity, rectifier.fx_px, rectifier.calibration.baseline_m)
     keep = (depth >= config.min_depth_m) & (depth <= config.max_depth_m)
-    points = back_project(depth, rectifier.fx_px, rectifier.fy_px, rectifier.cx_px, rectifier.cy_px)
+    points = back_project(depth, rectifier.fx_px, rectifier.fy_px, rectifier.cx_px, rectifier.cy_px,
+                          0 if rows is None else rows[0])
     return FramePoints(points_camera=points[keep], colors=left_rect[keep],
                        T_vehicle_from_camera=rectifier.T_vehicle_from_rectified)
 
