@@ -36,8 +36,8 @@ GROUND_SAMPLE_FRAMES = 5
 
 @dataclass
 class _CameraSource:
-    """One camera stream: frame times [s] and a function giving frame i's points (None = unusable)
-    once the ground height [m] is known (None: not yet, the whole image is used)."""
+    """One camera stream: frame times [s] and ``frame_points(i, ground_z_m)``, frame i's points (None =
+    unusable), matched only where ground at ``ground_z_m`` [m] can be seen (None: the whole image)."""
 
     name: str
     t_s: np.ndarray
