@@ -92,8 +92,10 @@ class Coverage:
         from slam_engine.config import GridConfig
 
         grid = render_occupancy(bundle.scans(), bundle.poses, bundle.origin_v,
-                                GridConfig(resolution_m=max(COVERAGE_CELL_M, bundle.resolution_m)))
-        return cls(grid.known(), np.array([grid.origin_x_m, grid.origin_y_m]), grid.resolution_m)
+                                GridConfig(resolution_m=bundle.resolution_m))
+        factor = max(1, int(round(COVERAGE_CELL_M / bundle.resolution_m)))
+        pooled = grid.pooled(factor)
+        return cls(pooled.known(), np.array([pooled.origin_x_m, pooled.origin_y_m]), pooled.resolution_m)
 
     def covers(self, points_m: np.ndarray) -> np.ndarray:
         """(N,) bool: which map-frame points (N, 2) [m] fall on observed cells."""
