@@ -51,7 +51,8 @@ def register(app: typer.Typer) -> None:
         import numpy as np
 
         from slam_engine.formats import load_log
-        from slam_engine.multisession.localization import DriveScans, localize
+        from slam_engine.frontend.particle_filter import engine_threads
+        from slam_engine.multisession.localization import localize_log
         from slam_engine.products.map_bundle import read_bundle
         from slam_engine.products.multisession import localization_image, saved_map_grid, write_localization
 
@@ -60,8 +61,8 @@ def register(app: typer.Typer) -> None:
             hint = parse_pose(start)
             config = load_config(config_file)
             bundle = read_bundle(map_dir)
-            drive = DriveScans.from_log(load_log(log, format), config)
-            result = localize(bundle, drive, config, hint=None if hint is None else np.array(hint))
+            drive, result = localize_log(bundle, load_log(log, format), config,
+                                         hint=None if hint is None else np.array(hint), threads=engine_threads())
             image = None
             if result.localised:
                 assert result.trajectory is not None

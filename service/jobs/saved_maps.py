@@ -57,12 +57,11 @@ def run_from_saved_map(ctx: JobContext, log: DriveLog, progress: Any) -> None:
 
 def _localize(ctx: JobContext, bundle: Any, log: DriveLog, config: Any) -> None:
     from service.jobs.outputs import product_names
-    from slam_engine.multisession.localization import DriveScans, localize
+    from slam_engine.multisession.localization import localize_log
     from slam_engine.products.multisession import localization_image, saved_map_grid, write_localization
 
-    drive = DriveScans.from_log(log, config)
+    drive, result = localize_log(bundle, log, config, threads=1)
     total = len(drive)
-    result = localize(bundle, drive, config, threads=1)
     ctx.progress(total, total, force=True, stage=WRITING_PRODUCTS, fraction=run_fraction(WRITING_PRODUCTS, 0.0))
     summary = result.summary()
     if not result.localised:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -250,6 +251,7 @@ class LocalizationResult:
     outside_map: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     global_searches: int = 0
     wall_time_s: float = 0.0
+    search_s: float = 0.0  # of wall_time_s: placing and tracking the drive (the rest: its scans, the map's index)
 
     def summary(self) -> dict:
         tracked = self.tracked
@@ -558,6 +560,27 @@ def _joined(grid: MatchGrid, points: np.ndarray, predicted: np.ndarray) -> np.nd
     return np.array([pose[0] + along * u[0], pose[1] + along * u[1], pose[2]])
 
 
+def localize_log(bundle: MapBundle, log: DriveLog, config: SlamConfig | None = None, hint: np.ndarray | None = None,
+                 threads: int = 1) -> tuple[DriveScans, LocalizationResult]:
+    """:func:`localize` of a drive log: its scans (:meth:`DriveScans.from_log`, returned too) and the
+    result, whose wall time covers reading and matching the drive's scans. With ``threads`` > 1 the
+    saved map's index is built in a second thread meanwhile (both spend their time in numba kernels
+    that release the GIL)."""
+    config = SlamConfig() if config is None else config
+    started = time.perf_counter()
+    if threads > 1:
+        with ThreadPoolExecutor(1) as pool:
+            building = pool.submit(MapIndex.of_bundle, bundle, config.localization)
+            drive = DriveScans.from_log(log, config)
+            index = building.result()
+    else:
+        drive = DriveScans.from_log(log, config)
+        index = MapIndex.of_bundle(bundle, config.localization)
+    result = Localizer(index, drive, config.localization, threads).run(hint)
+    result.search_s, result.wall_time_s = result.wall_time_s, time.perf_counter() - started
+    return drive, result
+
+
 def localize(bundle: MapBundle, drive: DriveScans, config: SlamConfig | None = None, hint: np.ndarray | None = None,
              threads: int = 1) -> LocalizationResult:
     """Localise ``drive`` in the map of ``bundle`` (see the module docstring); ``hint``: the map pose of
@@ -566,5 +589,5 @@ def localize(bundle: MapBundle, drive: DriveScans, config: SlamConfig | None = N
     started = time.perf_counter()
     index = MapIndex.of_bundle(bundle, config.localization)
     result = Localizer(index, drive, config.localization, threads).run(hint)
-    result.wall_time_s = time.perf_counter() - started
+    result.search_s, result.wall_time_s = result.wall_time_s, time.perf_counter() - started
     return result

@@ -16,7 +16,7 @@ from slam_engine.evaluation.metrics import absolute_trajectory_error, align_rigi
 from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.result import SlamResult
 from slam_engine.multisession.joining import join, merge
-from slam_engine.multisession.localization import DriveScans, localize
+from slam_engine.multisession.localization import DriveScans, localize, localize_log
 from slam_engine.pipeline import run_slam
 from slam_engine.products.map_bundle import ARRAYS, BUNDLE_FILE, read_bundle, write_bundle
 from slam_engine.simulation import SimulatedDrive, simulate
@@ -59,6 +59,18 @@ def test_a_second_drive_is_localised_without_a_start_pose(office, halves, first_
     # measured: median 0.013 m, worst 0.022 m (the office loop's second half in the first half's map)
     assert np.median(error) < 0.05 and error.max() < 0.15
     assert result.tracked.mean() > 0.3 and np.all((result.confidence >= 0) & (result.confidence <= 1))
+
+
+def test_a_log_is_localised_alike_with_the_map_index_built_beside_its_scans(halves, first_map) -> None:
+    """localize_log (what the CLI runs) builds the saved map's index in a second thread while the drive's
+    scans are matched: the same placement and track as the two steps one after the other."""
+    alone = localize(first_map.bundle, DriveScans.from_log(halves[1], CONFIG), CONFIG)
+    for threads in (1, 2):
+        drive, result = localize_log(first_map.bundle, halves[1], CONFIG, threads=threads)
+        assert result.trajectory is not None and alone.trajectory is not None
+        assert np.array_equal(result.trajectory.poses, alone.trajectory.poses)
+        assert np.array_equal(drive.poses, DriveScans.from_log(halves[1], CONFIG).poses)
+        assert 0.0 < result.search_s < result.wall_time_s and result.events == alone.events
 
 
 def test_a_drive_that_leaves_the_map_is_carried_by_its_motion_not_judged(office) -> None:
