@@ -576,9 +576,7 @@ def localize_log(bundle: MapBundle, log: DriveLog, config: SlamConfig | None = N
     else:
         drive = DriveScans.from_log(log, config)
         index = MapIndex.of_bundle(bundle, config.localization)
-    result = Localizer(index, drive, config.localization, threads).run(hint)
-    result.search_s, result.wall_time_s = result.wall_time_s, time.perf_counter() - started
-    return drive, result
+    return drive, _placed(index, drive, config, hint, threads, started)
 
 
 def localize(bundle: MapBundle, drive: DriveScans, config: SlamConfig | None = None, hint: np.ndarray | None = None,
@@ -587,7 +585,13 @@ def localize(bundle: MapBundle, drive: DriveScans, config: SlamConfig | None = N
     the drive's first scan, if known."""
     config = SlamConfig() if config is None else config
     started = time.perf_counter()
-    index = MapIndex.of_bundle(bundle, config.localization)
+    return _placed(MapIndex.of_bundle(bundle, config.localization), drive, config, hint, threads, started)
+
+
+def _placed(index: MapIndex, drive: DriveScans, config: SlamConfig, hint: np.ndarray | None, threads: int,
+            started: float) -> LocalizationResult:
+    """The drive placed and tracked in the map of ``index``: ``search_s`` that alone took (the
+    localizer's own wall time), ``wall_time_s`` since ``started`` (``time.perf_counter()``)."""
     result = Localizer(index, drive, config.localization, threads).run(hint)
     result.search_s, result.wall_time_s = result.wall_time_s, time.perf_counter() - started
     return result

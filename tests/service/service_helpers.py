@@ -46,6 +46,29 @@ def new_session(client: TestClient, **extra) -> str:
     return response.json()["id"]
 
 
+def store_on_backend(request, tmp_path: Path):
+    """An empty, uninitialised :class:`JobStore` on the backend a fixture is parametrised with
+    (``request.param``: "sqlite", or "postgres" on a new database of the ``postgres`` fixture)."""
+    from service.storage.store import open_store
+
+    if request.param == "sqlite":
+        return open_store("", tmp_path / "lidarmap.sqlite3")
+    return open_store(request.getfixturevalue("postgres").new_database(), tmp_path / "unused.sqlite3")
+
+
+def upload_log_file(client: TestClient, session_id: str, path: Path):
+    """POST the file at ``path`` as the session's log; the response."""
+    with open(path, "rb") as f:
+        return client.post(f"/v1/sessions/{session_id}/logs", files={"file": (path.name, f)})
+
+
+def map_sessions(client: TestClient, params: dict, *session_ids: str, timeout_s: float = 600.0) -> list[dict]:
+    """A job with ``params`` started in each session (all before the first is waited for), then each
+    one's final state, in the same order."""
+    jobs = [client.post(f"/v1/sessions/{sid}/jobs", json=params).json() for sid in session_ids]
+    return [wait_for(client, job["id"], timeout_s=timeout_s) for job in jobs]
+
+
 def assert_error(response, status: int, code: str | None = None) -> dict:
     """The response is the JSON error body with this status (and code)."""
     assert response.status_code == status, response.text

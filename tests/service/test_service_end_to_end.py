@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 from PIL import Image
-from service_helpers import new_session, service_client, wait_for
+from service_helpers import map_sessions, new_session, service_client, upload_log_file, wait_for
 
 from service.storage.stream_log import calibration_from_log, messages_of_log
 
@@ -106,8 +106,7 @@ def test_streamed_chunks_give_the_same_map_as_the_upload(tmp_path) -> None:
 
     with service_client(tmp_path / "data", workers=2) as client:
         whole = new_session(client, name="whole")
-        with open(log_path, "rb") as f:
-            assert client.post(f"/v1/sessions/{whole}/logs", files={"file": (log_path.name, f)}).status_code == 201
+        assert upload_log_file(client, whole, log_path).status_code == 201
         streamed = new_session(client, name="streamed", calibration=calibration_from_log(loaded))
         url = f"/v1/sessions/{streamed}/chunks"
         order = [0, 2, 1, *range(3, len(chunks))]  # chunk 2 overtakes chunk 1
@@ -121,9 +120,7 @@ def test_streamed_chunks_give_the_same_map_as_the_upload(tmp_path) -> None:
         state = client.get(url).json()
         assert state["contiguous_through"] == len(chunks) - 1 and state["messages"] == len(messages)
 
-        job_whole = client.post(f"/v1/sessions/{whole}/jobs", json=params).json()
-        job_stream = client.post(f"/v1/sessions/{streamed}/jobs", json=params).json()
-        a, b = wait_for(client, job_whole["id"], timeout_s=600), wait_for(client, job_stream["id"], timeout_s=600)
+        a, b = map_sessions(client, params, whole, streamed)
         assert a["status"] == b["status"] == "succeeded", (a, b)
         assert b["input"]["chunks_used"] == len(chunks)
         ta = client.get(f"/v1/jobs/{a['id']}/trajectory").json()["poses"]

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from service_helpers import assert_error, new_session, service_client, wait_for
+from service_helpers import assert_error, map_sessions, new_session, service_client, upload_log_file, wait_for
 
 from service.storage.stream_log import calibration_from_log, drive_log_from_messages, messages_of_log
 from slam_engine.evaluation.metrics import absolute_trajectory_error
@@ -28,8 +28,7 @@ def test_uploaded_interlaced_log_maps_as_well_as_without_interlacing(tmp_path) -
             drive = simulate("office", seed=0, rig=rig, max_duration_s=40.0, cameras=False)
             log_path = write_simulated(drive, "carmen", tmp_path / rig)
             sid = new_session(client, name=rig)
-            with open(log_path, "rb") as f:
-                upload = client.post(f"/v1/sessions/{sid}/logs", files={"file": (log_path.name, f)})
+            upload = upload_log_file(client, sid, log_path)
             assert upload.status_code == 201, upload.text
             job = client.post(f"/v1/sessions/{sid}/jobs", json={"particles": 10, "seed": 0})
             assert job.status_code in (200, 201, 202), job.text
@@ -61,8 +60,7 @@ def test_streamed_interlaced_chunks_give_the_same_map_as_the_upload(tmp_path) ->
     params = {"particles": 5, "seed": 7, "resolution_m": 0.1, "snapshot_every_scans": 0}
     with service_client(tmp_path / "data", workers=2) as client:
         whole = new_session(client, name="whole")
-        with open(log_path, "rb") as f:
-            assert client.post(f"/v1/sessions/{whole}/logs", files={"file": (log_path.name, f)}).status_code == 201
+        assert upload_log_file(client, whole, log_path).status_code == 201
         streamed = new_session(client, name="streamed", calibration=calibration_from_log(loaded))
         url = f"/v1/sessions/{streamed}/chunks"
         bad = {**scans[0], "angle_offset_rad": 7.0}  # beyond +-2 pi
@@ -70,9 +68,7 @@ def test_streamed_interlaced_chunks_give_the_same_map_as_the_upload(tmp_path) ->
         for seq, chunk in enumerate(chunks):
             response = client.post(url, json={"seq": seq, "messages": chunk})
             assert response.status_code == 201, response.text
-        job_whole = client.post(f"/v1/sessions/{whole}/jobs", json=params).json()
-        job_stream = client.post(f"/v1/sessions/{streamed}/jobs", json=params).json()
-        a, b = wait_for(client, job_whole["id"], timeout_s=600), wait_for(client, job_stream["id"], timeout_s=600)
+        a, b = map_sessions(client, params, whole, streamed)
         assert a["status"] == b["status"] == "succeeded", (a, b)
         ta = client.get(f"/v1/jobs/{a['id']}/trajectory").json()["poses"]
         tb = client.get(f"/v1/jobs/{b['id']}/trajectory").json()["poses"]

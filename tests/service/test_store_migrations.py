@@ -14,11 +14,12 @@ import pytest
 from alembic import command
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
+from service_helpers import store_on_backend
 from sqlalchemy import inspect, text
 
 from api_schemas.jobs import JobSource, JobStatus
 from service.storage.migration import alembic_config, compare_type, current_revision, head_revision
-from service.storage.store import JobStore, PostgresBackend, open_store
+from service.storage.store import JobStore, PostgresBackend
 from service.storage.tables import metadata
 
 # The schema that the store created at every start before migrations (0.1.0), verbatim.
@@ -53,10 +54,7 @@ TABLES = {"sessions", "logs", "chunks", "jobs", "stream_ends"}
 @pytest.fixture(params=["sqlite", "postgres"])
 def new_store(request, tmp_path) -> Iterator[JobStore]:
     """A store on an empty database (not initialised) on each backend."""
-    if request.param == "sqlite":
-        store = open_store("", tmp_path / "lidarmap.sqlite3")
-    else:
-        store = open_store(request.getfixturevalue("postgres").new_database(), tmp_path / "unused.sqlite3")
+    store = store_on_backend(request, tmp_path)
     yield store
     store.close()
 

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from postgres_server import PG_USER, free_port
+from service_helpers import store_on_backend
 
 import service.storage.job_records as job_records
 import service.storage.log_records as log_records
@@ -34,10 +35,7 @@ QUICK = {"particles": 5, "seed": 1, "resolution_m": 0.1, "snapshot_every_scans":
 @pytest.fixture(params=["sqlite", "postgres"])
 def store(request, tmp_path) -> Iterator[JobStore]:
     """An initialised, empty store on each backend (its pooled connections closed afterwards)."""
-    if request.param == "sqlite":
-        store = open_store("", tmp_path / "lidarmap.sqlite3")
-    else:
-        store = open_store(request.getfixturevalue("postgres").new_database(), tmp_path / "unused.sqlite3")
+    store = store_on_backend(request, tmp_path)
     store.initialise()
     yield store
     store.close()
