@@ -1,6 +1,7 @@
 """``python -m bench [SUBCOMMAND] ...``: ``accuracy`` (the default) runs the SLAM benchmark;
 ``throughput`` measures jobs per minute through the Celery runner; ``sessions`` localises, extends and
-merges maps on the two-session drives; ``margin`` maps the sparse logs at 15 particles over ten seeds."""
+merges maps on the two-session drives; ``margin`` maps the sparse logs at 15 particles over ten seeds;
+``live`` streams the simulated car at real time into a live job."""
 
 from __future__ import annotations
 
@@ -9,11 +10,13 @@ import sys
 import typer
 
 from bench.cli import accuracy
+from bench.live import live
 from bench.margin import margin
 from bench.sessions import sessions
 from bench.throughput import throughput
 
-SUBCOMMANDS = {"accuracy": accuracy, "throughput": throughput, "sessions": sessions, "margin": margin}
+SUBCOMMANDS = {"accuracy": accuracy, "throughput": throughput, "sessions": sessions, "margin": margin,
+               "live": live}
 
 
 def main(argv: list[str]) -> None:

@@ -139,6 +139,27 @@ class LiveRun:
         return filter_result(self.slam, log, self.config, started_s, progress), log
 
 
+class LiveTiming:
+    """Where a live job's time went while it followed the stream: reading and mapping chunks (live
+    snapshots left out) and writing live snapshots (PNG, tile grid, trajectory), in seconds."""
+
+    def __init__(self) -> None:
+        self.fed_s = 0.0  # reading and mapping chunks, snapshots written meanwhile included
+        self.snapshots = 0
+        self.snapshots_s = 0.0
+
+    def snapshot(self, live_map: LiveMap, snapshot: Callable[[], MapSnapshot | None]) -> None:
+        """``live_map.update(snapshot())``, counted and timed when it writes."""
+        started = time.perf_counter()
+        if live_map.update(snapshot()):
+            self.snapshots += 1
+            self.snapshots_s += time.perf_counter() - started
+
+    def as_dict(self) -> dict[str, float | int]:
+        return {"mapping_s": round(self.fed_s - self.snapshots_s, 3), "snapshots": self.snapshots,
+                "snapshots_s": round(self.snapshots_s, 3)}
+
+
 def run_live_job(ctx: JobContext) -> None:
     """Job function part for ``"live": true`` jobs (called by :func:`service.jobs.mapping.run_mapping_job`)."""
     job, session_id = ctx.job, ctx.job.session_id
@@ -152,16 +173,19 @@ def run_live_job(ctx: JobContext) -> None:
     ctx.store.set_input(ctx.job_id, {"source": "stream", "live": True, "ended": None})
     run = LiveRun(calibration, config)
     live_map = LiveMap(ctx.data.live_dir(ctx.job_id))
+    timing = LiveTiming()
 
     def on_scan() -> None:
         ctx.progress(run.scans_done, None, stage=MAPPING_SCANS)
-        live_map.update(run.latest_snapshot())
+        timing.snapshot(live_map, run.latest_snapshot)
 
     seq, published, last_seq = 0, -1, None
     idle_since = time.monotonic()
     while True:
         if ctx.data.chunk_file(session_id, seq).exists():
+            fed_s = time.perf_counter()
             run.feed(read_chunk_messages(ctx.data, session_id, seq), seq, on_scan)
+            timing.fed_s += time.perf_counter() - fed_s
             seq += 1
             idle_since = time.monotonic()
             continue
@@ -171,7 +195,7 @@ def run_live_job(ctx: JobContext) -> None:
             break
         # caught up with the stream: show the map so far, record progress (raises Cancelled when asked)
         if config.snapshot_every_scans and run.scans_done != published:
-            live_map.update(run.current_snapshot())
+            timing.snapshot(live_map, run.current_snapshot)
             published = run.scans_done
         ctx.progress(run.scans_done, None, force=True, stage=MAPPING_SCANS)
         if time.monotonic() - idle_since >= idle_timeout_s:
@@ -184,7 +208,8 @@ def run_live_job(ctx: JobContext) -> None:
                         "nothing to map")
     result, log = run.result(started_s, ctx.run_progress)
     description: dict[str, Any] = {"source": "stream", "live": True, "ended": ended, "chunks_used": seq,
-                                   "messages": len(run.messages), "last_seq": last_seq}
+                                   "messages": len(run.messages), "last_seq": last_seq,
+                                   "live_timing": timing.as_dict()}
     if ended == "idle_timeout":
         state = stream_state_in_store(ctx.store, session_id)
         description["missing_seqs_after"] = state.missing_seqs

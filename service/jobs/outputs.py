@@ -33,14 +33,16 @@ class LiveMap:
         self.live_dir = live_dir
         self._last_scan_index: int | None = None
 
-    def update(self, snapshot: MapSnapshot | None) -> None:
+    def update(self, snapshot: MapSnapshot | None) -> bool:
+        """Write ``snapshot`` unless it is None or the one written last; whether it wrote."""
         if snapshot is None or snapshot.scan_index == self._last_scan_index:
-            return
+            return False
         self._last_scan_index = snapshot.scan_index
         self.live_dir.mkdir(parents=True, exist_ok=True)
         save_grid(snapshot.grid, self.live_dir / GRID_FILE)
         write_atomic(self.live_dir / "occupancy.png", png_bytes(occupancy_image(snapshot.grid)))
         write_trajectory_json(snapshot.trajectory, self.live_dir / "trajectory.json", frame="map (so far)")
+        return True
 
 
 def write_job_products(ctx: JobContext, result: SlamResult, log: DriveLog, extra: dict[str, Path] | None = None
