@@ -26,16 +26,18 @@ def job_session(ctx: JobContext) -> SessionRow:
 
 
 class LiveMap:
-    """Writes the map so far (PNG and the tile grid) whenever the run hands over a new snapshot;
-    files are replaced atomically, so readers never see half a file."""
+    """Writes the map so far (PNG and the tile grid) whenever the run hands over a snapshot newer than
+    the one written last (never an older one: a live job mixes the filter's periodic snapshots with
+    the map as it stands when it has caught up); files are replaced atomically, so readers never see
+    half a file."""
 
     def __init__(self, live_dir: Path):
         self.live_dir = live_dir
         self._last_scan_index: int | None = None
 
     def update(self, snapshot: MapSnapshot | None) -> bool:
-        """Write ``snapshot`` unless it is None or the one written last; whether it wrote."""
-        if snapshot is None or snapshot.scan_index == self._last_scan_index:
+        """Write ``snapshot`` unless it is None or not newer than the one written last; whether it wrote."""
+        if snapshot is None or (self._last_scan_index is not None and snapshot.scan_index <= self._last_scan_index):
             return False
         self._last_scan_index = snapshot.scan_index
         self.live_dir.mkdir(parents=True, exist_ok=True)

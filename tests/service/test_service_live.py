@@ -9,6 +9,7 @@ regular job over the same chunks. Then the rules: one live job per session, the 
 from __future__ import annotations
 
 import io
+import json
 import os
 import signal
 import time
@@ -116,6 +117,29 @@ def test_live_job_maps_chunks_as_they_arrive_and_equals_a_regular_job(tmp_path) 
                 client.get(f"/v1/jobs/{regular['id']}/{product}").content, product
         run_live, run_regular = (client.get(f"/v1/jobs/{j['id']}/run").json() for j in (live, regular))
         assert run_live["config"] == run_regular["config"] and run_live["warnings"] == run_regular["warnings"]
+
+
+def test_live_map_never_goes_back_to_an_older_snapshot(tmp_path) -> None:
+    """A live job hands over the filter's periodic snapshots (every snapshot_every_scans) and, when it
+    has caught up, the map as it stands: the next scan's periodic snapshot is older and must not
+    replace it (nor cost a write)."""
+    from service.jobs.outputs import LiveMap
+    from slam_engine.model.result import MapSnapshot, OccupancyGrid, Trajectory
+
+    def snapshot(scans: int) -> MapSnapshot:
+        t_s = np.arange(scans, dtype=np.float64) * 0.1
+        trajectory = Trajectory(t_s, np.column_stack([t_s, np.zeros(scans), np.zeros(scans)]))
+        return MapSnapshot(scan_index=scans - 1, t_s=float(t_s[-1]), trajectory=trajectory,
+                           grid=OccupancyGrid(np.zeros((4, 4), np.float32), 0.25, 0.0, 0.0))
+
+    live_map = LiveMap(tmp_path / "live")
+    count = lambda: len(json.loads((tmp_path / "live" / "trajectory.json").read_text())["poses"])  # noqa: E731
+    assert live_map.update(None) is False
+    assert live_map.update(snapshot(50)) is True and count() == 50  # periodic
+    assert live_map.update(snapshot(63)) is True and count() == 63  # caught up
+    assert live_map.update(snapshot(50)) is False and count() == 63  # the periodic one again: older
+    assert live_map.update(snapshot(63)) is False
+    assert live_map.update(snapshot(100)) is True and count() == 100
 
 
 def tiny_chunk(seq: int, scans: int = 3) -> dict:
