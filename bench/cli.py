@@ -1,7 +1,8 @@
 """The benchmark's command line (``python -m bench`` and ``lidarmap bench``): thin wrapper over
 :func:`bench.harness.run_benchmark` and :func:`bench.report.print_report`, followed by the sessions
-table (:mod:`bench.sessions`) on the shared datasets' two-session drives and the margin table
-(:mod:`bench.margin`: the sparse logs at 15 particles, seeds 0-9)."""
+table (:mod:`bench.sessions`) on the shared datasets' two-session drives, the margin table
+(:mod:`bench.margin`: the sparse logs at 15 particles, seeds 0-9) and the live table (:mod:`bench.live`:
+the simulated car streamed at real time into a live job)."""
 
 from __future__ import annotations
 
@@ -62,6 +63,8 @@ def accuracy(
                                   "sessions/ drives, same seeds; not with --quick or --no-datasets)."),
     margin: bool = typer.Option(True, help="Then the margin table (aces-rough and infinite-corridor-rough at 15 "
                                 "particles, seeds 0-9; not with --quick or --no-datasets)."),
+    live: bool = typer.Option(True, help="Then the live table (the simulated car streamed at real time into a "
+                              "live job beside one busy process, about 2 minutes; not with --quick)."),
     out: Path | None = typer.Option(None, help="Output folder (default bench/results/<date-time>)."),
     timeout_s: float = typer.Option(3600.0, min=1.0, help="Time limit per run, seconds."),
     busy: int = typer.Option(0, min=0, max=64, help="CPU-bound processes to run beside every run "
@@ -120,6 +123,10 @@ def accuracy(
         from bench.margin import MARGIN_PARTICLES, MARGIN_SEEDS, run_margin_table
 
         run_margin_table(out, parse_seeds(MARGIN_SEEDS), MARGIN_PARTICLES, overrides or {}, console)
+    if live and not quick and (runner, loader) == (DEFAULT_RUNNER, DEFAULT_LOADER):
+        from bench.live import run_live_table
+
+        run_live_table(out, console)
 
 
 def run_sessions_table(seeds: list[int], out: Path, overrides: dict, particles: int | None, console) -> None:

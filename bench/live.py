@@ -227,24 +227,14 @@ def print_live(results: dict[str, Any], console) -> None:
     console.print(table)
 
 
-def live(
-    busy: int = typer.Option(1, min=0, max=64, help="CPU-bound processes ('while True: pass') beside the job."),
-    speed: float = typer.Option(1.0, min=0.1, max=100.0, help="Stream at this many times real time."),
-    duration_s: float | None = typer.Option(None, min=5.0, max=600.0,
-                                            help="Stream only the first seconds of the drive (default: all)."),
-    particles: int = typer.Option(30, min=1, max=1000, help="Particles of the live job."),
-    chunk_s: float = typer.Option(CHUNK_S, min=0.1, max=10.0, help="Seconds of drive per posted chunk."),
-    out: Path | None = typer.Option(None, help="Output folder (default bench/results/<date-time>)."),
-) -> None:
-    """The simulated car streamed through the API at real time into a live job: does it keep up?"""
-    from bench.cli import report_console
-    from bench.harness import RESULTS_ROOT, code_version, default_out_dir
-
+def run_live_table(out: Path, console, busy: int = 1, speed: float = 1.0, duration_s: float | None = None,
+                   particles: int = 30, chunk_s: float = CHUNK_S) -> dict[str, Any]:
+    """One streamed live job of the car (:func:`run_live`), its table printed and its numbers written to
+    ``out / RESULTS_FILE`` (and to ``bench/results/latest-live.json`` when ``out`` is under it)."""
+    from bench.harness import RESULTS_ROOT, code_version
     from slam_engine.kernels import warm_up
 
-    console = report_console()
     warm_up()  # as `make bench` and `make serve` do: the job's worker loads the kernels, never compiles them
-    out = out if out is not None else default_out_dir()
     out.mkdir(parents=True, exist_ok=True)
     params = {"particles": particles, "seed": 0}
     with tempfile.TemporaryDirectory(prefix="lidarmap-live-") as tmp:
@@ -257,6 +247,23 @@ def live(
     if out.resolve().is_relative_to(RESULTS_ROOT.resolve()):
         (RESULTS_ROOT / LATEST_FILE).write_text(text)
     print_live(results, console)
-    if row["status"] != "succeeded":
-        raise typer.Exit(1)
+    return results
 
+
+def live(
+    busy: int = typer.Option(1, min=0, max=64, help="CPU-bound processes ('while True: pass') beside the job."),
+    speed: float = typer.Option(1.0, min=0.1, max=100.0, help="Stream at this many times real time."),
+    duration_s: float | None = typer.Option(None, min=5.0, max=600.0,
+                                            help="Stream only the first seconds of the drive (default: all)."),
+    particles: int = typer.Option(30, min=1, max=1000, help="Particles of the live job."),
+    chunk_s: float = typer.Option(CHUNK_S, min=0.1, max=10.0, help="Seconds of drive per posted chunk."),
+    out: Path | None = typer.Option(None, help="Output folder (default bench/results/<date-time>)."),
+) -> None:
+    """The simulated car streamed through the API at real time into a live job: does it keep up?"""
+    from bench.cli import report_console
+    from bench.harness import default_out_dir
+
+    results = run_live_table(out if out is not None else default_out_dir(), report_console(), busy, speed,
+                             duration_s, particles, chunk_s)
+    if results["rows"][0]["status"] != "succeeded":
+        raise typer.Exit(1)

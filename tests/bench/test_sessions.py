@@ -136,12 +136,16 @@ def test_the_issue_targets_are_the_default_ones():
 
 def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_path):
     """``python -m bench`` runs the sessions table after the logs, with its seeds and output folder; not with
-    --quick, --no-datasets or --no-sessions."""
+    --quick, --no-datasets or --no-sessions. The live table (the simulated car, no datasets) comes last, into
+    the same folder; not with --quick or --no-live."""
     import bench.cases
     import bench.harness
+    import bench.live
     import bench.sessions
 
     calls: list = []
+    live_calls: list = []
+    monkeypatch.setattr(bench.live, "run_live_table", lambda out, console: live_calls.append(out))
     monkeypatch.setattr(bench.cases, "default_cases", lambda root=None, map_only=True: [])
     monkeypatch.setattr(bench.harness, "run_benchmark",
                         lambda cases, options, on_run=None: {"summaries": [], "out_dir": str(options.out_dir)})
@@ -154,10 +158,13 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
     log = tmp_path / "x.clf"
     log.write_text("")  # not a log the loader knows: skipped, the benchmark itself has nothing to run
     out = tmp_path / "out"
-    for flags, runs_sessions in ((["--seeds", "1-2"], True), (["--quick"], False), (["--no-sessions"], False),
-                                 (["--no-datasets"], False)):
+    for flags, runs_sessions, runs_live in ((["--seeds", "1-2"], True, True), (["--quick"], False, False),
+                                            (["--no-sessions"], False, True), (["--no-datasets"], False, True),
+                                            (["--seeds", "1-2", "--no-live"], True, False)):
         calls.clear()
+        live_calls.clear()
         with pytest.raises(SystemExit) as exit_info:
             main([*flags, "--no-simulated", "--out", str(out), str(log)])
         assert exit_info.value.code == 0
         assert calls == ([([drive], [1, 2], out)] if runs_sessions else []), flags
+        assert live_calls == ([out] if runs_live else []), flags
