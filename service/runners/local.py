@@ -129,8 +129,10 @@ class LocalProcessRunner:
                     slot.process.join(timeout=2.0)
                 if slot.job_id is not None:
                     reason = "interrupted: the service stopped while the job was running"
-                    self._store.finish(slot.job_id, JobStatus.FAILED, reason)
-                    job_event(JobStatus.FAILED.value, slot.job_id, logging.WARNING, error=reason)
+                    # a job whose worker finished it but whose message was not handled yet stays as
+                    # it ended: only a job still active is failed (and logged so)
+                    if self._store.finish(slot.job_id, JobStatus.FAILED, reason):
+                        job_event(JobStatus.FAILED.value, slot.job_id, logging.WARNING, error=reason)
             for slot in self._slots:
                 slot.inbox.close()
                 slot.inbox.join_thread()

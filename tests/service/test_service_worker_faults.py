@@ -4,6 +4,7 @@ into a job that is no longer its own."""
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import time
@@ -114,3 +115,18 @@ def test_a_job_that_meets_a_full_disk_fails_saying_so(tmp_path) -> None:
         assert str(tmp_path) not in first["error"]
         second = wait_for(client, start(client, sid, 1, 1)["id"], {"failed"}, timeout_s=60)
         assert second["error"] == first["error"]
+
+
+def test_a_stop_leaves_a_job_its_worker_already_finished_as_it_ended(tmp_path, caplog) -> None:
+    """Before: stopping the service logged 'event=failed ... interrupted' for a job whose worker had
+    finished it but whose message was not handled yet (the store kept it succeeded). Now: a stop fails
+    and logs only a job that is still active."""
+    caplog.set_level(logging.INFO, logger="lidarmap.jobs")
+    with service_client(tmp_path, job_function=f"{FUNCS}:late_writer", cancel_grace_s=60.0) as client:
+        sid = streaming_session(client)
+        job = wait_for(client, start(client, sid, 1, 1)["id"], {"running"}, timeout_s=60)
+        store = client.app.state.store
+        assert store.finish(job["id"], JobStatus.SUCCEEDED)  # as its worker does before reporting
+    assert store.get_job(job["id"]).status is JobStatus.SUCCEEDED
+    events = [r.getMessage() for r in caplog.records if f"job={job['id']}" in r.getMessage()]
+    assert events and not [e for e in events if "event=failed" in e], events
