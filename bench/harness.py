@@ -176,6 +176,15 @@ def code_version() -> dict:
     return {"commit": git("rev-parse", "HEAD"), "dirty": None if status is None else bool(status)}
 
 
+def write_results(results: dict, out_dir: Path, name: str, latest_name: str) -> None:
+    """``results`` as JSON into ``out_dir / name`` and, when ``out_dir`` lies under :data:`RESULTS_ROOT`,
+    a copy as ``RESULTS_ROOT / latest_name`` (the newest run of that table)."""
+    text = json.dumps(results, indent=1)
+    (out_dir / name).write_text(text)
+    if out_dir.resolve().is_relative_to(RESULTS_ROOT.resolve()):
+        (RESULTS_ROOT / latest_name).write_text(text)
+
+
 def default_out_dir() -> Path:
     return RESULTS_ROOT / time.strftime("%Y%m%d-%H%M%S")
 
@@ -211,8 +220,5 @@ def run_benchmark(cases: list[BenchCase], options: BenchOptions,
         "runs": [finite_or_none(r) for r in runs],
         "out_dir": str(out_dir),
     }
-    text = json.dumps(results, indent=1)
-    (out_dir / "results.json").write_text(text)
-    if out_dir.resolve().is_relative_to(RESULTS_ROOT.resolve()):
-        (RESULTS_ROOT / "latest.json").write_text(text)
+    write_results(results, out_dir, "results.json", "latest.json")
     return results

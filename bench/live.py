@@ -17,7 +17,6 @@ as the accuracy table scores it) and writes ``live.json`` into the results folde
 
 from __future__ import annotations
 
-import json
 import os
 import statistics
 import tempfile
@@ -231,7 +230,7 @@ def run_live_table(out: Path, console, busy: int = 1, speed: float = 1.0, durati
                    particles: int = 30, chunk_s: float = CHUNK_S) -> dict[str, Any]:
     """One streamed live job of the car (:func:`run_live`), its table printed and its numbers written to
     ``out / RESULTS_FILE`` (and to ``bench/results/latest-live.json`` when ``out`` is under it)."""
-    from bench.harness import RESULTS_ROOT, code_version
+    from bench.harness import code_version, write_results
     from slam_engine.kernels import warm_up
 
     warm_up()  # as `make bench` and `make serve` do: the job's worker loads the kernels, never compiles them
@@ -242,10 +241,7 @@ def run_live_table(out: Path, console, busy: int = 1, speed: float = 1.0, durati
                        say=lambda line: console.print(line, highlight=False))
     results = {"code": code_version(), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "cpu_count": os.cpu_count(),
                "params": params, "rows": [row]}
-    text = json.dumps(results, indent=1)
-    (out / RESULTS_FILE).write_text(text)
-    if out.resolve().is_relative_to(RESULTS_ROOT.resolve()):
-        (RESULTS_ROOT / LATEST_FILE).write_text(text)
+    write_results(results, out, RESULTS_FILE, LATEST_FILE)
     print_live(results, console)
     return results
 

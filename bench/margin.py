@@ -12,7 +12,6 @@ when under ``bench/results``).
 
 from __future__ import annotations
 
-import json
 import statistics
 from pathlib import Path
 
@@ -58,7 +57,7 @@ def run_margin(cases: list, options, say=print) -> dict:
     """Map each of ``cases`` for every seed of ``options`` (a :class:`bench.harness.BenchOptions`: its
     particles, config, runner and ``out_dir``), one process each; the table's rows as JSON, also
     written to ``options.out_dir / RESULTS_FILE``."""
-    from bench.harness import RESULTS_ROOT, code_version, run_one
+    from bench.harness import code_version, run_one, write_results
 
     out = Path(options.out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -74,10 +73,7 @@ def run_margin(cases: list, options, say=print) -> dict:
         rows.append(margin_row(case.name, records))
     results = {"code": code_version(), "particles": options.particles, "seeds": options.seeds,
                "config": options.config, "lost_m": LOST_M, "rows": rows, "out_dir": str(out)}
-    text = json.dumps(results, indent=1)
-    (out / RESULTS_FILE).write_text(text)
-    if out.resolve().is_relative_to(RESULTS_ROOT.resolve()):
-        (RESULTS_ROOT / LATEST_FILE).write_text(text)
+    write_results(results, out, RESULTS_FILE, LATEST_FILE)
     return results
 
 

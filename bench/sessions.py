@@ -24,7 +24,6 @@ one of the numbers per seed, and writes ``sessions.json`` into the results folde
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import statistics
@@ -371,7 +370,7 @@ def run_sessions(drives: list[SessionDrive], seeds: list[int], out_dir: Path | N
                  say: Callable[[str], None] = print) -> dict:
     """Every seed's record and the checks over them; written as ``sessions.json`` into ``out_dir``
     (default ``bench/results/<date-time>``; a copy as ``bench/results/latest-sessions.json`` when there)."""
-    from bench.harness import RESULTS_ROOT, code_version, default_out_dir
+    from bench.harness import code_version, default_out_dir, write_results
     from bench.worker import finite_or_none
 
     out_dir = Path(out_dir) if out_dir is not None else default_out_dir()
@@ -392,10 +391,7 @@ def run_sessions(drives: list[SessionDrive], seeds: list[int], out_dir: Path | N
         "runs": runs,
         "out_dir": str(out_dir),
     })
-    text = json.dumps(results, indent=1)
-    (out_dir / RESULTS_FILE).write_text(text)
-    if out_dir.resolve().is_relative_to(RESULTS_ROOT.resolve()):
-        (RESULTS_ROOT / LATEST_FILE).write_text(text)
+    write_results(results, out_dir, RESULTS_FILE, LATEST_FILE)
     return results
 
 
