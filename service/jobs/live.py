@@ -21,7 +21,8 @@ it arrives, and writes the same products as any job once the stream ends.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 from service.jobs.context import JobContext, JobFailed
@@ -144,9 +145,16 @@ class LiveTiming:
     snapshots left out) and writing live snapshots (PNG, tile grid, trajectory), in seconds."""
 
     def __init__(self) -> None:
-        self.fed_s = 0.0  # reading and mapping chunks, snapshots written meanwhile included
+        self.mapping_s = 0.0
         self.snapshots = 0
         self.snapshots_s = 0.0
+
+    @contextmanager
+    def mapping(self) -> Iterator[None]:
+        """Time the block (a chunk read and mapped) as mapping, less the snapshots written meanwhile."""
+        started, snapshots_before = time.perf_counter(), self.snapshots_s
+        yield
+        self.mapping_s += time.perf_counter() - started - (self.snapshots_s - snapshots_before)
 
     def snapshot(self, live_map: LiveMap, snapshot: Callable[[], MapSnapshot | None]) -> None:
         """``live_map.update(snapshot())``, counted and timed when it writes."""
@@ -156,7 +164,7 @@ class LiveTiming:
             self.snapshots_s += time.perf_counter() - started
 
     def as_dict(self) -> dict[str, float | int]:
-        return {"mapping_s": round(self.fed_s - self.snapshots_s, 3), "snapshots": self.snapshots,
+        return {"mapping_s": round(self.mapping_s, 3), "snapshots": self.snapshots,
                 "snapshots_s": round(self.snapshots_s, 3)}
 
 
@@ -183,9 +191,8 @@ def run_live_job(ctx: JobContext) -> None:
     idle_since = time.monotonic()
     while True:
         if ctx.data.chunk_file(session_id, seq).exists():
-            fed_s = time.perf_counter()
-            run.feed(read_chunk_messages(ctx.data, session_id, seq), seq, on_scan)
-            timing.fed_s += time.perf_counter() - fed_s
+            with timing.mapping():
+                run.feed(read_chunk_messages(ctx.data, session_id, seq), seq, on_scan)
             seq += 1
             idle_since = time.monotonic()
             continue
