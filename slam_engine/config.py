@@ -230,7 +230,7 @@ class LoopClosingConfig(_Section):
     base_window_m: float = Field(0.5, gt=0.0, le=50.0, description="Search half width right after a closure [m].")
     window_per_m: float = Field(0.08, ge=0.0, le=1.0, description="Growth of the search half width per metre "
                                 "travelled since the last closure [m/m].")
-    max_window_m: float = Field(10.0, gt=0.0, le=100.0, description="Largest search half width [m].")
+    max_window_m: float = Field(15.0, gt=0.0, le=100.0, description="Largest search half width [m].")
     base_window_rad: float = Field(0.1, gt=0.0, le=3.2, description="Heading search half width right after a "
                                    "closure [rad].")
     window_rad_per_m: float = Field(0.01, ge=0.0, le=1.0, description="Its growth per metre travelled [rad/m].")
