@@ -25,7 +25,9 @@ Frames: ``map``: the bundle's; the drive's own frame: its odometry (or its map's
 from __future__ import annotations
 
 import math
+import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -75,6 +77,9 @@ MAP_SD_M, MAP_SD_RAD = 0.05, 0.02  # the tracking grid's: windows up to 31 cells
 # a global search prunes below this share of min_score: a weaker placement is still reported as the best
 # score of a refused drive, and pruning at min_score itself would leave it unknown
 REPORT_SHARE = 0.9
+# localize_log with threads: the first try at placing the drive is made on its first scans, once this
+# many stretches of travel are matched: the first stretch grown to its longest and the one confirming it
+START_STRETCHES = 2 * STRETCH_GROWTH[-1] + 1
 
 
 @dataclass
@@ -144,13 +149,17 @@ class DriveScans:
     def __post_init__(self) -> None:
         steps = np.hypot(*np.diff(self.poses[:, :2], axis=0).T) if len(self.poses) > 1 else np.zeros(0)
         self.travel_m = np.concatenate([[0.0], np.cumsum(steps)])
+        self.reached_end = False  # whether a stretch asked for ran to the last scan (see localize_log)
 
     def __len__(self) -> int:
         return len(self.t_s)
 
     @classmethod
-    def from_log(cls, log: DriveLog, config: SlamConfig) -> DriveScans:
-        """Every scan of ``log`` at its dead-reckoned pose, with its returned end points."""
+    def from_log(cls, log: DriveLog, config: SlamConfig, on_start: Callable[[DriveScans], None] | None = None,
+                 start_m: float = 0.0) -> DriveScans:
+        """Every scan of ``log`` at its dead-reckoned pose, with its returned end points, matched to each
+        other (:meth:`scan_matched`); ``on_start`` hears the drive's first ``start_m`` of travel as soon as
+        those scans are matched (the whole drive, when shorter)."""
         from slam_engine.frontend.odometry import dead_reckoning
         from slam_engine.frontend.particle_filter import make_projector
 
@@ -162,7 +171,8 @@ class DriveScans:
         hits = [projector.project(ranges, angle_offset_rad=float(offset)).hits_v
                 for ranges, offset in zip(log.scans.ranges_m, offsets, strict=True)]
         drive = cls(np.asarray(odometry.t_s, np.float64), np.asarray(odometry.poses, np.float64), hits)
-        return drive.scan_matched(config.localization.local_map_resolution_m, config.localization.local_map_m)
+        return drive.scan_matched(config.localization.local_map_resolution_m, config.localization.local_map_m,
+                                  on_start, start_m)
 
     @classmethod
     def from_bundle(cls, bundle: MapBundle) -> DriveScans:
@@ -171,8 +181,10 @@ class DriveScans:
 
     def stretch_end(self, first: int, stretch_m: float) -> int:
         """The last scan of the stretch that starts at ``first`` and spans ``stretch_m`` of travel."""
-        end = int(np.searchsorted(self.travel_m, self.travel_m[first] + stretch_m, side="left"))
-        return min(max(end, first), len(self) - 1)
+        end = min(max(int(np.searchsorted(self.travel_m, self.travel_m[first] + stretch_m, side="left")), first),
+                  len(self) - 1)
+        self.reached_end |= end == len(self) - 1
+        return end
 
     def cloud(self, first: int, last: int, budget: int) -> np.ndarray:
         """The end points of scans ``first..last`` in scan ``last``'s vehicle frame (N, 2) [m], joined by
@@ -186,11 +198,14 @@ class DriveScans:
                             np.repeat(np.arange(len(frames)), counts))
         return np.ascontiguousarray(thin(placed, budget))
 
-    def scan_matched(self, resolution_m: float, span_m: float) -> DriveScans:
+    def scan_matched(self, resolution_m: float, span_m: float, on_start: Callable[[DriveScans], None] | None = None,
+                     start_m: float = 0.0) -> DriveScans:
         """The drive with its relative poses corrected as a front end would: each scan matched (on
         ``resolution_m`` cells) against the scans of the last ``span_m`` of travel before it, from where
         the odometry puts it. A wheel odometry's turn errors (intel: 0.13 rad between scans at the 90th
-        percentile) would otherwise smear every stretch and every prediction."""
+        percentile) would otherwise smear every stretch and every prediction. ``on_start`` hears the
+        first scans matched, once they span ``start_m`` of travel (all of them, when the drive is
+        shorter): each scan's match depends only on the scans before it."""
         poses = [self.poses[0].copy()]
         in_reach = [h[np.hypot(h[:, 0], h[:, 1]) <= MATCH_RANGE_M] for h in self.hits]
         placed = [place_points(poses[0], in_reach[0])]
@@ -211,7 +226,13 @@ class DriveScans:
             travel.append(travel[-1] + float(np.hypot(*(predicted[:2] - poses[-1][:2]))))
             poses.append(predicted)
             placed.append(place_points(predicted, in_reach[k]))
-        return DriveScans(self.t_s, np.array(poses), self.hits)
+            if on_start is not None and travel[-1] >= start_m:
+                on_start(DriveScans(self.t_s[: k + 1], np.array(poses), self.hits[: k + 1]))
+                on_start = None
+        matched = DriveScans(self.t_s, np.array(poses), self.hits)
+        if on_start is not None:
+            on_start(matched)
+        return matched
 
 
 @dataclass(frozen=True)
@@ -416,9 +437,17 @@ class Localizer:
         picks = np.linspace(0, len(starts) - 1, self.config.max_first_tries).round().astype(int)
         return [starts[i] for i in sorted(set(picks.tolist()))]
 
-    def run(self, hint: np.ndarray | None = None) -> LocalizationResult:
+    def first_try(self, k: int, hint: np.ndarray | None) -> tuple[int, int, np.ndarray] | None:
+        """:meth:`confirmed_placement` of the stretch at scan ``k``, searched near ``hint`` (the map pose
+        of the drive's first scan) when given."""
+        near = None if hint is None else Near(hint, HINT_WINDOW_M, HINT_WINDOW_RAD).moved(self.drive, 0, k)
+        return self.confirmed_placement(k, near)
+
+    def run(self, hint: np.ndarray | None = None, tried: dict[int, tuple[int, int, np.ndarray] | None] | None = None
+            ) -> LocalizationResult:
         """Localise the whole drive; ``hint``: the map pose of its first scan, if known (searched within
-        ``HINT_WINDOW_M`` / ``HINT_WINDOW_RAD`` of it, still confirmed)."""
+        ``HINT_WINDOW_M`` / ``HINT_WINDOW_RAD`` of it, still confirmed); ``tried``: first tries already
+        made (:meth:`first_try` by scan), whose outcome is taken as it is."""
         started = time.perf_counter()
         drive = self.drive
         n = len(drive)
@@ -427,8 +456,7 @@ class Localizer:
         events: list[dict] = []
         placement = None
         for k in self.first_tries():  # the first placement
-            near = None if hint is None else Near(hint, HINT_WINDOW_M, HINT_WINDOW_RAD).moved(drive, 0, k)
-            placement = self.confirmed_placement(k, near)
+            placement = tried[k] if tried is not None and k in tried else self.first_try(k, hint)
             if placement is not None:
                 break
         if placement is None:
@@ -564,21 +592,41 @@ def localize_log(bundle: MapBundle, log: DriveLog, config: SlamConfig | None = N
                  threads: int = 1) -> tuple[DriveScans, LocalizationResult]:
     """:func:`localize` of a drive log: its scans (:meth:`DriveScans.from_log`, returned too) and the
     result, whose wall time covers reading and matching the drive's scans. With ``threads`` > 1 the
-    saved map's index is built in a second thread meanwhile (both spend their time in numba kernels
-    that release the GIL)."""
+    drive's scans are matched in a second thread, while this one builds the saved map's index and then
+    makes the first try at placing the drive on its first scans (their ``START_STRETCHES`` stretches of
+    travel, as soon as they are matched); both spend their time in numba kernels that release the GIL.
+    The try's outcome is used as it is unless a stretch it searched ran to the last of those scans (the
+    drive beyond might have changed it): the result is the same as with one thread."""
     config = SlamConfig() if config is None else config
     started = time.perf_counter()
-    if threads > 1:
-        with ThreadPoolExecutor(1) as pool:
-            building = pool.submit(MapIndex.of_bundle, bundle, config.localization)
-            drive = DriveScans.from_log(log, config)
-            index = building.result()
-    else:
+    if threads <= 1:
         drive = DriveScans.from_log(log, config)
         index = MapIndex.of_bundle(bundle, config.localization)
-    return drive, _placed(index, drive, config, hint, threads, started)
+        return drive, _placed(index, drive, config, hint, threads, started)
+    start_ready = threading.Event()
+    start: list[DriveScans] = []
 
+    def on_start(scans: DriveScans) -> None:
+        start.append(scans)
+        start_ready.set()
 
+    with ThreadPoolExecutor(1) as pool:
+        matching = pool.submit(DriveScans.from_log, log, config, on_start,
+                               START_STRETCHES * config.localization.stretch_m)
+        index = MapIndex.of_bundle(bundle, config.localization)
+        while not start_ready.wait(0.005) and not matching.done():
+            pass
+        tried: dict[int, tuple[int, int, np.ndarray] | None] = {}
+        early = None
+        if start:
+            early = Localizer(index, start[0], config.localization, threads)
+            outcome = early.first_try(0, hint)
+            if start[0].reached_end:
+                early = None  # the rest of the drive might have changed it: tried again on the whole drive
+            else:
+                tried[0] = outcome
+        drive = matching.result()
+    return drive, _placed(index, drive, config, hint, threads, started, tried, early)
 def localize(bundle: MapBundle, drive: DriveScans, config: SlamConfig | None = None, hint: np.ndarray | None = None,
              threads: int = 1) -> LocalizationResult:
     """Localise ``drive`` in the map of ``bundle`` (see the module docstring); ``hint``: the map pose of
@@ -589,9 +637,13 @@ def localize(bundle: MapBundle, drive: DriveScans, config: SlamConfig | None = N
 
 
 def _placed(index: MapIndex, drive: DriveScans, config: SlamConfig, hint: np.ndarray | None, threads: int,
-            started: float) -> LocalizationResult:
+            started: float, tried: dict | None = None, early: Localizer | None = None) -> LocalizationResult:
     """The drive placed and tracked in the map of ``index``: ``search_s`` that alone took (the
-    localizer's own wall time), ``wall_time_s`` since ``started`` (``time.perf_counter()``)."""
-    result = Localizer(index, drive, config.localization, threads).run(hint)
+    localizer's own wall time), ``wall_time_s`` since ``started`` (``time.perf_counter()``). ``tried``:
+    first tries made before by ``early`` (on the drive's first scans), whose searches count too."""
+    localizer = Localizer(index, drive, config.localization, threads)
+    if early is not None:
+        localizer.best_score, localizer.global_searches = early.best_score, early.global_searches
+    result = localizer.run(hint, tried)
     result.search_s, result.wall_time_s = result.wall_time_s, time.perf_counter() - started
     return result

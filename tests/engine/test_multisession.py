@@ -16,7 +16,7 @@ from slam_engine.evaluation.metrics import absolute_trajectory_error, align_rigi
 from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.result import SlamResult
 from slam_engine.multisession.joining import join, merge
-from slam_engine.multisession.localization import DriveScans, localize, localize_log
+from slam_engine.multisession.localization import DriveScans, Localizer, localize, localize_log
 from slam_engine.pipeline import run_slam
 from slam_engine.products.map_bundle import ARRAYS, BUNDLE_FILE, read_bundle, write_bundle
 from slam_engine.simulation import SimulatedDrive, simulate
@@ -71,6 +71,30 @@ def test_a_log_is_localised_alike_with_the_map_index_built_beside_its_scans(halv
         assert np.array_equal(result.trajectory.poses, alone.trajectory.poses)
         assert np.array_equal(drive.poses, DriveScans.from_log(halves[1], CONFIG).poses)
         assert 0.0 < result.search_s < result.wall_time_s and result.events == alone.events
+
+
+def test_with_threads_the_first_try_is_made_on_the_drive_start_while_the_rest_is_matched(
+        office, first_map, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With two threads the first try at placing the drive runs on its first scans while the rest are
+    still being matched, is not repeated on the whole drive, and places and tracks the drive exactly as
+    one thread does (which tries on the whole drive)."""
+    tries: list[tuple[int, int]] = []
+    first_try = Localizer.first_try
+
+    def recorded(self: Localizer, k: int, hint: np.ndarray | None):
+        tries.append((k, len(self.drive)))
+        return first_try(self, k, hint)
+
+    monkeypatch.setattr(Localizer, "first_try", recorded)
+    drive, result = localize_log(first_map.bundle, office.log, CONFIG, threads=2)
+    assert result.localised and tries == [(0, tries[0][1])] and tries[0][1] < len(drive) * 0.8
+    tries.clear()
+    _, alone = localize_log(first_map.bundle, office.log, CONFIG, threads=1)
+    assert tries == [(0, len(drive))]
+    assert result.trajectory is not None and alone.trajectory is not None
+    assert np.array_equal(result.trajectory.poses, alone.trajectory.poses)
+    assert result.summary()["global_searches"] == alone.summary()["global_searches"]
+    assert result.best_score == alone.best_score and result.events == alone.events
 
 
 def test_a_drive_that_leaves_the_map_is_carried_by_its_motion_not_judged(office) -> None:
