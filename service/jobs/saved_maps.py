@@ -57,10 +57,12 @@ def run_from_saved_map(ctx: JobContext, log: DriveLog, progress: Any) -> None:
 
 def _localize(ctx: JobContext, bundle: Any, log: DriveLog, config: Any) -> None:
     from service.jobs.outputs import product_names
+    from slam_engine.frontend.particle_filter import engine_threads
     from slam_engine.multisession.localization import localize_log
     from slam_engine.products.multisession import localization_image, saved_map_grid, write_localization
 
-    drive, result = localize_log(bundle, log, config, threads=1)
+    # the worker's engine threads (LIDARMAP_THREADS, 1 unless set), as its mapping jobs use
+    drive, result = localize_log(bundle, log, config, threads=engine_threads())
     total = len(drive)
     ctx.progress(total, total, force=True, stage=WRITING_PRODUCTS, fraction=run_fraction(WRITING_PRODUCTS, 0.0))
     summary = result.summary()
@@ -74,13 +76,14 @@ def _localize(ctx: JobContext, bundle: Any, log: DriveLog, config: Any) -> None:
 
 
 def _extend(ctx: JobContext, bundle: Any, log: DriveLog, config: Any, progress: Any) -> None:
+    from slam_engine.frontend.particle_filter import engine_threads
     from slam_engine.multisession.joining import join
     from slam_engine.pipeline import run_slam
     from slam_engine.products.multisession import drives_image, joined_result, save_png
 
     own = run_slam(log, config, progress=progress)
     assert own.bundle is not None  # a run with scans always makes one
-    joined = join(bundle, own.bundle, config)
+    joined = join(bundle, own.bundle, config, threads=engine_threads())
     if not joined.connected:
         raise MapBundleError(f"refused: the drive could not be placed in the saved map (best score "
                              f"{joined.placement.best_score:.3f}); map it on its own, or extend with a drive that "
