@@ -181,8 +181,8 @@ class DriveScans:
 
     def stretch_end(self, first: int, stretch_m: float) -> int:
         """The last scan of the stretch that starts at ``first`` and spans ``stretch_m`` of travel."""
-        end = min(max(int(np.searchsorted(self.travel_m, self.travel_m[first] + stretch_m, side="left")), first),
-                  len(self) - 1)
+        end = int(np.searchsorted(self.travel_m, self.travel_m[first] + stretch_m, side="left"))
+        end = min(max(end, first), len(self) - 1)
         self.reached_end |= end == len(self) - 1
         return end
 
@@ -613,9 +613,9 @@ def localize_log(bundle: MapBundle, log: DriveLog, config: SlamConfig | None = N
     with ThreadPoolExecutor(1) as pool:
         matching = pool.submit(DriveScans.from_log, log, config, on_start,
                                START_STRETCHES * config.localization.stretch_m)
+        matching.add_done_callback(lambda _: start_ready.set())  # also when it fails before its start
         index = MapIndex.of_bundle(bundle, config.localization)
-        while not start_ready.wait(0.005) and not matching.done():
-            pass
+        start_ready.wait()
         tried: dict[int, tuple[int, int, np.ndarray] | None] = {}
         early = None
         if start:
@@ -627,6 +627,8 @@ def localize_log(bundle: MapBundle, log: DriveLog, config: SlamConfig | None = N
                 tried[0] = outcome
         drive = matching.result()
     return drive, _placed(index, drive, config, hint, threads, started, tried, early)
+
+
 def localize(bundle: MapBundle, drive: DriveScans, config: SlamConfig | None = None, hint: np.ndarray | None = None,
              threads: int = 1) -> LocalizationResult:
     """Localise ``drive`` in the map of ``bundle`` (see the module docstring); ``hint``: the map pose of
