@@ -22,6 +22,7 @@ import numba as nb
 import numpy as np
 
 MAX_VALUE = 255
+NO_ORIGINS = np.zeros((0, 0, 0), np.uint8)  # branch_and_bound's origins: every translation
 
 
 def max_pyramid(values: np.ndarray, n_levels: int) -> np.ndarray:
@@ -92,7 +93,7 @@ class CorrelativeMatch:
 
     pose: np.ndarray
     score: float
-    runner_up_score: float
+    runner_up_score: float  # NaN: not searched for (see search())
     runner_up_pose: np.ndarray | None = None
     line_direction: np.ndarray | None = None  # (2,) unit, submap frame: ambiguous only along this line
 
@@ -141,6 +142,25 @@ def _score(pyramid, level, cells, a, dx, dy):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def _may_hold_origin(origins, level, x, y):
+    """Whether the node's block of translations (``2**level`` a side from (x, y), in the origins'
+    cells) puts the scan's origin on any allowed cell (``origins``: a max pyramid of the allowed cells;
+    with no levels, everywhere)."""
+    if origins.shape[0] == 0:
+        return True
+    size = 1 << level
+    if x < 0:
+        if x + size <= 0:
+            return False
+        x = 0
+    if y < 0:
+        if y + size <= 0:
+            return False
+        y = 0
+    return x < origins.shape[2] and y < origins.shape[1] and origins[level, y, x] > 0
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def _inside_exclusion(a, dx, dy, size, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy):
     """Whether every translation of the node (a, [dx, dx+size) x [dy, dy+size)) lies within the
     exclusion zone around (ex_a, ex_x, ex_y): a box of half width ``ex_cells``, or where the unit
@@ -160,11 +180,16 @@ def _inside_exclusion(a, dx, dy, size, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy,
-                     n_shards):
+                     n_shards, origins, origin_x, origin_y, first_only=False):
     """Best (a, dx, dy, total) over headings a and integer translations |dx|, |dy| <= window_cells,
     whose total exceeds ``min_total``; (-1, 0, 0, min_total) when none does. Nodes entirely inside the
     exclusion zone (``ex_angles`` >= 0; a box, or a strip along the unit direction ``(ex_ux, ex_uy)``)
-    are skipped: a second search with it finds the best match that is *not* the first one.
+    are skipped: a second search with it finds the best match that is *not* the first one. Only
+    translations that put the scan's origin (at cell (origin_x, origin_y) untranslated) on a cell that
+    ``origins`` allows are searched (a max pyramid like ``pyramid``'s, on the same cells, at least as
+    many levels; an empty (0, 0, 0) array: every translation). ``first_only``: the search stops at the
+    first leaf that exceeds ``min_total`` (whether one does, not the best; one shard, so the leaf is
+    the same on every run).
 
     The search is depth first from the best top-level node, the best child first; of equally good
     leaves, the first one reached wins. The top-level nodes are dealt out to ``n_shards`` shards,
@@ -189,6 +214,8 @@ def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, 
                 dy = -window_cells + iy * size_top
                 if _inside_exclusion(a, dx, dy, size_top, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy):
                     continue
+                if not _may_hold_origin(origins, top, origin_x + dx, origin_y + dy):
+                    continue
                 st_a[m] = a
                 st_x[m] = dx
                 st_y[m] = dy
@@ -199,11 +226,14 @@ def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, 
     top_x = st_x[:m][order]
     top_y = st_y[:m][order]
     top_s = st_s[:m][order]
+    if first_only:
+        n_shards = 1
     shard_best = np.full(n_shards, min_total, np.int64)
     found = np.empty((n_shards, 5), np.int64)
     for shard in nb.prange(n_shards):
         _descend(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy,
-                 top, top_a, top_x, top_y, top_s, shard, n_shards, shard_best, found)
+                 top, top_a, top_x, top_y, top_s, shard, n_shards, shard_best, found, origins, origin_x, origin_y,
+                 first_only)
     # the best total; of equal ones, the one under the top-level node searched first
     best = 0
     for q in range(1, n_shards):
@@ -216,7 +246,8 @@ def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, 
 
 @nb.njit(cache=True, nogil=True)
 def _descend(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy,
-             top, top_a, top_x, top_y, top_s, shard, n_shards, shard_best, found):
+             top, top_a, top_x, top_y, top_s, shard, n_shards, shard_best, found, origins, origin_x, origin_y,
+             first_only):
     """:func:`branch_and_bound` under the top-level nodes ``shard``, ``shard + n_shards``, ... counted
     from the best (the arrays ``top_*`` are sorted by score, ascending). Writes ``found[shard]`` =
     (a, dx, dy, total, position of its top-level node) of the first best leaf, (-1, 0, 0, min_total,
@@ -236,6 +267,8 @@ def _descend(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angle
     cy = np.empty(4, np.int64)
     cs = np.empty(4, np.int64)
     for position in range(top_a.shape[0] - 1 - shard, -1, -n_shards):
+        if first_only and best_a >= 0:
+            break
         st_a[0], st_x[0], st_y[0], st_h[0], st_s[0] = (top_a[position], top_x[position], top_y[position], top,
                                                        top_s[position])
         m = 1
@@ -255,6 +288,8 @@ def _descend(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angle
             if h == 0:
                 best_total, best_a, best_x, best_y, best_position = s, a, dx, dy, position
                 shard_best[shard] = s
+                if first_only:
+                    break
                 continue
             half = 1 << (h - 1)
             k = 0
@@ -265,6 +300,8 @@ def _descend(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angle
                     if x > window_cells or y > window_cells:
                         continue
                     if _inside_exclusion(a, x, y, half, ex_a, ex_x, ex_y, ex_angles, ex_cells, ex_ux, ex_uy):
+                        continue
+                    if not _may_hold_origin(origins, h - 1, origin_x + x, origin_y + y):
                         continue
                     sc = _score(pyramid, h - 1, cells, a, x, y)
                     if sc <= best_total or sc < others:
@@ -297,7 +334,8 @@ def angular_step_rad(points_v: np.ndarray, resolution_m: float, reach_cap_m: flo
 def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, window_m: float, window_rad: float,
            min_score: float, ambiguity_m: float = 0.0, ambiguity_rad: float = 0.0,
            runner_up_share: float = 0.0, line_half_width_m: float = 0.0, line_half_width_rad: float = 0.0,
-           runner_up_min_score: float | None = None, threads: int = 1) -> CorrelativeMatch | None:
+           runner_up_min_score: float | None = None, threads: int = 1, runner_up_from: float = 0.0,
+           origins: np.ndarray | None = None, any_runner_up: bool = False) -> CorrelativeMatch | None:
     """Best pose of ``points_v`` within ``window_m`` / ``window_rad`` of ``initial_pose`` scoring
     above ``min_score``, or None. With ``ambiguity_m`` > 0 a second search reports the best score
     of a pose more than ``ambiguity_m`` / ``ambiguity_rad`` from the best one (at least
@@ -311,6 +349,16 @@ def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, wind
     the two, or turned more than ``ambiguity_rad`` from the best. When nothing there reaches the
     runner-up share, the match is ambiguous only along that line, and ``line_direction`` holds the
     line's unit direction (submap frame): the heading is still found.
+
+    The runner-up is searched for only when the best scores at least ``runner_up_from`` (a caller that
+    refuses a weaker match anyway saves the second search, which takes as long as the first); below it,
+    ``runner_up_score`` is NaN. ``any_runner_up``: the runner-up search stops at the first pose that
+    reaches the share, whose score is then ``runner_up_score`` (any such pose's, not the best: for a
+    caller that only asks whether the match is ambiguous; when it is, much faster). No line test then.
+
+    ``origins``: where the scan's origin (the vehicle) may be, as a max pyramid (:func:`max_pyramid`) of
+    the allowed cells of ``grid`` (at least as many levels as its own); the search skips every other
+    translation (a drive is where its map saw free space). None: anywhere.
 
     Each search runs in ``threads`` threads (the result does not depend on it)."""
     points_v = np.ascontiguousarray(points_v, np.float64)
@@ -326,29 +374,40 @@ def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, wind
                            1.0 / res)
     min_total = int(min_score * MAX_VALUE * n)
     shards = max(1, int(threads))
-    a, dx, dy, total = branch_and_bound(grid.pyramid, cells, window_cells, min_total, 0, 0, 0, -1, 0, 0.0, 0.0, shards)
+    if origins is None:
+        origins, origin_x, origin_y = NO_ORIGINS, 0, 0
+    else:
+        if origins.shape[1:] != grid.values.shape or origins.shape[0] < grid.n_levels:
+            raise ValueError("search: origins must be a max pyramid on the grid's cells with its levels")
+        origin_x = int(math.floor((x0 - float(grid.origin_m[0])) / res))
+        origin_y = int(math.floor((y0 - float(grid.origin_m[1])) / res))
+    a, dx, dy, total = branch_and_bound(grid.pyramid, cells, window_cells, min_total, 0, 0, 0, -1, 0, 0.0, 0.0, shards,
+                                        origins, origin_x, origin_y)
     if a < 0:
         return None
     pose = np.array([x0 + dx * res, y0 + dy * res, th0 + (a - n_half) * step])
     score = total / (MAX_VALUE * n)
     if ambiguity_m <= 0:
         return CorrelativeMatch(pose=pose, score=float(score), runner_up_score=0.0)
+    if score < runner_up_from:
+        return CorrelativeMatch(pose=pose, score=float(score), runner_up_score=math.nan)
     runner_up_total = min_total if runner_up_min_score is None else int(runner_up_min_score * MAX_VALUE * n)
     floor = int(max(runner_up_total, runner_up_share * total))
     ex_cells = int(math.ceil(ambiguity_m / res))
     ex_angles = int(math.ceil(ambiguity_rad / step))
     a2, dx2, dy2, total2 = branch_and_bound(grid.pyramid, cells, window_cells, floor, a, dx, dy, ex_angles,
-                                            ex_cells, 0.0, 0.0, shards)
+                                            ex_cells, 0.0, 0.0, shards, origins, origin_x, origin_y, any_runner_up)
     if a2 < 0:
         return CorrelativeMatch(pose=pose, score=float(score), runner_up_score=0.0)
     runner_up_pose = np.array([x0 + dx2 * res, y0 + dy2 * res, th0 + (a2 - n_half) * step])
     line = None
     line_angles = int(math.floor(line_half_width_rad / step))
-    if line_half_width_m > 0 and abs(a2 - a) <= line_angles and (dx2, dy2) != (dx, dy):
+    if line_half_width_m > 0 and not any_runner_up and abs(a2 - a) <= line_angles and (dx2, dy2) != (dx, dy):
         u = np.array([dx2 - dx, dy2 - dy], np.float64)
         u /= np.hypot(u[0], u[1])
         a3, _, _, _ = branch_and_bound(grid.pyramid, cells, window_cells, floor, a, dx, dy, ex_angles,
-                                       int(math.ceil(line_half_width_m / res)), float(u[0]), float(u[1]), shards)
+                                       int(math.ceil(line_half_width_m / res)), float(u[0]), float(u[1]), shards,
+                                       origins, origin_x, origin_y)
         if a3 < 0:
             line = u
     return CorrelativeMatch(pose=pose, score=float(score), runner_up_score=float(total2 / (MAX_VALUE * n)),

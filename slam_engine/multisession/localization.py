@@ -33,7 +33,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam_engine.backend.correlative import MatchGrid, angular_step_rad, fit_pose, mask_at, refine_pose, search
+from slam_engine.backend.correlative import (
+    MatchGrid,
+    angular_step_rad,
+    fit_pose,
+    mask_at,
+    max_pyramid,
+    refine_pose,
+    search,
+)
 from slam_engine.backend.loop_closer import thin
 from slam_engine.backend.submaps import match_grid_from_points
 from slam_engine.config import LocalizationConfig, SlamConfig
@@ -62,6 +70,10 @@ FINE_LEVELS = 6
 # counts when it moved at most this far [m], [rad] and scores track_min_score, else the window is searched
 FIT_TRUST_M, FIT_TRUST_RAD = 0.15, 0.05
 COVERAGE_CELL_M = 0.1  # the map's observed area is kept on cells this large [m]
+# a stretch is placed only where its last scan's origin lies within this of a cell the map observed: a
+# vehicle is where its map saw free space (on intel-a's map that leaves a quarter of the search's
+# translations, on aces-rough-a's a sixth) [m]
+ORIGIN_REACH_M = 0.3
 MIN_COVERED_SHARE = 0.5  # a scan with fewer of its end points on observed cells is not judged by the map
 STRETCH_GROWTH = (1, 2, 4)  # an ambiguous stretch is searched for again this many times longer
 HINT_WINDOW_M, HINT_WINDOW_RAD = 2.0, 0.5  # a start pose given as a hint is searched within [m], [rad]
@@ -107,15 +119,29 @@ class Coverage:
         """(N,) bool: which map-frame points (N, 2) [m] fall on observed cells."""
         return mask_at(self.observed, self.origin_m, self.resolution_m, points_m)
 
+    def near_cells_of(self, grid: MatchGrid, reach_m: float) -> np.ndarray:
+        """(H, W) bool on ``grid``'s cells: those whose centre lies within ``reach_m`` of an observed cell."""
+        from scipy import ndimage
+
+        distance_m = ndimage.distance_transform_edt(~self.observed) * self.resolution_m
+        near = distance_m <= reach_m
+        rows, cols = grid.values.shape
+        ix, iy = np.meshgrid(np.arange(cols), np.arange(rows))
+        centres = grid.origin_m + (np.stack([ix.ravel(), iy.ravel()], axis=1) + 0.5) * grid.resolution_m
+        return mask_at(near, self.origin_m, self.resolution_m, centres).reshape(rows, cols)
+
 
 @dataclass
 class MapIndex:
     """A saved map as matching takes it: ``coarse`` for global searches, ``fine`` (the map's cells) for
-    tracking and refinement, both in the map frame; ``coverage``: where the map observed anything."""
+    tracking and refinement, both in the map frame; ``coverage``: where the map observed anything;
+    ``origins``: where on ``coarse`` a placed scan's origin may lie (a max pyramid, see
+    :func:`~slam_engine.backend.correlative.search`)."""
 
     coarse: MatchGrid
     fine: MatchGrid
     coverage: Coverage
+    origins: np.ndarray
 
     @classmethod
     def of_bundle(cls, bundle: MapBundle, config: LocalizationConfig) -> MapIndex:
@@ -128,7 +154,9 @@ class MapIndex:
         coarse = match_grid_from_points(points_m, max(config.search_resolution_m, bundle.resolution_m), 1.0,
                                         n_levels=COARSE_LEVELS)
         fine = match_grid_from_points(points_m, bundle.resolution_m, 1.0, n_levels=FINE_LEVELS)
-        return cls(coarse, fine, Coverage.of_bundle(bundle))
+        coverage = Coverage.of_bundle(bundle)
+        origins = max_pyramid(coverage.near_cells_of(coarse, ORIGIN_REACH_M).astype(np.uint8), coarse.n_levels)
+        return cls(coarse, fine, coverage, origins)
 
     def centre_and_reach(self) -> tuple[np.ndarray, float]:
         """The map's centre pose (heading 0) and the half width that covers the whole map [m]."""
@@ -318,7 +346,8 @@ class Localizer:
         floor = c.min_score * REPORT_SHARE
         match = search(self.index.coarse, cloud, initial, window_m, window_rad, floor, ambiguity_m=c.ambiguity_m,
                        ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio, runner_up_min_score=floor,
-                       threads=self.threads)
+                       threads=self.threads, runner_up_from=c.min_score, origins=self.index.origins,
+                       any_runner_up=True)
         if match is None:
             return None, False
         self.best_score = max(self.best_score, match.score)

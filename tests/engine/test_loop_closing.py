@@ -8,6 +8,7 @@ import pytest
 
 from slam_engine.backend import map_alignment
 from slam_engine.backend.correlative import (
+    NO_ORIGINS,
     MatchGrid,
     branch_and_bound,
     fit_pose,
@@ -34,9 +35,11 @@ def _ate(poses: np.ndarray, truth: np.ndarray) -> float:
 
 
 @pytest.mark.parametrize("near_low_edges", [False, True])
-def test_branch_and_bound_finds_the_exhaustive_maximum(near_low_edges: bool) -> None:
+@pytest.mark.parametrize("with_origins", [False, True])
+def test_branch_and_bound_finds_the_exhaustive_maximum(near_low_edges: bool, with_origins: bool) -> None:
     """Also where the best shift puts points left of and below the grid, with most of the map's weight
-    on its low edges: blocks that start off the grid must still bound what they cover of it."""
+    on its low edges: blocks that start off the grid must still bound what they cover of it. With
+    ``origins``, the best of the translations that put the scan's origin on an allowed cell."""
     rng = np.random.default_rng(3)
     for trial in range(5):
         values = (rng.random((40, 48)) ** 4 * 255).astype(np.uint8)
@@ -47,18 +50,43 @@ def test_branch_and_bound_finds_the_exhaustive_maximum(near_low_edges: bool) -> 
         low, high = (-4, 20) if near_low_edges else (-12, 52)
         cells = rng.integers(low, high, size=(7, 25, 2)).astype(np.int32)
         window = 9 + trial
+        allowed = rng.random(values.shape) < 0.2 if with_origins else np.ones(values.shape, bool)
+        origins = max_pyramid(allowed.astype(np.uint8), 5) if with_origins else NO_ORIGINS
+        ox, oy = 20, 21  # the scan's origin, untranslated [cells]
         best = -1
         for a in range(7):
             for dx in range(-window, window + 1):
                 for dy in range(-window, window + 1):
+                    if not allowed[oy + dy, ox + dx]:
+                        continue
                     x, y = cells[a, :, 0] + dx, cells[a, :, 1] + dy
                     inside = (x >= 0) & (x < grid.values.shape[1]) & (y >= 0) & (y < grid.values.shape[0])
                     best = max(best, int(grid.values[y[inside], x[inside]].astype(np.int64).sum()))
-        a, dx, dy, total = branch_and_bound(grid.pyramid, cells, window, 0, 0, 0, 0, -1, 0, 0.0, 0.0, 1)
-        assert total == best and a >= 0
+        a, dx, dy, total = branch_and_bound(grid.pyramid, cells, window, 0, 0, 0, 0, -1, 0, 0.0, 0.0, 1, origins, ox,
+                                            oy)
+        assert total == best and a >= 0 and allowed[oy + dy, ox + dx]
         for shards in (2, 3):  # searched in parallel: the same pose
-            in_shards = branch_and_bound(grid.pyramid, cells, window, 0, 0, 0, 0, -1, 0, 0.0, 0.0, shards)
+            in_shards = branch_and_bound(grid.pyramid, cells, window, 0, 0, 0, 0, -1, 0, 0.0, 0.0, shards, origins,
+                                         ox, oy)
             assert in_shards == (a, dx, dy, total)
+
+
+def test_branch_and_bound_first_only_answers_whether_a_pose_beats_the_floor() -> None:
+    """``first_only`` stops at the first leaf above ``min_total``: there is one exactly when the full
+    search finds one, it does beat the floor, and it is the same leaf however many threads are asked."""
+    rng = np.random.default_rng(11)
+    for trial in range(20):
+        values = (rng.random((40, 48)) ** 3 * 255).astype(np.uint8)
+        grid = MatchGrid.from_values(values, np.zeros(2), 0.1, n_levels=5)
+        cells = rng.integers(0, 40, size=(5, 20, 2)).astype(np.int32)
+        best = branch_and_bound(grid.pyramid, cells, 8, 0, 0, 0, 0, -1, 0, 0.0, 0.0, 1, NO_ORIGINS, 0, 0)[3]
+        floor = int(best * (0.9 + 0.01 * trial))  # some floors below the best, some above it
+        firsts = {branch_and_bound(grid.pyramid, cells, 8, floor, 0, 0, 0, -1, 0, 0.0, 0.0, shards, NO_ORIGINS, 0, 0,
+                                   True) for shards in (1, 2)}
+        assert len(firsts) == 1
+        a, _, _, total = firsts.pop()
+        assert (a >= 0) == (best > floor)
+        assert a < 0 or floor < total <= best
 
 
 def test_branch_and_bound_breaks_ties_alike_in_any_number_of_shards() -> None:
@@ -69,12 +97,13 @@ def test_branch_and_bound_breaks_ties_alike_in_any_number_of_shards() -> None:
         values = ((rng.random((40, 48)) < 0.15) * 255).astype(np.uint8)
         grid = MatchGrid.from_values(values, np.zeros(2), 0.1, n_levels=5)
         cells = rng.integers(0, 40, size=(5, 6, 2)).astype(np.int32)
-        found = {branch_and_bound(grid.pyramid, cells, 8, 0, 0, 0, 0, -1, 0, 0.0, 0.0, shards)
-                 for shards in (1, 2, 3, 4)}
+        found = {branch_and_bound(grid.pyramid, cells, 8, 0, 0, 0, 0, -1, 0, 0.0, 0.0, shards, NO_ORIGINS, 0,
+                                  0) for shards in (1, 2, 3, 4)}
         assert len(found) == 1, found
         # the runner-up search (an exclusion zone around the best) as well
         a, dx, dy, total = found.pop()
-        runner_up = {branch_and_bound(grid.pyramid, cells, 8, total // 2, a, dx, dy, 1, 3, 0.0, 0.0, shards)
+        runner_up = {branch_and_bound(grid.pyramid, cells, 8, total // 2, a, dx, dy, 1, 3, 0.0, 0.0, shards,
+                                     NO_ORIGINS, 0, 0)
                      for shards in (1, 2, 3, 4)}
         assert len(runner_up) == 1, runner_up
 
