@@ -187,9 +187,9 @@ def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, 
     are skipped: a second search with it finds the best match that is *not* the first one. Only
     translations that put the scan's origin (at cell (origin_x, origin_y) untranslated) on a cell that
     ``origins`` allows are searched (a max pyramid like ``pyramid``'s, on the same cells, at least as
-    many levels; an empty (0, 0, 0) array: every translation). ``first_only``: the search stops at the
-    first leaf that exceeds ``min_total`` (whether one does, not the best; one shard, so the leaf is
-    the same on every run).
+    many levels; an empty (0, 0, 0) array: every translation). ``first_only``: every shard stops as
+    soon as one of them reaches a leaf that exceeds ``min_total``: whether there is one is the same
+    for any number of shards, but with more than one which leaf is returned depends on their timing.
 
     The search is depth first from the best top-level node, the best child first; of equally good
     leaves, the first one reached wins. The top-level nodes are dealt out to ``n_shards`` shards,
@@ -226,8 +226,6 @@ def branch_and_bound(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, 
     top_x = st_x[:m][order]
     top_y = st_y[:m][order]
     top_s = st_s[:m][order]
-    if first_only:
-        n_shards = 1
     shard_best = np.full(n_shards, min_total, np.int64)
     found = np.empty((n_shards, 5), np.int64)
     for shard in nb.prange(n_shards):
@@ -266,8 +264,9 @@ def _descend(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angle
     cx = np.empty(4, np.int64)
     cy = np.empty(4, np.int64)
     cs = np.empty(4, np.int64)
+    stop = False
     for position in range(top_a.shape[0] - 1 - shard, -1, -n_shards):
-        if first_only and best_a >= 0:
+        if stop:
             break
         st_a[0], st_x[0], st_y[0], st_h[0], st_s[0] = (top_a[position], top_x[position], top_y[position], top,
                                                        top_s[position])
@@ -281,6 +280,9 @@ def _descend(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angle
             for q in range(n_shards):
                 if q != shard and shard_best[q] > others:
                     others = shard_best[q]
+            if first_only and others > min_total:  # another shard found one
+                stop = True
+                break
             if s < others:
                 continue
             h = st_h[m]
@@ -289,6 +291,7 @@ def _descend(pyramid, cells, window_cells, min_total, ex_a, ex_x, ex_y, ex_angle
                 best_total, best_a, best_x, best_y, best_position = s, a, dx, dy, position
                 shard_best[shard] = s
                 if first_only:
+                    stop = True
                     break
                 continue
             half = 1 << (h - 1)
@@ -353,8 +356,9 @@ def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, wind
     The runner-up is searched for only when the best scores at least ``runner_up_from`` (a caller that
     refuses a weaker match anyway saves the second search, which takes as long as the first); below it,
     ``runner_up_score`` is NaN. ``any_runner_up``: the runner-up search stops at the first pose that
-    reaches the share, whose score is then ``runner_up_score`` (any such pose's, not the best: for a
-    caller that only asks whether the match is ambiguous; when it is, much faster). No line test then.
+    reaches the share, whose score and pose are then the runner-up's (any such pose's, not the best,
+    and with threads not always the same one: for a caller that only asks whether the match is
+    ambiguous, which does not depend on it; when it is, much faster). No line test then.
 
     ``origins``: where the scan's origin (the vehicle) may be, as a max pyramid (:func:`max_pyramid`) of
     the allowed cells of ``grid`` (at least as many levels as its own); the search skips every other

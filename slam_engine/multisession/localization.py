@@ -74,8 +74,8 @@ FINE_LEVELS = 6
 FIT_TRUST_M, FIT_TRUST_RAD = 0.15, 0.05
 COVERAGE_CELL_M = 0.1  # the map's observed area is kept on cells this large [m]
 # a stretch is placed only where its last scan's origin lies within this of a cell the map observed: a
-# vehicle is where its map saw free space (on intel-a's map that leaves a quarter of the search's
-# translations, on aces-rough-a's a sixth) [m]
+# vehicle is where its map saw free space (on intel-a's map that leaves a third of the map's bounding
+# box, on aces-rough-a's a quarter) [m]
 ORIGIN_REACH_M = 0.3
 MIN_COVERED_SHARE = 0.5  # a scan with fewer of its end points on observed cells is not judged by the map
 STRETCH_GROWTH = (1, 2, 4)  # an ambiguous stretch is searched for again this many times longer

@@ -73,7 +73,7 @@ def test_branch_and_bound_finds_the_exhaustive_maximum(near_low_edges: bool, wit
 
 def test_branch_and_bound_first_only_answers_whether_a_pose_beats_the_floor() -> None:
     """``first_only`` stops at the first leaf above ``min_total``: there is one exactly when the full
-    search finds one, it does beat the floor, and it is the same leaf however many threads are asked."""
+    search finds one, and it does beat the floor, whatever the number of threads."""
     rng = np.random.default_rng(11)
     for trial in range(20):
         values = (rng.random((40, 48)) ** 3 * 255).astype(np.uint8)
@@ -81,12 +81,11 @@ def test_branch_and_bound_first_only_answers_whether_a_pose_beats_the_floor() ->
         cells = rng.integers(0, 40, size=(5, 20, 2)).astype(np.int32)
         best = branch_and_bound(grid.pyramid, cells, 8, 0, 0, 0, 0, -1, 0, 0.0, 0.0, 1, NO_ORIGINS, 0, 0)[3]
         floor = int(best * (0.9 + 0.01 * trial))  # some floors below the best, some above it
-        firsts = {branch_and_bound(grid.pyramid, cells, 8, floor, 0, 0, 0, -1, 0, 0.0, 0.0, shards, NO_ORIGINS, 0, 0,
-                                   True) for shards in (1, 2)}
-        assert len(firsts) == 1
-        a, _, _, total = firsts.pop()
-        assert (a >= 0) == (best > floor)
-        assert a < 0 or floor < total <= best
+        for shards in (1, 2, 3):
+            a, _, _, total = branch_and_bound(grid.pyramid, cells, 8, floor, 0, 0, 0, -1, 0, 0.0, 0.0, shards,
+                                              NO_ORIGINS, 0, 0, True)
+            assert (a >= 0) == (best > floor)
+            assert a < 0 or floor < total <= best
 
 
 def test_branch_and_bound_breaks_ties_alike_in_any_number_of_shards() -> None:
