@@ -36,7 +36,15 @@ from slam_engine.frontend.particle_filter import SlamFilter, engine_threads
 from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.map_bundle import MapBundle
 from slam_engine.model.messages import ScanMessage
-from slam_engine.model.result import MapSnapshot, OccupancyGrid, ScanStats, SlamResult, TextureMap, Trajectory
+from slam_engine.model.result import (
+    SNAPSHOT_MAX_SIDE_CELLS,
+    MapSnapshot,
+    OccupancyGrid,
+    ScanStats,
+    SlamResult,
+    TextureMap,
+    Trajectory,
+)
 from slam_engine.progress import (  # re-exported: callers of run_slam find them here
     ALIGNING_TO_MAP,
     CLOSING_LOOPS,
@@ -192,7 +200,8 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
             frames[n] = MapSnapshot(-1, 0.0, partial, trajectory).reduced()
 
         grid = render_occupancy(slam.product_scans(), key_frames, slam.projector.origin_v, config.grid,
-                                frames_after=set(key_frames_in), on_frame=keep_frame)
+                                frames_after=set(key_frames_in), on_frame=keep_frame,
+                                frame_max_side_cells=SNAPSHOT_MAX_SIDE_CELLS)
         snapshots = [MapSnapshot(s.scan_index, s.t_s, frames[n].grid, trajectory.until(s.t_s))
                      for s, n in zip(slam.snapshots, key_frames_in, strict=True) if n in frames]
     else:  # the poses are the best particle's: its own map is the same grid, its snapshots the map being built

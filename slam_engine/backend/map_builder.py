@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Collection, Sequence
 
 import numpy as np
@@ -15,15 +16,21 @@ from slam_engine.model.result import OccupancyGrid
 
 def render_occupancy(scans: Sequence[ProjectedScan], poses: np.ndarray, origin_v: np.ndarray, grid: GridConfig,
                      frames_after: Collection[int] = (),
-                     on_frame: Callable[[int, OccupancyGrid], None] | None = None) -> OccupancyGrid:
+                     on_frame: Callable[[int, OccupancyGrid], None] | None = None,
+                     frame_max_side_cells: int | None = None) -> OccupancyGrid:
     """Log-odds grid of every scan in ``scans`` inserted at its vehicle pose ``poses`` (K, 3, world
     frame); ``origin_v`` (2,) is the LiDAR's position in the vehicle frame [m]. ``on_frame(n, grid)``
     is handed the map of the first ``n`` scans for each ``n`` in ``frames_after`` (the map being
-    built, for the animation), in the same pass."""
+    built, for the animation), in the same pass; with ``frame_max_side_cells``, pooled to at most that
+    many cells a side (:meth:`OccupancyGrid.pooled`, built from the tiles without the full-resolution
+    map: on infinite-corridor-rough 1.4 s less than pooling each full map)."""
     grids = ParticleGrids(1, grid.resolution_m)
     for k, (scan, pose) in enumerate(zip(scans, np.asarray(poses, np.float64), strict=True)):
         insert_scan(grids, pose[None, :], origin_v, scan.ends_v, scan.is_hit, grid.log_odds_hit, grid.log_odds_miss,
                     grid.log_odds_min, grid.log_odds_max, scan.free_from_m)
         if on_frame is not None and k + 1 in frames_after:
-            on_frame(k + 1, grids.occupancy_grid(0))
+            pool = 1
+            if frame_max_side_cells is not None:
+                pool = max(1, math.ceil(max(grids.observed_shape(0)) / frame_max_side_cells))
+            on_frame(k + 1, grids.occupancy_grid(0, pool=pool))
     return grids.occupancy_grid(0)

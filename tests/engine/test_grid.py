@@ -185,3 +185,39 @@ def test_archive_grows_without_moving_the_tiles_it_holds() -> None:
         np.testing.assert_array_equal(grids.archive[key], tile)
     grids.keep_only(None)
     assert grids.archive == {} and grids.memory_bytes() < 10**6
+
+
+def test_render_frames_pooled_from_tiles_equal_the_full_frames_reduced() -> None:
+    """The animation's frames drawn at the final poses come pooled from the tiles (at most
+    ``frame_max_side_cells`` a side): bit for bit what reducing each full-resolution frame gives."""
+    from slam_engine.backend.map_builder import render_occupancy
+    from slam_engine.config import GridConfig
+    from slam_engine.frontend.lidar_points import ProjectedScan
+    from slam_engine.model.result import MapSnapshot, OccupancyGrid, Trajectory
+
+    rng = np.random.default_rng(3)
+    angles = np.linspace(-np.pi, np.pi, 180, endpoint=False)
+    scans, poses = [], []
+    for k in range(12):  # a drive along x: the map, and so the frames' pool factor, grows
+        ranges = rng.uniform(2.0, 8.0, len(angles))
+        ends = np.stack([ranges * np.cos(angles), ranges * np.sin(angles)], axis=1)
+        scans.append(ProjectedScan(ends, rng.random(len(angles)) < 0.8, np.zeros(len(angles))))
+        poses.append([1.5 * k, 0.2 * k, 0.1 * k])
+    frames_after = {1, 4, 8, 12}
+    full: dict[int, OccupancyGrid] = {}
+    pooled: dict[int, OccupancyGrid] = {}
+    config = GridConfig(resolution_m=0.05)
+    render_occupancy(scans, np.array(poses), np.zeros(2), config, frames_after, lambda n, g: full.__setitem__(n, g))
+    render_occupancy(scans, np.array(poses), np.zeros(2), config, frames_after,
+                     lambda n, g: pooled.__setitem__(n, g), frame_max_side_cells=100)
+    trajectory = Trajectory(np.zeros(1), np.zeros((1, 3)))
+    factors = set()
+    for n in sorted(frames_after):
+        expected = MapSnapshot(-1, 0.0, full[n], trajectory).reduced(100).grid
+        got = pooled[n]
+        factors.add(round(got.resolution_m / 0.05))
+        assert got.log_odds.shape == expected.log_odds.shape
+        np.testing.assert_array_equal(got.log_odds.view(np.uint32), expected.log_odds.view(np.uint32))
+        assert (got.resolution_m, got.origin_x_m, got.origin_y_m) == (
+            expected.resolution_m, expected.origin_x_m, expected.origin_y_m)
+    assert len(factors) > 1  # frames pooled by more than one factor as the map grew
