@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Collection, Sequence
 
 import numpy as np
@@ -29,8 +28,6 @@ def render_occupancy(scans: Sequence[ProjectedScan], poses: np.ndarray, origin_v
         insert_scan(grids, pose[None, :], origin_v, scan.ends_v, scan.is_hit, grid.log_odds_hit, grid.log_odds_miss,
                     grid.log_odds_min, grid.log_odds_max, scan.free_from_m)
         if on_frame is not None and k + 1 in frames_after:
-            pool = 1
-            if frame_max_side_cells is not None:
-                pool = max(1, math.ceil(max(grids.observed_shape(0)) / frame_max_side_cells))
-            on_frame(k + 1, grids.occupancy_grid(0, pool=pool))
+            on_frame(k + 1, grids.occupancy_grid(0) if frame_max_side_cells is None
+                     else grids.occupancy_grid_within(0, frame_max_side_cells))
     return grids.occupancy_grid(0)

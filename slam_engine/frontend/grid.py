@@ -24,6 +24,7 @@ map frame's origin is a cell corner; tiles and levels follow the same rule.
 
 from __future__ import annotations
 
+import math
 import os
 
 import numba as nb
@@ -392,6 +393,12 @@ class ParticleGrids:
         if len(rows) == 0:
             return 1, 1
         return int(rows.max() - rows.min() + 1) * TILE, int(cols.max() - cols.min() + 1) * TILE
+
+    def occupancy_grid_within(self, particle: int, max_side_cells: int) -> OccupancyGrid:
+        """:meth:`occupancy_grid` pooled by the smallest factor that brings it to at most
+        ``max_side_cells`` cells a side (the factor :meth:`MapSnapshot.reduced` applies to the full map)."""
+        side = max(self.observed_shape(particle))
+        return self.occupancy_grid(particle, pool=max(1, math.ceil(side / max_side_cells)))
 
     def occupancy_grid(self, particle: int, pool: int = 1) -> OccupancyGrid:
         """Particle ``particle``'s level-0 map (with the archive's forgotten tiles added) as a dense

@@ -597,9 +597,7 @@ class SlamFilter:
         """The best particle's map pooled to an animation frame's size (at most
         ``SNAPSHOT_MAX_SIDE_CELLS`` a side: what :meth:`MapSnapshot.reduced` makes of the preview),
         built a few tile rows at a time."""
-        best = self.best_particle()
-        side = max(self.grids.observed_shape(best))
-        return self.grids.occupancy_grid(best, pool=max(1, math.ceil(side / SNAPSHOT_MAX_SIDE_CELLS)))
+        return self.grids.occupancy_grid_within(self.best_particle(), SNAPSHOT_MAX_SIDE_CELLS)
 
     def preview_grid(self) -> OccupancyGrid:
         """The best particle's map pooled to at most about ``PREVIEW_MAX_SIDE_CELLS`` a side (what a
