@@ -52,7 +52,7 @@ def register(app: typer.Typer) -> None:
 
         from slam_engine.formats import load_log
         from slam_engine.frontend.particle_filter import engine_threads
-        from slam_engine.multisession.localization import localize_log
+        from slam_engine.multisession.localization import localize_log, refusal_reason
         from slam_engine.products.map_bundle import read_bundle
         from slam_engine.products.multisession import localization_image, saved_map_grid, write_localization
 
@@ -72,8 +72,8 @@ def register(app: typer.Typer) -> None:
                                relations=relations)
         summary = result.summary()
         if not result.localised:
-            typer.echo(f"refused: {log} has no place in the map {map_dir} (best score {summary['best_score']}, "
-                       f"{config.localization.min_score} needed, unambiguous and confirmed)", err=True)
+            typer.echo(f"refused: {log} has no place in the map {map_dir}: "
+                       f"{refusal_reason(result, config.localization.min_score)}", err=True)
             raise typer.Exit(REFUSED_EXIT_CODE)
         typer.echo(f"localised {summary['scans']} scans in {summary['wall_time_s']:.1f} s: {summary['scans_tracked']} "
                    f"matched the map (mean confidence {summary['mean_confidence']}); products in {out}")
@@ -92,6 +92,7 @@ def register(app: typer.Typer) -> None:
         pose graph); refused (exit 1) when they do not overlap."""
         from slam_engine.errors import MapBundleError
         from slam_engine.multisession.joining import join
+        from slam_engine.multisession.localization import refusal_reason
         from slam_engine.products.map_bundle import read_bundle
         from slam_engine.products.multisession import write_joined_products
 
@@ -100,9 +101,8 @@ def register(app: typer.Typer) -> None:
             config = load_config(config_file)
             joined = join(read_bundle(first), read_bundle(second), config)
         if not joined.connected:
-            error = MapBundleError(f"the maps do not overlap: {second} could not be placed in {first} (best score "
-                                   f"{joined.placement.best_score:.3f}, {config.localization.min_score} needed, "
-                                   "unambiguous and confirmed)")
+            error = MapBundleError(f"the maps do not overlap: {second} could not be placed in {first}: "
+                                   f"{refusal_reason(joined.placement, config.localization.min_score)}")
             typer.echo(f"refused: {error}", err=True)
             raise typer.Exit(REFUSED_EXIT_CODE)
         with bad_input_exits(verbose):

@@ -69,14 +69,16 @@ def extend(saved, result, config: SlamConfig, out: Path, relations) -> dict[str,
     """The drive of ``result`` (mapped on its own) joined with the ``saved`` map; its products into ``out``.
     A drive that cannot be placed is kept in the new bundle as a disconnected part (said on stderr)."""
     from slam_engine.multisession.joining import join
+    from slam_engine.multisession.localization import refusal_reason
     from slam_engine.products.multisession import write_joined_products
 
     assert result.bundle is not None  # a mapping run always makes one
     joined = join(saved, result.bundle, config)
     if not joined.connected:
-        typer.echo(f"warning: the drive could not be placed in the saved map (best score "
-                   f"{joined.placement.best_score:.3f}): it is kept in the new map bundle as a disconnected part, "
-                   "joined when a later drive links it; the map products show the saved map", err=True)
+        typer.echo("warning: the drive could not be placed in the saved map "
+                   f"({refusal_reason(joined.placement, config.localization.min_score)}): it is kept in the new "
+                   "map bundle as a disconnected part, joined when a later drive links it; the map products show "
+                   "the saved map", err=True)
     return write_joined_products(joined, config, out, relations=relations, base_result=result)
 
 

@@ -58,7 +58,7 @@ def run_from_saved_map(ctx: JobContext, log: DriveLog, progress: Any) -> None:
 def _localize(ctx: JobContext, bundle: Any, log: DriveLog, config: Any) -> None:
     from service.jobs.outputs import product_names
     from slam_engine.frontend.particle_filter import engine_threads
-    from slam_engine.multisession.localization import localize_log
+    from slam_engine.multisession.localization import localize_log, refusal_reason
     from slam_engine.products.multisession import localization_image, saved_map_grid, write_localization
 
     # the worker's engine threads (LIDARMAP_THREADS, 1 unless set), as its mapping jobs use
@@ -67,8 +67,8 @@ def _localize(ctx: JobContext, bundle: Any, log: DriveLog, config: Any) -> None:
     ctx.progress(total, total, force=True, stage=WRITING_PRODUCTS, fraction=run_fraction(WRITING_PRODUCTS, 0.0))
     summary = result.summary()
     if not result.localised:
-        raise MapBundleError(f"refused: the drive has no place in the saved map (best score {summary['best_score']}, "
-                             f"{config.localization.min_score} needed, unambiguous and confirmed)")
+        raise MapBundleError("refused: the drive has no place in the saved map: "
+                             f"{refusal_reason(result, config.localization.min_score)}")
     assert result.trajectory is not None
     image = localization_image(saved_map_grid(bundle, config), result.trajectory, drive.hits, result.tracked)
     files = write_localization(ctx.out_dir / "products", summary, result.trajectory, result.confidence, image)
@@ -78,6 +78,7 @@ def _localize(ctx: JobContext, bundle: Any, log: DriveLog, config: Any) -> None:
 def _extend(ctx: JobContext, bundle: Any, log: DriveLog, config: Any, progress: Any) -> None:
     from slam_engine.frontend.particle_filter import engine_threads
     from slam_engine.multisession.joining import join
+    from slam_engine.multisession.localization import refusal_reason
     from slam_engine.pipeline import run_slam
     from slam_engine.products.multisession import drives_image, joined_result, save_png
 
@@ -85,9 +86,9 @@ def _extend(ctx: JobContext, bundle: Any, log: DriveLog, config: Any, progress: 
     assert own.bundle is not None  # a run with scans always makes one
     joined = join(bundle, own.bundle, config, threads=engine_threads())
     if not joined.connected:
-        raise MapBundleError(f"refused: the drive could not be placed in the saved map (best score "
-                             f"{joined.placement.best_score:.3f}); map it on its own, or extend with a drive that "
-                             "overlaps the map")
+        raise MapBundleError("refused: the drive could not be placed in the saved map: "
+                             f"{refusal_reason(joined.placement, config.localization.min_score)}; map it on its "
+                             "own, or extend with a drive that overlaps the map")
     drawn = save_png(drives_image(joined.grid, joined.trajectory, joined.trajectory_drive),
                      ctx.out_dir / "products" / "drives.png")
     write_job_products(ctx, joined_result(joined, config, own), log,

@@ -25,7 +25,7 @@ from slam_engine.errors import MapBundleError
 from slam_engine.model.map_bundle import MapBundle
 from slam_engine.model.poses import compose, relative
 from slam_engine.model.result import OccupancyGrid, Trajectory
-from slam_engine.multisession.localization import DriveScans, LocalizationResult, localize
+from slam_engine.multisession.localization import DriveScans, LocalizationResult, localize, refusal_reason
 
 
 @dataclass
@@ -246,8 +246,7 @@ def merge(first: MapBundle, second: MapBundle, config: SlamConfig, threads: int 
     first (they do not overlap, or not enough to be sure)."""
     joined = join(first, second, config, threads)
     if not joined.connected:
-        raise MapBundleError(f"the maps do not overlap: the second map could not be placed in the first "
-                             f"(best score {joined.placement.best_score:.3f}, "
-                             f"{config.localization.min_score} needed, unambiguous and confirmed)")
+        raise MapBundleError(f"the maps do not overlap: the second map could not be placed in the first: "
+                             f"{refusal_reason(joined.placement, config.localization.min_score)}")
     return joined
 

@@ -92,6 +92,8 @@ MAP_SD_M, MAP_SD_RAD = 0.05, 0.02  # the tracking grid's: windows up to 31 cells
 # a global search prunes below this share of min_score: a weaker placement is still reported as the best
 # score of a refused drive, and pruning at min_score itself would leave it unknown
 REPORT_SHARE = 0.9
+# why a try at placing the drive failed (LocalizationResult.failed_tries, refusal_reason)
+LOW_SCORE, AMBIGUOUS, NOT_CONFIRMED, TOO_SHORT = "scored too low", "ambiguous", "not confirmed", "drive too short"
 # localize_log with threads: the first try at placing the drive is made on its first scans, once this
 # many stretches of travel are matched: the first stretch grown to its longest and the one confirming it
 START_STRETCHES = 2 * STRETCH_GROWTH[-1] + 1
@@ -302,6 +304,7 @@ class LocalizationResult:
     T_map_from_drive: np.ndarray | None = None
     outside_map: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     global_searches: int = 0
+    failed_tries: dict[str, int] = field(default_factory=dict)  # why tries at a first placement failed: count
     wall_time_s: float = 0.0
     search_s: float = 0.0  # of wall_time_s: placing and tracking the drive (the rest: its scans, the map's index)
 
@@ -312,7 +315,7 @@ class LocalizationResult:
             "scans": int(len(self.confidence)), "scans_tracked": int(tracked.sum()),
             "scans_outside_map": int(self.outside_map.sum()),
             "mean_confidence": round(float(self.confidence.mean()), 4) if len(self.confidence) else None,
-            "events": self.events, "global_searches": self.global_searches,
+            "events": self.events, "global_searches": self.global_searches, "failed_tries": dict(self.failed_tries),
             "T_map_from_drive": None if self.T_map_from_drive is None else [round(float(v), 5)
                                                                           for v in self.T_map_from_drive],
             "wall_time_s": round(self.wall_time_s, 3),
@@ -330,6 +333,8 @@ class Localizer:
         self.best_score = 0.0
         self.global_searches = 0
         self.uncovered = np.zeros(len(drive), bool)  # scans too far out of the map to be judged by it
+        self.failed_tries: dict[str, int] = {}  # why each first try failed (LOW_SCORE, ...): how many
+        self._why = ""  # why the last placed_stretch or confirmed_placement found nothing
 
     # --- global placement -------------------------------------------------------------------
     def place_stretch(self, first: int, last: int, near: Near | None = None) -> tuple[np.ndarray | None, bool]:
@@ -424,13 +429,16 @@ class Localizer:
         for growth in STRETCH_GROWTH:
             last = drive.stretch_end(first, self.config.stretch_m * growth)
             if last == previous:
-                return None  # the drive ends
+                self._why = TOO_SHORT if growth == STRETCH_GROWTH[0] else AMBIGUOUS  # the drive ends
+                return None
             previous = last
             pose, ambiguous = self.place_stretch(first, last, None if near is None else near.moved(drive, first, last))
             if pose is not None:
                 return last, pose
             if not ambiguous:
+                self._why = LOW_SCORE
                 return None
+        self._why = AMBIGUOUS
         return None
 
     def confirmed_placement(self, first: int, near: Near | None) -> tuple[int, int, np.ndarray] | None:
@@ -440,9 +448,11 @@ class Localizer:
         c, drive = self.config, self.drive
         placed = self.placed_stretch(first, near)
         if placed is None or placed[0] + 1 >= len(drive):
-            return None  # not placed, or the drive is too short to confirm it
+            self._why = self._why if placed is None else TOO_SHORT  # not placed, or too short to confirm it
+            return None
         last, pose = placed
         confirming = self.placed_stretch(last + 1, None if near is None else near.moved(drive, first, last + 1))
+        self._why = NOT_CONFIRMED
         if confirming is None:
             return None
         second_last, second = confirming
@@ -473,7 +483,10 @@ class Localizer:
         """:meth:`confirmed_placement` of the stretch at scan ``k``, searched near ``hint`` (the map pose
         of the drive's first scan) when given."""
         near = None if hint is None else Near(hint, HINT_WINDOW_M, HINT_WINDOW_RAD).moved(self.drive, 0, k)
-        return self.confirmed_placement(k, near)
+        placement = self.confirmed_placement(k, near)
+        if placement is None:
+            self.failed_tries[self._why] = self.failed_tries.get(self._why, 0) + 1
+        return placement
 
     def run(self, hint: np.ndarray | None = None, tried: dict[int, tuple[int, int, np.ndarray] | None] | None = None
             ) -> LocalizationResult:
@@ -493,7 +506,7 @@ class Localizer:
                 break
         if placement is None:
             return LocalizationResult(False, self.best_score, events=events, global_searches=self.global_searches,
-                                      wall_time_s=time.perf_counter() - started)
+                                      failed_tries=dict(self.failed_tries), wall_time_s=time.perf_counter() - started)
         _, last, pose = placement
         poses[last] = pose
         self.step(poses, confidence, tracked, last, last)
@@ -508,7 +521,7 @@ class Localizer:
         T_map_from_drive = _rigid_placement(poses[tracked], drive.poses[tracked])
         return LocalizationResult(True, self.best_score, Trajectory(drive.t_s.copy(), poses), confidence, tracked,
                                   events, T_map_from_drive, self.uncovered.copy(), self.global_searches,
-                                  time.perf_counter() - started)
+                                  dict(self.failed_tries), time.perf_counter() - started)
 
     def _track_forward(self, poses: np.ndarray, confidence: np.ndarray, tracked: np.ndarray, start: int,
                        events: list[dict]) -> list[int]:
@@ -693,6 +706,21 @@ def _placed(index: MapIndex, drive: DriveScans, config: SlamConfig, hint: np.nda
     localizer = Localizer(index, drive, config.localization, threads)
     if early is not None:
         localizer.best_score, localizer.global_searches = early.best_score, early.global_searches
+        localizer.failed_tries = dict(early.failed_tries)
     result = localizer.run(hint, tried)
     result.search_s, result.wall_time_s = result.wall_time_s, time.perf_counter() - started
     return result
+
+
+def refusal_reason(result: LocalizationResult, min_score: float) -> str:
+    """Why a drive was not placed, in one line (for a refused drive's message): the best score against
+    ``min_score`` and what became of the stretches tried."""
+    what = {LOW_SCORE: f"below {min_score:g}", AMBIGUOUS: "ambiguous (another place fit almost as well)",
+            NOT_CONFIRMED: "not confirmed by the next stretch", TOO_SHORT: "too near the drive's end to confirm"}
+    text = f"best score {result.best_score:.3f} ({min_score:g} needed, unambiguous and confirmed)"
+    tries = sorted(result.failed_tries.items(), key=lambda item: -item[1])
+    if not tries:
+        return text
+    counted = ", ".join(f"{n} {what.get(reason, reason)}" for reason, n in tries)
+    total = sum(n for _, n in tries)
+    return f"{text}; of {total} {'stretch' if total == 1 else 'stretches'} tried: {counted}"

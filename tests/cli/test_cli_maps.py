@@ -49,7 +49,11 @@ def test_localize_extend_and_merge_from_the_command_line(tmp_path, logs) -> None
     refused = invoke("localize", logs["elsewhere"], "--map", tmp_path / "a", "--out", tmp_path / "refused")
     assert refused.exit_code == 1 and refused.stderr.startswith("refused: ")
     assert len(refused.stderr.strip().splitlines()) == 1
-    assert json.loads((tmp_path / "refused" / "run.json").read_text())["localization"]["localised"] is False
+    placement = json.loads((tmp_path / "refused" / "run.json").read_text())["localization"]
+    assert placement["localised"] is False
+    # the line says why: what became of each stretch tried, as run.json counts them
+    tried = sum(placement["failed_tries"].values())
+    assert tried > 0 and f"of {tried} stretches tried: " in refused.stderr
 
     extended = invoke("run", logs["b"], "--map", tmp_path / "a", "--out", tmp_path / "ab", "--particles", "10")
     assert extended.exit_code == 0, extended.output

@@ -17,7 +17,14 @@ from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.poses import compose, relative, wrap_angle
 from slam_engine.model.result import SlamResult
 from slam_engine.multisession.joining import join, merge
-from slam_engine.multisession.localization import DriveScans, Localizer, localize, localize_log
+from slam_engine.multisession.localization import (
+    DriveScans,
+    Localizer,
+    MapIndex,
+    localize,
+    localize_log,
+    refusal_reason,
+)
 from slam_engine.pipeline import run_slam
 from slam_engine.products.map_bundle import ARRAYS, BUNDLE_FILE, read_bundle, write_bundle
 from slam_engine.simulation import SimulatedDrive, simulate
@@ -151,6 +158,15 @@ def test_a_drive_in_another_building_is_refused(first_map) -> None:
     assert not result.localised and result.trajectory is None
     assert 0.0 < result.best_score < 1.0  # reported (measured 0.69: high, but never confirmed)
     assert result.summary()["localised"] is False
+    # every try is accounted for, and the refusal says why: a score above min_score was never enough alone
+    tries, drive = result.failed_tries, DriveScans.from_log(elsewhere.log, CONFIG)
+    index = MapIndex.of_bundle(first_map.bundle, CONFIG.localization)
+    assert sum(tries.values()) == len(Localizer(index, drive, CONFIG.localization).first_tries())
+    assert set(tries) <= {"scored too low", "ambiguous", "not confirmed", "drive too short"}
+    reason = refusal_reason(result, CONFIG.localization.min_score)
+    assert reason.startswith(f"best score {result.best_score:.3f} (0.65 needed")
+    assert f"of {sum(tries.values())} stretches tried: " in reason
+    assert all(f"{n} " in reason for n in tries.values()) and result.summary()["failed_tries"] == tries
 
 
 def test_extending_a_map_closes_loops_across_the_drives(office, halves, first_map) -> None:
