@@ -41,6 +41,8 @@ MAP_METRICS: tuple[tuple[str, tuple[str, ...], bool], ...] = (
     ("occupied_with_neighbour", ("occupied_with_neighbour",), False),
     ("half_agreement", ("half_agreement",), False),
     ("half_mean_offset_m", ("half_mean_offset_m",), True),
+    # the share of key frames the map contradicts (slam_engine.evaluation.consistency): every log
+    ("contradicted_key_frames", ("contradicted_key_frames",), True),
 )
 
 

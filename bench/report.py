@@ -27,6 +27,17 @@ def _pair(first, second, digits_first: int = 3, digits_second: int = 2) -> str:
     return f"{fmt(first, digits_first)} / {fmt(second, digits_second)}"
 
 
+# the share of key frames the map contradicts (slam_engine.evaluation.consistency), median / worst seed
+CONTRADICTED_COLUMN = "contradicted kf %"
+
+
+def _contradicted(summary: dict) -> str:
+    spread = (summary.get("map") or {}).get("contradicted_key_frames")
+    if not spread or spread.get("median") is None:
+        return "–"
+    return f"{100 * spread['median']:.1f} / {100 * spread['worst']:.1f}"
+
+
 TIMING_COLUMNS = ("particles", "seeds ok", "run s / process s", "wall s", "products s (% of wall)", "scans/s",
                   "real-time ×", "peak MB run / process")
 
@@ -45,7 +56,7 @@ def scored_table(summary: dict) -> Table:
     """Relation errors (median / worst seed), ATE, local and loop subsets, timing and memory."""
     table = Table(title=_title(summary), title_justify="left")
     for column in ("method", *TIMING_COLUMNS, "trans m (med / worst)", "rot ° (med / worst)", "ATE m (med / worst)",
-                   "local m / °", "loop m / °", "failed rel."):
+                   "local m / °", "loop m / °", "failed rel.", CONTRADICTED_COLUMN):
         table.add_column(column, justify="left" if column == "method" else "right")
     slam = summary["slam"]
     table.add_row("RBPF SLAM", *_timing_cells(summary),
@@ -53,12 +64,12 @@ def scored_table(summary: dict) -> Table:
                   _median_worst(slam["ate_m"], 3),
                   _pair(slam["local_trans_m"]["median"], slam["local_rot_deg"]["median"]),
                   _pair(slam["loop_trans_m"]["median"], slam["loop_rot_deg"]["median"]),
-                  fmt(slam["failed_relations"]["worst"], 0))
+                  fmt(slam["failed_relations"]["worst"], 0), _contradicted(summary))
     dr = summary["dead_reckoning"]
     table.add_row("dead reckoning", *[""] * len(TIMING_COLUMNS),
                   fmt(dr["trans_mean_m"], 3), fmt(dr["rot_mean_deg"], 2), fmt(dr["ate_m"], 3),
                   _pair(dr["local_trans_m"], dr["local_rot_deg"]), _pair(dr["loop_trans_m"], dr["loop_rot_deg"]),
-                  fmt(dr["failed_relations"], 0))
+                  fmt(dr["failed_relations"], 0), "")
     return table
 
 
@@ -66,15 +77,16 @@ def map_table(summary: dict) -> Table:
     """Map numbers for a log without ground truth (median / worst seed)."""
     table = Table(title=_title(summary) + " (no ground truth)", title_justify="left")
     for column in ("method", *TIMING_COLUMNS, "wall thickness m", "occupied w/ neighbour", "half agreement",
-                   "half offset m"):
+                   "half offset m", CONTRADICTED_COLUMN):
         table.add_column(column, justify="left" if column == "method" else "right")
     quality = summary["map"]
     table.add_row("RBPF SLAM", *_timing_cells(summary),
                   _median_worst(quality["wall_thickness_m"], 3), _median_worst(quality["occupied_with_neighbour"], 3),
-                  _median_worst(quality["half_agreement"], 3), _median_worst(quality["half_mean_offset_m"], 3))
+                  _median_worst(quality["half_agreement"], 3), _median_worst(quality["half_mean_offset_m"], 3),
+                  _contradicted(summary))
     dr = summary.get("dead_reckoning_map") or {}
     table.add_row("dead reckoning", *[""] * len(TIMING_COLUMNS), "", "",
-                  fmt(dr.get("half_agreement"), 3), fmt(dr.get("half_mean_offset_m"), 3))
+                  fmt(dr.get("half_agreement"), 3), fmt(dr.get("half_mean_offset_m"), 3), "")
     return table
 
 

@@ -138,7 +138,9 @@ def run_job(job: dict) -> dict:
         "realtime_factor": duration_s / wall_s if wall_s > 0 else None,
         "slam": score(result.trajectory, relations, ground_truth),
         "dead_reckoning": score(result.dead_reckoning, relations, ground_truth),
-        "map": map_quality(result.grid, log, result.trajectory, config.grid.max_range_m),
+        "map": {**map_quality(result.grid, log, result.trajectory, config.grid.max_range_m),
+                "contradicted_key_frames": (result.input_summary.get("map_consistency") or {}).get(
+                    "key_frames_contradicted_share")},
         "dead_reckoning_map": dead_reckoning_agreement(log, result.dead_reckoning, config),
         "map_png": str(png),
         "warnings": list(result.warnings),

@@ -28,6 +28,7 @@ from slam_engine.backend.odometry_smoothing import smooth_with_odometry
 from slam_engine.backend.pose_graph import Edge
 from slam_engine.config import SlamConfig
 from slam_engine.errors import ConfigError
+from slam_engine.evaluation.consistency import map_consistency
 from slam_engine.evaluation.memory_estimate import peak_resident_bytes
 from slam_engine.frontend.lidar_points import ProjectedScan
 from slam_engine.frontend.odometry import dead_reckoning, odometry_source
@@ -207,6 +208,9 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     else:  # the poses are the best particle's: its own map is the same grid, its snapshots the map being built
         grid = slam.best_grid()
         snapshots = [s.reduced() for s in slam.snapshots]
+    consistency = map_consistency(grid, key_frames, key_frame_points)
+    if consistency.warning() is not None:
+        warnings.append(str(consistency.warning()))
     texture, texture_status = _ground_texture(log, trajectory, grid, config, warnings)
     bundle = map_bundle(key_frames, slam.key_frame_times(), ~slam.key_frame_matched(), slam.product_scans(),
                         slam.projector.origin_v, backend.edges, trajectory, config, log)
@@ -228,7 +232,7 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
                        "odometry_precision": slam.odometry_precision.summary(),
                        "time_offset": _time_offset_summary(slam, log, config),
                        "loop_closing": _with_places(backend.summary(), key_frames), "map_alignment": alignment,
-                       "odometry_smoothing": smoothing},
+                       "odometry_smoothing": smoothing, "map_consistency": consistency.as_dict()},
         bundle=bundle,
     )
 

@@ -22,6 +22,7 @@ from slam_engine.backend.map_alignment import align_to_map
 from slam_engine.backend.map_builder import render_occupancy
 from slam_engine.config import SlamConfig
 from slam_engine.errors import MapBundleError
+from slam_engine.evaluation.consistency import MapConsistency, map_consistency
 from slam_engine.model.map_bundle import MapBundle
 from slam_engine.model.poses import compose, relative
 from slam_engine.model.result import OccupancyGrid, Trajectory
@@ -42,6 +43,7 @@ class JoinedMap:
     connected: bool
     summary: dict = field(default_factory=dict)
     wall_time_s: float = 0.0
+    consistency: MapConsistency | None = None  # of ``grid`` with the connected drives' key frames
 
 
 def place_part(base: MapBundle, part: MapBundle, config: SlamConfig, threads: int = 1) -> LocalizationResult:
@@ -71,13 +73,14 @@ def join(base: MapBundle, part: MapBundle, config: SlamConfig, threads: int = 1)
     for candidate in left:
         bundle = concatenated(bundle, candidate, connect=False)
     grid = render_occupancy(joint.scans(), joint.poses, joint.origin_v, config.grid)
+    consistency = map_consistency(grid, joint.poses, [scan.ends_v[scan.is_hit] for scan in joint.scans()])
     keep = ~np.isin(bundle.trajectory_drive, disconnected_drives(bundle))
     return JoinedMap(bundle, grid, Trajectory(bundle.trajectory_t_s[keep], bundle.trajectory[keep]),
                      bundle.trajectory_drive[keep], placement, placement.localised,
                      {"placement": placement.summary(), "connected_drives": sorted(set(joint.drive.tolist())),
                       "disconnected_drives": disconnected_drives(bundle),
                       "loop_closing": bundle.sensors.get("last_join")},
-                     time.perf_counter() - started)
+                     time.perf_counter() - started, consistency)
 
 
 def pruned(bundle: MapBundle, config: SlamConfig) -> MapBundle:

@@ -15,6 +15,7 @@ from PIL import Image, ImageDraw
 
 from slam_engine.backend.map_builder import render_occupancy
 from slam_engine.config import SlamConfig
+from slam_engine.evaluation.consistency import WARNING_START
 from slam_engine.model.map_bundle import MapBundle
 from slam_engine.model.poses import compose, place_points
 from slam_engine.model.result import OccupancyGrid, ScanStats, SlamResult, Trajectory
@@ -105,16 +106,21 @@ def joined_result(joined: JoinedMap, config: SlamConfig, base_result: SlamResult
     order = np.argsort(joined.trajectory.t_s, kind="stable")
     trajectory = Trajectory(joined.trajectory.t_s[order], joined.trajectory.poses[order])
     summary = {"multisession": joined.summary, "key_frames": len(joined.bundle), "drives": joined.bundle.drives}
+    warnings = [] if base_result is None else [w for w in base_result.warnings if not w.startswith(WARNING_START)]
+    if joined.consistency is not None:  # the joint map's, not the new drive's own map's
+        summary["map_consistency"] = joined.consistency.as_dict()
+        warnings += [] if joined.consistency.warning() is None else [str(joined.consistency.warning())]
     if base_result is None:
         empty = np.zeros(0)
         stats = ScanStats(empty, empty, np.zeros(0, bool), empty, np.zeros(0, bool), empty)
         return SlamResult(trajectory=trajectory, dead_reckoning=trajectory, grid=joined.grid, scan_stats=stats,
-                          config=config, wall_time_s=joined.wall_time_s, input_summary=summary, bundle=joined.bundle)
+                          config=config, wall_time_s=joined.wall_time_s, input_summary=summary, bundle=joined.bundle,
+                          warnings=warnings)
     placed = joined.placement.T_map_from_drive
     odometry = base_result.dead_reckoning
     dead_reckoning = trajectory if placed is None else Trajectory(odometry.t_s, compose(placed, odometry.poses))
     return dataclasses.replace(base_result, trajectory=trajectory, grid=joined.grid, bundle=joined.bundle,
-                               texture=None, snapshots=[], dead_reckoning=dead_reckoning,
+                               texture=None, snapshots=[], dead_reckoning=dead_reckoning, warnings=warnings,
                                input_summary={**base_result.input_summary, **summary})
 
 

@@ -4,7 +4,8 @@ Top-level keys: ``config`` (the SlamConfig used), ``input`` (the log's summary),
 (wall time, scans, scans/s, per-step time percentiles), ``memory`` (peak bytes), ``time_offset`` (the
 LiDAR-to-odometry time offset: estimated, its standard error, applied; whether scans were de-skewed),
 ``filter`` (resamples,
-match rate, N_eff), ``map`` (size, resolution, origin, cell counts), ``georeference``, ``accuracy``
+match rate, N_eff), ``map`` (size, resolution, origin, cell counts, ``consistency``: whether the map
+contradicts its own scans), ``georeference``, ``accuracy``
 (relation errors and/or ATE when relations / ground truth were given, ``texture`` colour error and
 placement for a simulated log with a known floor; else null), ``warnings``,
 ``scan_stats`` (per processed scan, columnar: t_s, n_eff, resampled, match_score, matched,
@@ -93,6 +94,8 @@ def build_run_report(result: SlamResult, input_summary: dict | None = None, geor
             "free_cells": counts.free_cells,
             "has_texture": result.texture is not None,
             "snapshots": len(result.snapshots),
+            # whether the key frames' returns fall where the map holds free space (evaluation.consistency)
+            "consistency": result.input_summary.get("map_consistency"),
         },
         "georeference": georeference,
         "accuracy": accuracy,

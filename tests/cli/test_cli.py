@@ -209,6 +209,10 @@ def test_run_on_intel_writes_every_product(tmp_path: Path, dataset) -> None:
     relations = run["accuracy"]["relations"]["all"]
     assert relations["n_relations"] == 1818 and relations["n_failed"] == 0
     assert np.isfinite(relations["trans_mean_m"]) and np.isfinite(run["accuracy"]["ate_m"])
+    # the map agrees with its own scans: a few key frames at most are contradicted, and nothing is flagged
+    consistency = run["map"]["consistency"]
+    assert consistency["flagged"] is False and consistency["key_frames_judged"] > 800
+    assert consistency["key_frames_contradicted_share"] < 0.05
     with rasterio.open(out / "occupancy.tif") as ds:
         assert (ds.width, ds.height) == Image.open(out / "occupancy.png").size
     assert Image.open(out / "animation.gif").n_frames >= 2

@@ -179,6 +179,9 @@ def test_extending_a_map_closes_loops_across_the_drives(office, halves, first_ma
     assert absolute_trajectory_error(joined.trajectory, office.ground_truth) < 0.05
     assert joined.summary["loop_closing"]["closures_accepted"] > 0
     assert joined.grid.shape[0] > 10 and (joined.grid.log_odds > 0).sum() > (first_map.grid.log_odds > 0).sum() * 0.8
+    # the joint map agrees with both drives' scans (measured: none of its key frames contradicted)
+    assert joined.consistency is not None and not joined.consistency.flagged
+    assert joined.consistency.judged == len(joined.bundle) and joined.consistency.contradicted_share < 0.02
 
 
 def test_maps_that_do_not_overlap_are_not_merged(first_map) -> None:
