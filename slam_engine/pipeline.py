@@ -209,8 +209,8 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
         grid = slam.best_grid()
         snapshots = [s.reduced() for s in slam.snapshots]
     consistency = map_consistency(grid, key_frames, key_frame_points)
-    if consistency.warning() is not None:
-        warnings.append(str(consistency.warning()))
+    if (inconsistent := consistency.warning()) is not None:
+        warnings.append(inconsistent)
     texture, texture_status = _ground_texture(log, trajectory, grid, config, warnings)
     bundle = map_bundle(key_frames, slam.key_frame_times(), ~slam.key_frame_matched(), slam.product_scans(),
                         slam.projector.origin_v, backend.edges, trajectory, config, log)

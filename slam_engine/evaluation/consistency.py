@@ -82,7 +82,7 @@ def map_consistency(grid: OccupancyGrid, poses: np.ndarray, returns_v: Sequence[
     if counts.sum() == 0:
         return MapConsistency(0.0, 0, 0)
     owner = np.repeat(np.arange(len(counts)), counts)
-    points = place_each(np.asarray(poses, np.float64), np.concatenate([r for r in returns_v if len(r)]), owner)
+    points = place_each(np.asarray(poses, np.float64), np.concatenate(returns_v), owner)
     ix, iy = grid.world_to_cell(points[:, 0], points[:, 1])
     rows, cols = grid.shape
     inside = (ix >= 0) & (ix < cols) & (iy >= 0) & (iy < rows)

@@ -73,7 +73,7 @@ def join(base: MapBundle, part: MapBundle, config: SlamConfig, threads: int = 1)
     for candidate in left:
         bundle = concatenated(bundle, candidate, connect=False)
     grid = render_occupancy(joint.scans(), joint.poses, joint.origin_v, config.grid)
-    consistency = map_consistency(grid, joint.poses, [scan.ends_v[scan.is_hit] for scan in joint.scans()])
+    consistency = map_consistency(grid, joint.poses, joint.all_hits())
     keep = ~np.isin(bundle.trajectory_drive, disconnected_drives(bundle))
     return JoinedMap(bundle, grid, Trajectory(bundle.trajectory_t_s[keep], bundle.trajectory[keep]),
                      bundle.trajectory_drive[keep], placement, placement.localised,

@@ -109,7 +109,8 @@ def joined_result(joined: JoinedMap, config: SlamConfig, base_result: SlamResult
     warnings = [] if base_result is None else [w for w in base_result.warnings if not w.startswith(WARNING_START)]
     if joined.consistency is not None:  # the joint map's, not the new drive's own map's
         summary["map_consistency"] = joined.consistency.as_dict()
-        warnings += [] if joined.consistency.warning() is None else [str(joined.consistency.warning())]
+        if (inconsistent := joined.consistency.warning()) is not None:
+            warnings.append(inconsistent)
     if base_result is None:
         empty = np.zeros(0)
         stats = ScanStats(empty, empty, np.zeros(0, bool), empty, np.zeros(0, bool), empty)
