@@ -39,6 +39,9 @@ def ground_mask(points_world: np.ndarray, ground_z_m: float, band_m: float) -> n
     return np.abs(points_world[:, 2] - ground_z_m) <= band_m
 
 
+PLANE_REFITS = 10
+
+
 def estimate_ground_z(points_vehicle: np.ndarray, max_tilt_rad: float = 0.25, distance_m: float = 0.05,
                       seed: int = 0) -> float | None:
     """Height [m] of the dominant near-horizontal plane below the cameras, fitted with Open3D's
@@ -54,9 +57,21 @@ def estimate_ground_z(points_vehicle: np.ndarray, max_tilt_rad: float = 0.25, di
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     if len(points) > 200_000:
         cloud = cloud.random_down_sample(200_000 / len(points))
-    (a, b, c, d), inliers = cloud.segment_plane(distance_threshold=distance_m, ransac_n=3, num_iterations=500)
+    (a, b, c, d), _ = cloud.segment_plane(distance_threshold=distance_m, ransac_n=3, num_iterations=500)
+    # RANSAC's plane depends on its random draws (seed, and the points sampled): refit it to its
+    # inliers by least squares until they stop changing, so that the height depends on the ground only
+    xyz = np.asarray(cloud.points)
     normal = np.array([a, b, c]) / np.linalg.norm([a, b, c])
-    if abs(normal[2]) < np.cos(max_tilt_rad) or len(inliers) < 50:
+    offset = d / np.linalg.norm([a, b, c])
+    inliers = np.zeros(len(xyz), dtype=bool)
+    for _ in range(PLANE_REFITS):
+        previous, inliers = inliers, np.abs(xyz @ normal + offset) <= distance_m
+        if inliers.sum() < 50 or np.array_equal(inliers, previous):
+            break
+        centroid = xyz[inliers].mean(axis=0)
+        normal = np.linalg.svd(xyz[inliers] - centroid, full_matrices=False)[2][-1]
+        offset = -float(normal @ centroid)
+    if abs(normal[2]) < np.cos(max_tilt_rad) or inliers.sum() < 50:
         return None
-    inlier_z = np.asarray(cloud.points)[inliers, 2]
-    return float(np.median(inlier_z))
+    # to 0.1 mm: the refits can settle on either of two inlier sets whose heights differ by ~1e-7 m
+    return round(float(np.median(xyz[inliers, 2])), 4)

@@ -4,7 +4,8 @@
 Once the ground height is known, only the rows the texture can use are rectified and matched
 (:class:`GroundWindow`): those whose rays meet the ground band within the depth range, with a
 margin of context for the matcher. On the car's cameras (1280 x 560, 1.58 m up, ground seen from
-4 to 10 m) that is 219 of 560 rows.
+4 to 10 m) that is 219 of 560 rows. The rows are then matched at ``TextureConfig.stereo_width_scale`` of
+their width (columns averaged): far ground is sampled densely across the drive, sparsely along it.
 
 The rectified left optical frame differs from the left camera's optical frame by the rectification
 rotation ``R_left`` (``X_rect = R_left @ X_cam``); :attr:`StereoRectifier.T_vehicle_from_rectified`
@@ -13,6 +14,7 @@ places it in the vehicle frame.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -110,15 +112,17 @@ class StereoRectifier:
                             row_stop=min(h, int(seen_rows[-1]) + 1 + margin))
 
 
-def compute_disparity(left_rect: np.ndarray, right_rect: np.ndarray, config: TextureConfig) -> np.ndarray:
-    """(H, W) float32 disparity [px] of rectified images with StereoSGBM; NaN where invalid."""
+def compute_disparity(left_rect: np.ndarray, right_rect: np.ndarray, config: TextureConfig,
+                      num_disparities: int | None = None) -> np.ndarray:
+    """(H, W) float32 disparity [px] of rectified images with StereoSGBM; NaN where invalid.
+    ``num_disparities`` (a multiple of 16) overrides ``config.sgbm_num_disparities``."""
     import cv2  # imported when used: OpenCV (~15 MB) only for camera data
     left_gray = _gray(left_rect)
     right_gray = _gray(right_rect)
     block = config.sgbm_block_size
     matcher = cv2.StereoSGBM.create(  # the same binding as the legacy cv2.StereoSGBM_create
         minDisparity=0,
-        numDisparities=config.sgbm_num_disparities,
+        numDisparities=num_disparities or config.sgbm_num_disparities,
         blockSize=block,
         P1=8 * block * block,
         P2=32 * block * block,
@@ -154,16 +158,33 @@ def stereo_frame_points(left: np.ndarray, right: np.ndarray, rectifier: StereoRe
                         what: str = "stereo frame", window: GroundWindow | None = None) -> FramePoints:
     """Coloured 3-D points of one stereo pair within the configured depth range, in the rectified
     left optical frame; colours come from the rectified left image (gray for gray cameras). With a
-    ``window`` (:meth:`StereoRectifier.ground_window`) only its rows are rectified and matched."""
+    ``window`` (:meth:`StereoRectifier.ground_window`) only its rows are rectified and matched.
+    With ``config.stereo_width_scale`` below 1 the rectified pair is narrowed (neighbouring columns
+    averaged) before matching: one point per narrowed pixel."""
     rows = None if window is None else (window.row_start, window.row_stop)
     left_rect, right_rect = rectifier.rectify(left, right, what, rows)
-    disparity = compute_disparity(left_rect, right_rect, config)
+    # pixel column u of the narrowed pair covers full-width column (u + 0.5) / scale - 0.5
+    left_rect, right_rect, scale = _narrowed(left_rect, right_rect, config.stereo_width_scale)
+    num_disparities = 16 * math.ceil(config.sgbm_num_disparities * scale / 16)
+    disparity = compute_disparity(left_rect, right_rect, config, num_disparities) / scale  # full-width pixels
     depth = depth_from_disparity(disparity, rectifier.fx_px, rectifier.calibration.baseline_m)
     keep = (depth >= config.min_depth_m) & (depth <= config.max_depth_m)
-    points = back_project(depth, rectifier.fx_px, rectifier.fy_px, rectifier.cx_px, rectifier.cy_px,
-                          0 if rows is None else rows[0])
+    points = back_project(depth, rectifier.fx_px * scale, rectifier.fy_px, (rectifier.cx_px + 0.5) * scale - 0.5,
+                          rectifier.cy_px, 0 if rows is None else rows[0])
     return FramePoints(points_camera=points[keep], colors=left_rect[keep],
                        T_vehicle_from_camera=rectifier.T_vehicle_from_rectified)
+
+
+def _narrowed(left: np.ndarray, right: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """The pair narrowed to ``scale`` of its width (pixels averaged), and the scale it got (whole pixels)."""
+    width = left.shape[1]
+    narrow = max(1, round(width * scale))
+    if narrow == width:
+        return left, right, 1.0
+    import cv2  # imported when used: OpenCV (~15 MB) only for camera data
+    size = (narrow, left.shape[0])
+    return (cv2.resize(left, size, interpolation=cv2.INTER_AREA), cv2.resize(right, size, interpolation=cv2.INTER_AREA),
+            narrow / width)
 
 
 def _gray(image: np.ndarray) -> np.ndarray:

@@ -44,12 +44,19 @@ class TextureAccumulator:
         self.points_outside += int(np.count_nonzero(~inside))
         if not inside.any():
             return
-        flat = iy[inside] * width + ix[inside]
-        colors = colors[inside]
-        self.points_added += int(flat.size)
-        cells, inverse, frame_counts = np.unique(flat, return_inverse=True, return_counts=True)
-        frame_sums = np.stack([np.bincount(inverse, weights=colors[:, c], minlength=cells.size)
-                               for c in range(self.channels)], axis=-1)
+        ix, iy, colors = ix[inside], iy[inside], colors[inside]
+        self.points_added += int(ix.size)
+        # binned within the frame's bounding box: cells come out in the grid's row-major order, and
+        # each cell's colours are summed in the order given
+        x0, y0 = int(ix.min()), int(iy.min())
+        box_w = int(ix.max()) - x0 + 1
+        local = (iy - y0) * box_w + (ix - x0)
+        box_counts = np.bincount(local)
+        in_box = np.flatnonzero(box_counts)
+        frame_counts = box_counts[in_box]
+        cells = (in_box // box_w + y0) * width + in_box % box_w + x0
+        frame_sums = np.stack([np.bincount(local, weights=colors[:, c])[in_box] for c in range(self.channels)],
+                              axis=-1)
         frame_mean = frame_sums / frame_counts[:, None]
         if self.mode == "latest":
             self._mean[cells] = frame_mean
@@ -62,7 +69,10 @@ class TextureAccumulator:
     def texture_map(self) -> TextureMap:
         """The accumulated :class:`TextureMap`: (H, W, 3) RGB or (H, W) gray uint8, unseen cells 0."""
         height, width = self.grid.shape
-        colors = np.clip(np.rint(self._mean), 0, 255).astype(np.uint8).reshape(height, width, self.channels)
+        seen = np.flatnonzero(self._counts)  # only these cells hold a colour: the others stay 0
+        flat = np.zeros((height * width, self.channels), dtype=np.uint8)
+        flat[seen] = np.clip(np.rint(self._mean[seen]), 0, 255).astype(np.uint8)
+        colors = flat.reshape(height, width, self.channels)
         if self.channels == 1:
             colors = colors[:, :, 0]
         counts = np.minimum(self._counts, np.iinfo(np.int32).max).astype(np.int32).reshape(height, width)

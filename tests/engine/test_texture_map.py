@@ -12,7 +12,7 @@ from slam_engine.model.poses import to_matrix_4x4
 from slam_engine.model.result import OccupancyGrid, Trajectory
 from slam_engine.texture import TextureAccumulator, build_texture_map
 from slam_engine.texture.calibration import thor_kinect_calibration
-from slam_engine.texture.projection import interpolate_poses, transform_points
+from slam_engine.texture.projection import estimate_ground_z, interpolate_poses, transform_points
 from slam_engine.texture.rgbd import kinect_depth_m, kinect_rgb_pixel, rgbd_frame_points
 
 
@@ -51,6 +51,39 @@ def test_gray_accumulator_gives_a_2d_texture_and_converts_colour():
     texture = acc.texture_map()
     assert texture.colors.shape == (3, 4)
     assert texture.colors[0, 2] == 63  # mean of 50 and 76.2
+
+
+def test_accumulator_matches_a_per_point_reference_over_many_frames():
+    """Cells and running means equal a plain per-point reference (np.add.at), frame by frame."""
+    rng = np.random.default_rng(7)
+    grid = OccupancyGrid(np.zeros((40, 60)), 0.05, -1.0, -1.0)
+    acc = TextureAccumulator(grid, channels=3, mode="mean")
+    sums, counts = np.zeros((40 * 60, 3)), np.zeros(40 * 60)
+    for _ in range(5):
+        x, y = rng.uniform(-1.2, 2.2, 3000), rng.uniform(-1.2, 1.2, 3000)  # some points off the grid
+        colors = rng.integers(0, 256, (3000, 3))
+        acc.add(x, y, colors)
+        ix, iy = np.floor((x + 1.0) / 0.05).astype(int), np.floor((y + 1.0) / 0.05).astype(int)
+        inside = (ix >= 0) & (ix < 60) & (iy >= 0) & (iy < 40)
+        np.add.at(sums, iy[inside] * 60 + ix[inside], colors[inside])
+        np.add.at(counts, iy[inside] * 60 + ix[inside], 1)
+    texture = acc.texture_map()
+    np.testing.assert_array_equal(texture.counts.ravel(), counts)
+    seen = counts > 0
+    reference = np.clip(np.rint(sums[seen] / counts[seen, None]), 0, 255)
+    assert np.abs(texture.colors.reshape(-1, 3)[seen] - reference).max() <= 1  # running mean in float32
+    assert (texture.colors.reshape(-1, 3)[~seen] == 0).all()
+
+
+def test_ground_height_does_not_depend_on_the_ransac_seed():
+    """Open3D's threaded RANSAC gives a slightly different plane per seed (and per run); the refit to
+    its inliers gives one height."""
+    rng = np.random.default_rng(3)
+    ground = np.c_[rng.uniform(3, 10, 20_000), rng.uniform(-4, 4, 20_000), rng.normal(-0.02, 0.01, 20_000)]
+    clutter = np.c_[rng.uniform(3, 10, 5_000), rng.uniform(-4, 4, 5_000), rng.uniform(0.0, 2.0, 5_000)]
+    heights = {estimate_ground_z(np.r_[ground, clutter], seed=seed) for seed in range(6)}
+    assert len(heights) == 1  # without the refit: 6 heights up to 4e-5 m apart
+    assert heights.pop() == pytest.approx(-0.02, abs=0.001)
 
 
 def test_interpolated_poses_wrap_the_heading():

@@ -94,11 +94,11 @@ def test_stereo_texture_matches_the_floor(dataset):
     assert texture.colors.shape == (100, 100, 3)  # Bayer camera: colour texture
     assert (texture.resolution_m, texture.origin_x_m, texture.origin_y_m) == (0.2, -2.0, -10.0)
     observed = np.nonzero(texture.counts > 0)
-    assert len(observed[0]) > 1500  # measured 2091 cells (84 m^2)
+    assert len(observed[0]) > 1500  # measured 2061 cells (82 m^2); 2091 matching the full width
     error = np.abs(texture.colors[observed].astype(np.float64) - truth_colors(texture, grid, floor_rgb, observed))
-    assert error.mean() < 12.0  # measured 8.3 (of 255)
+    assert error.mean() < 12.0  # measured 9.3 (of 255); 8.3 matching the full width
     share_right, worst_edge_distance = placement(texture, grid, 1.0, observed)
-    assert share_right > 0.96  # measured 0.979
+    assert share_right > 0.96  # measured 0.978
     assert worst_edge_distance <= 1.5 + 1e-9  # wrong cells touch an edge cell: placement within one cell
     assert any("ground estimated at z = " in note for note in notes)
 
