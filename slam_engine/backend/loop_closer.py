@@ -272,13 +272,13 @@ class LoopCloser:
         self._submap_last = np.array([s.last for s in self.submaps], np.int64)
         self.grids = SubmapGrids(self.submaps, self.path, in_reach, resolution_m, margin_m=1.0,
                                  unobserved=c.unobserved_score)
-        self.graph = self._motion_graph()
+        self.graph = self.motion_graph()
         self._closure_links: list[tuple[int, int]] = []
         # (closures it holds, adjacency) of the drive-distance graph, rebuilt when closures are added
         self._links: tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
         self._accepted: list[_Found] = []
 
-    def _motion_graph(self) -> PoseGraph:
+    def motion_graph(self) -> PoseGraph:
         """The key frames tied by the front end's motions (loose where a step is unverified)."""
         c = self.config
         graph = PoseGraph(self.path, cauchy_scale=c.cauchy_scale)
@@ -348,7 +348,7 @@ class LoopCloser:
             # that the front end's drift within a submap bends too; least squares first (every verified
             # closure pulls), then the robust losses from there: a closure that disagrees with the rest
             # is then an outlier and lets go
-            self.graph = self._motion_graph()
+            self.graph = self.motion_graph()
             for found in self._accepted:
                 self._add_closure_edge(self.graph, found, to_nearest=True)
             est = self.graph.optimize(self.graph.optimize(est, robust=False))
