@@ -123,8 +123,9 @@ def ideal_closures(rec: Recording, closer: LoopCloser, min_gap_m: float) -> tupl
     c = rec.config.loop_closing
     sigmas = np.array([c.closure_sd_m, c.closure_sd_m, c.closure_sd_rad])
     known = rec.truth_index >= 0
-    true_xy = rec.truth.poses[np.maximum(rec.truth_index, 0), :2]
-    true_travel = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(true_xy, axis=0).T))])
+    true_xy = rec.truth.poses[np.maximum(rec.truth_index, 0), :2]  # read only where known
+    true_travel = np.zeros(len(known))  # along the true poses of the key frames that have one
+    true_travel[known] = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(true_xy[known], axis=0).T))])
     added, last_m = 0, -np.inf
     for k in np.flatnonzero(known):
         behind = np.flatnonzero(known & (true_travel < true_travel[k] - min_gap_m))
