@@ -188,7 +188,8 @@ def _tiles_to_grid(levels0, table, r0, r1, c0, c1, archive_index, archive_tiles,
 
 
 class ParticleGrids:
-    """Occupancy maps of ``n_particles`` particles sharing copy-on-write tiles.
+    """Occupancy maps of up to ``n_particles`` particles sharing copy-on-write tiles (as many as
+    :meth:`resample` last gave, ``n_particles`` at first).
 
     ``resolution_m``: level-0 cell size [m]. Maps grow as the drive reaches new tiles; no bounds
     are set by hand."""
@@ -247,13 +248,13 @@ class ParticleGrids:
         new_y0 = min(self.tile_y0, ty_lo - TABLE_MARGIN_TILES)
         new_w = max(self.tile_x0 + w, tx_hi + 1 + TABLE_MARGIN_TILES) - new_x0
         new_h = max(self.tile_y0 + h, ty_hi + 1 + TABLE_MARGIN_TILES) - new_y0
-        tables = np.full((self.n_particles, new_h, new_w), -1, np.int32)
+        tables = np.full((self.tables.shape[0], new_h, new_w), -1, np.int32)
         ox, oy = self.tile_x0 - new_x0, self.tile_y0 - new_y0
         tables[:, oy:oy + h, ox:ox + w] = self.tables
         touched_at = np.full((new_h, new_w), -np.inf)
         touched_at[oy:oy + h, ox:ox + w] = self.touched_at
         self.tables, self.touched_at, self.tile_x0, self.tile_y0 = tables, touched_at, new_x0, new_y0
-        self._mark = np.zeros(tables.shape, np.uint8)
+        self._mark = np.zeros((self.n_particles, new_h, new_w), np.uint8)
 
     def ensure_free(self, n_tiles: int) -> None:
         """Grow the pool so that ``n_tiles`` tiles can be allocated: by 1/32 at least, in place
@@ -294,8 +295,12 @@ class ParticleGrids:
         _rebuild_coarse(lv[0], lv[1], lv[2], lv[3], self.tables, touched, n_touched)
 
     def resample(self, ancestors: np.ndarray) -> None:
-        """Particle i takes the map of particle ``ancestors[i]`` (tables copied, tiles shared)."""
-        self.tables = self.tables[np.asarray(ancestors)]
+        """Particle i takes the map of particle ``ancestors[i]`` (tables copied, tiles shared); there
+        may be fewer ancestors than particles, or more, up to ``n_particles``."""
+        ancestors = np.asarray(ancestors)
+        if len(ancestors) > self.n_particles:
+            raise ValueError(f"resample: {len(ancestors)} particles, at most {self.n_particles}")
+        self.tables = self.tables[ancestors]
         self._recount()
 
     def _recount(self) -> None:

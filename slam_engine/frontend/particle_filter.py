@@ -4,7 +4,10 @@ Odometry messages move the dead-reckoned odometry pose continuously. A scan is *
 the vehicle has moved ``linear_update_m`` / turned ``angular_update_rad`` (or ``temporal_update_s``
 passed) since the last processed scan: every particle samples the odometry motion, fits the scan
 onto its own map (scan-matched proposal), is weighted by how well the scan fits there, the set is
-resampled when the effective sample size drops, and the scan is inserted into every map. The
+resampled when the effective sample size drops, and the scan is inserted into every map. With
+``min_particles`` below ``particles``, each resampling draws as many particles as the spread of the
+proposal's poses asks for (KLD-sampling): few while the scans pin the pose down, more (up to
+``particles``) where the drive is ambiguous. The
 odometry increments are first corrected for the systematic heading error that the matches have
 measured so far (:mod:`slam_engine.frontend.heading_calibration`), and each scan is paired with the
 odometry at its stamp plus the LiDAR's time offset, estimated online, and de-skewed where the LiDAR
@@ -44,7 +47,13 @@ from slam_engine.frontend.motion_models import (
 from slam_engine.frontend.odometry import OdometryIntegrator, make_integrator
 from slam_engine.frontend.odometry_noise import OdometryPrecision
 from slam_engine.frontend.raycast import insert_scan
-from slam_engine.frontend.resampling import low_variance_resample, n_eff, normalize_log_weights
+from slam_engine.frontend.resampling import (
+    kld_sample_count,
+    low_variance_resample,
+    n_eff,
+    normalize_log_weights,
+    occupied_bins,
+)
 from slam_engine.frontend.scan_matcher import ScanMatcher
 from slam_engine.frontend.time_offset import (
     OdometryHistory,
@@ -229,7 +238,7 @@ class SlamFilter:
         self._last_odom_offset_s = 0.0  # the time offset _last_odom was taken with
         self._last_t_s: float | None = None
         self._pending: deque[ScanMessage] = deque()  # scans waiting for odometry past their stamp
-        self._stats: list[tuple[float, float, bool, float, bool, float]] = []
+        self._stats: list[tuple[float, float, bool, float, bool, float, int]] = []
         self.snapshots: list[MapSnapshot] = []
         # the newest snapshot at preview size for live maps; False: every snapshot at an animation
         # frame's size from the start (the full-resolution preview, tens of MB, is never built)
@@ -316,7 +325,7 @@ class SlamFilter:
         else:
             self._skip(scan, odom, projected)
             return
-        self._stats[-1] = self._stats[-1][:5] + (time.perf_counter() - start,)
+        self._stats[-1] = self._stats[-1][:5] + (time.perf_counter() - start,) + self._stats[-1][6:]
         every = self.config.snapshot_every_scans
         if every and self.steps_processed % every == 0:
             if self.snapshots and self.live_previews:  # kept for the animation: a frame's size is enough
@@ -341,7 +350,7 @@ class SlamFilter:
         self.grids.resample(np.zeros(self.config.particles, np.int64))  # every particle shares that map
         self.time_offset.record_step(scan.t_s, None)
         self._record_step(scan.t_s, odom, projected, np.ones(self.config.particles, bool))
-        self._stats.append((scan.t_s, float(self.config.particles), False, 1.0, False, 0.0))
+        self._stats.append((scan.t_s, float(self.config.particles), False, 1.0, False, 0.0, self.config.particles))
 
     def _record_step(self, t_s: float, odom: np.ndarray, projected: ProjectedScan, matched: np.ndarray) -> None:
         self._history.append(self.particles.copy())
@@ -352,7 +361,7 @@ class SlamFilter:
         self.key_frame_sweeps.append(self._beam_poses)
         self.key_frame_angle_offsets.append(self._angle_offset_rad)
         self._parents.append(self._next_parents)
-        self._next_parents = np.arange(self.config.particles)
+        self._next_parents = np.arange(len(self.particles))
         self._records.append(_ScanRecord(t_s, len(self._history) - 1, np.zeros(3)))
         self._last_odom = odom
         self._last_odom_offset_s = self.time_offset.applied_s
@@ -368,7 +377,7 @@ class SlamFilter:
 
     def _process(self, scan: ScanMessage, odom: np.ndarray, projected) -> None:
         assert self._last_odom is not None  # set by the first scan's step
-        n = self.config.particles
+        n = len(self.particles)
         target = self.heading_calibration.corrected_target(self._last_odom, odom)
         # the motion model scaled to the odometry's measured precision (the configured one unless the
         # odometry has proved more precise than the matches)
@@ -401,20 +410,35 @@ class SlamFilter:
         best = self.best_particle()
         weights = normalize_log_weights(self.log_weights)
         neff = n_eff(weights)
-        resampled = neff < self.config.resample_threshold * n
+        count = self._particles_needed()
+        # more particles are drawn at once; fewer when half of them would do, or at the next resampling
+        resampled = neff < self.config.resample_threshold * n or count > n or 2 * count <= n
         # the history holds the poses before resampling; the next step's parents say who survived
         self._record_step(scan.t_s, odom, projected, accepted)
         clones_of = None
         if resampled:
-            ancestors = low_variance_resample(weights, self.rng)
+            ancestors = low_variance_resample(weights, self.rng, count)
             self.particles = self.particles[ancestors]
             self.path_log_likelihood = self.path_log_likelihood[ancestors]
-            self.log_weights = np.zeros(n)
+            self.log_weights = np.zeros(count)
             self.grids.resample(ancestors)
             self._next_parents = ancestors
             clones_of = ancestors
         self._insert(projected, clones_of)
-        self._stats.append((scan.t_s, neff, bool(resampled), float(score[best]), bool(accepted[best]), 0.0))
+        self._stats.append((scan.t_s, neff, bool(resampled), float(score[best]), bool(accepted[best]), 0.0,
+                            len(self.particles)))
+
+    def _particles_needed(self) -> int:
+        """How many particles the next resampling draws: ``particles``, or with ``min_particles``
+        below it, KLD-sampling's count for the bins (``kld_bin_xy_m``, ``kld_bin_theta_rad``) that the
+        current poses occupy, within ``[min_particles, particles]``. Every current pose counts, also
+        those about to lose the resampling: the count errs on the side of more."""
+        c = self.config
+        fewest = min(c.min_particles, c.particles)
+        if fewest >= c.particles:
+            return c.particles
+        bins = occupied_bins(self.particles, c.kld_bin_xy_m, c.kld_bin_theta_rad)
+        return int(np.clip(kld_sample_count(bins, c.kld_error), fewest, c.particles))
 
     def _forget_stale_map(self, odom: np.ndarray) -> None:
         """Advance the maps' travel clock by the odometry's translation since the last step and, every
@@ -608,7 +632,8 @@ class SlamFilter:
 
     def scan_stats(self) -> ScanStats:
         rows = self._stats
-        col = list(zip(*rows, strict=True)) if rows else [()] * 6
+        col = list(zip(*rows, strict=True)) if rows else [()] * 7
         return ScanStats(t_s=np.array(col[0], float), n_eff=np.array(col[1], float),
                          resampled=np.array(col[2], bool), match_score=np.array(col[3], float),
-                         matched=np.array(col[4], bool), step_time_s=np.array(col[5], float))
+                         matched=np.array(col[4], bool), step_time_s=np.array(col[5], float),
+                         particles=np.array(col[6], np.int64))

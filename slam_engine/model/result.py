@@ -124,7 +124,8 @@ class TextureMap:
 @dataclass
 class ScanStats:
     """Per processed scan: time [s], effective sample size, resampled?, best match score,
-    whether the scan matcher's correction was used, and the step's wall time [s]."""
+    whether the scan matcher's correction was used, the step's wall time [s], and the number of
+    particles after it (empty where not recorded)."""
 
     t_s: np.ndarray
     n_eff: np.ndarray
@@ -132,6 +133,7 @@ class ScanStats:
     match_score: np.ndarray
     matched: np.ndarray
     step_time_s: np.ndarray
+    particles: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 @dataclass

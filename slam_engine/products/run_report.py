@@ -4,12 +4,12 @@ Top-level keys: ``config`` (the SlamConfig used), ``input`` (the log's summary),
 (wall time, scans, scans/s, per-step time percentiles), ``memory`` (peak bytes), ``time_offset`` (the
 LiDAR-to-odometry time offset: estimated, its standard error, applied; whether scans were de-skewed),
 ``filter`` (resamples,
-match rate, N_eff), ``map`` (size, resolution, origin, cell counts, ``consistency``: whether the map
+match rate, N_eff, particle counts), ``map`` (size, resolution, origin, cell counts, ``consistency``: whether the map
 contradicts its own scans), ``georeference``, ``accuracy``
 (relation errors and/or ATE when relations / ground truth were given, ``texture`` colour error and
 placement for a simulated log with a known floor; else null), ``warnings``,
 ``scan_stats`` (per processed scan, columnar: t_s, n_eff, resampled, match_score, matched,
-step_time_s) and ``products`` (the files written).
+step_time_s, particles) and ``products`` (the files written).
 """
 
 from __future__ import annotations
@@ -83,6 +83,10 @@ def build_run_report(result: SlamResult, input_summary: dict | None = None, geor
             "match_rate": float(np.mean(stats.matched)) if processed else None,
             "n_eff_mean": float(np.mean(stats.n_eff)) if processed else None,
             "n_eff_min": float(np.min(stats.n_eff)) if processed else None,
+            # particles after each step: a fixed count, or KLD-sampling's between min_particles and particles
+            "particles_median": float(np.median(stats.particles)) if stats.particles.size else None,
+            "particles_min": int(np.min(stats.particles)) if stats.particles.size else None,
+            "particles_max": int(np.max(stats.particles)) if stats.particles.size else None,
             "match_score_mean": float(np.mean(stats.match_score)) if processed else None,
         },
         "map": {

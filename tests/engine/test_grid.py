@@ -58,6 +58,34 @@ def test_resampled_particles_share_tiles_until_one_writes() -> None:
     np.testing.assert_array_equal(grids.occupancy_grid(1).log_odds, g2.log_odds)
 
 
+def test_resampling_to_fewer_then_more_particles_keeps_their_maps() -> None:
+    """An adaptive particle count: resampling may draw fewer particles than the grids hold, then
+    more again (up to ``n_particles``); maps stay with their particles, tiles are counted right, and
+    the tables grow with the drive at any count."""
+    import pytest
+
+    grids = ParticleGrids(4, 0.05)
+    start = np.tile([0.5, 0.5, 0.0], (4, 1))
+    insert_scan(grids, start, np.zeros(2), np.array([[2.0, 0.0]]), np.array([True]), 0.9, -0.4, -5, 5)
+    insert_scan(grids, start[:1], np.zeros(2), np.array([[0.5, 1.0]]), np.array([True]), 0.9, -0.4, -5, 5,
+                particles=np.array([3]))  # particle 3 alone sees a second wall
+    walled = grids.occupancy_grid(3).log_odds
+    grids.resample(np.array([3, 1]))  # two particles: 3's map and 1's
+    assert grids.tables.shape[0] == 2 and grids.tiles_in_use() == 2
+    np.testing.assert_array_equal(grids.occupancy_grid(0).log_odds, walled)
+    # the drive reaches far tiles with two particles, then resamples to four
+    insert_scan(grids, np.array([[-50.0, 40.0, 0.0]] * 2), np.zeros(2), np.array([[1.0, 0.0]]), np.array([True]),
+                0.9, -0.4, -5, 5)
+    grids.resample(np.array([0, 0, 1, 1]))
+    assert grids.tables.shape[0] == 4
+    far = grids.occupancy_grid(2)
+    ix, iy = far.world_to_cell(-48.975, 40.025)
+    assert far.log_odds[iy, ix] == np.float32(0.9)
+    assert np.all(grids.refcount[grids.refcount > 0] == 2)  # every tile read by the two copies of each map
+    with pytest.raises(ValueError, match="at most 4"):
+        grids.resample(np.zeros(5, np.int64))
+
+
 def test_coarse_levels_hold_the_maximum_of_their_cells() -> None:
     grids = ParticleGrids(1, 0.05)
     _one_beam(grids, np.zeros((1, 3)), (1.0, 0.52))
