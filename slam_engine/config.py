@@ -362,8 +362,8 @@ class SlamConfig(_Section):
                                "resampling; at or above it the count is fixed.")
     kld_error: float = Field(0.5, gt=0.0, le=10.0, description="KLD-sampling's bound on the divergence between "
                              "the particles and the posterior they sample (epsilon): smaller keeps more particles.")
-    kld_bin_xy_m: float = Field(0.05, gt=0.0, le=10.0, description="KLD-sampling's bin size in x and y [m].")
-    kld_bin_theta_rad: float = Field(0.0175, gt=0.0, le=1.0, description="KLD-sampling's bin size in "
+    kld_bin_xy_m: float = Field(0.02, gt=0.0, le=10.0, description="KLD-sampling's bin size in x and y [m].")
+    kld_bin_theta_rad: float = Field(0.0087, gt=0.0, le=1.0, description="KLD-sampling's bin size in "
                                      "heading [rad].")
     seed: int = Field(0, ge=0, le=2**32 - 1, description="Seed for numpy.random.default_rng.")
     resample_threshold: float = Field(0.5, gt=0.0, le=1.0, description="Resample when N_eff < this * N.")

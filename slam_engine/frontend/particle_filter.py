@@ -411,8 +411,7 @@ class SlamFilter:
         weights = normalize_log_weights(self.log_weights)
         neff = n_eff(weights)
         count = self._particles_needed()
-        # more particles are drawn at once; fewer when half of them would do, or at the next resampling
-        resampled = neff < self.config.resample_threshold * n or count > n or 2 * count <= n
+        resampled = neff < self.config.resample_threshold * n  # fewer particles only then
         # the history holds the poses before resampling; the next step's parents say who survived
         self._record_step(scan.t_s, odom, projected, accepted)
         clones_of = None
@@ -424,9 +423,27 @@ class SlamFilter:
             self.grids.resample(ancestors)
             self._next_parents = ancestors
             clones_of = ancestors
+        elif count > n:
+            clones_of = self._split(weights, count)
         self._insert(projected, clones_of)
         self._stats.append((scan.t_s, neff, bool(resampled), float(score[best]), bool(accepted[best]), 0.0,
                             len(self.particles)))
+
+    def _split(self, weights: np.ndarray, count: int) -> np.ndarray:
+        """Grow the set to ``count`` particles without resampling (which would throw the weights away):
+        the heaviest particles are split, each copy keeping the pose and the map with an equal share
+        of the weight, so the distribution the set stands for is unchanged. Returns the ancestors."""
+        n = len(self.particles)
+        order = np.argsort(-weights, kind="stable")
+        extra = order[np.arange(count - n) % n]
+        ancestors = np.concatenate([np.arange(n), extra])
+        copies = np.bincount(ancestors, minlength=n)
+        self.log_weights = (self.log_weights - np.log(copies))[ancestors]
+        self.particles = self.particles[ancestors]
+        self.path_log_likelihood = self.path_log_likelihood[ancestors]
+        self.grids.resample(ancestors)
+        self._next_parents = ancestors
+        return ancestors
 
     def _particles_needed(self) -> int:
         """How many particles the next resampling draws: ``particles``, or with ``min_particles``
