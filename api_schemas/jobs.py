@@ -43,9 +43,8 @@ class JobCreate(BaseModel):
                                  "SlamConfig has them, any subset, e.g. {\"grid\": {\"no_return_clear_m\": 4.0}, "
                                  "\"matcher\": {\"search_xy_m\": 0.5}}; the rest keep their defaults.")
     # Shortcuts for the settings most runs change; each overrides its slam.* counterpart.
-    particles: int | None = Field(None, strict=True, description="= slam.particles (default 30): the most "
-                                  "particles; the count follows the posterior's spread down to slam.min_particles "
-                                  "(default 15).")
+    particles: int | None = Field(None, strict=True, description="= slam.particles (default 30); with "
+                                  "slam.min_particles below it, the most particles.")
     seed: int | None = Field(None, strict=True, description="= slam.seed (default 0).")
     resolution_m: float | None = Field(None, strict=True, description="= slam.grid.resolution_m: grid cell size [m] "
                                        "(default 0.05).")

@@ -147,8 +147,8 @@ def register(app: typer.Typer) -> None:
         log: Path = typer.Argument(..., metavar="LOG", help="Drive log: a file or a folder (see lidarmap formats)."),
         out: Path = typer.Option(..., "--out", "-o", help="Folder for the products (created)."),
         format: str = typer.Option("auto", "--format", "-f", help="Log format, or auto to detect it."),
-        particles: int | None = typer.Option(None, help="Most particles (overrides the config); the count "
-                                              "follows the posterior's spread down to the config's min_particles."),
+        particles: int | None = typer.Option(None, help="Number of particles (overrides the config; the most, "
+                                              "with a min_particles below it in the config)."),
         seed: int | None = typer.Option(None, help="Random seed (overrides the config)."),
         resolution_m: float | None = typer.Option(None, "--resolution-m", "--resolution",
                                                   help="Grid cell size [m] (overrides the config)."),

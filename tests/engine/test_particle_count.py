@@ -40,11 +40,12 @@ def test_count_is_the_floor_for_agreeing_poses_and_the_ceiling_for_scattered_one
 @pytest.mark.slow
 def test_a_drive_the_scans_pin_down_runs_on_the_floor_as_accurately() -> None:
     """The simulated car (80 m LiDAR, 10 Hz, 30 s of campus): the scans hold the particles within a
-    bin of 2 cm and 0.5 deg, so after the first resampling most steps run on the default floor of 15
-    of 30, and the trajectory is as accurate as with a fixed 30."""
+    bin of 2 cm and 0.5 deg, so after the first resampling most steps run on a floor of 15
+    of 30 (``min_particles=15``), and the trajectory is as accurate as with a fixed 30 (the
+    default)."""
     drive = simulate(None, seed=0, rig="car", max_duration_s=30.0, cameras=False)
-    adaptive = run_slam(drive.log, SlamConfig(seed=0))
-    fixed = run_slam(drive.log, SlamConfig(min_particles=30, seed=0))
+    adaptive = run_slam(drive.log, SlamConfig(min_particles=15, seed=0))
+    fixed = run_slam(drive.log, SlamConfig(seed=0))
     counts = adaptive.scan_stats.particles
     assert len(counts) == len(adaptive.scan_stats.t_s) and counts[0] == 30  # the first step has them all
     assert np.median(counts) == 15 and counts.max() <= 30 and counts.min() >= 15
