@@ -5,9 +5,9 @@ the vehicle has moved ``linear_update_m`` / turned ``angular_update_rad`` (or ``
 passed) since the last processed scan: every particle samples the odometry motion, fits the scan
 onto its own map (scan-matched proposal), is weighted by how well the scan fits there, the set is
 resampled when the effective sample size drops, and the scan is inserted into every map. With
-``min_particles`` below ``particles``, each resampling draws as many particles as the spread of the
-proposal's poses asks for (KLD-sampling): few while the scans pin the pose down, more (up to
-``particles``) where the drive is ambiguous. The
+``min_particles`` below ``particles``, the count follows the spread of the proposal's poses
+(KLD-sampling): a resampling draws as many as it asks for, and where it asks for more than there are,
+the heaviest particles are split at once. The
 odometry increments are first corrected for the systematic heading error that the matches have
 measured so far (:mod:`slam_engine.frontend.heading_calibration`), and each scan is paired with the
 odometry at its stamp plus the LiDAR's time offset, estimated online, and de-skewed where the LiDAR
@@ -416,13 +416,8 @@ class SlamFilter:
         self._record_step(scan.t_s, odom, projected, accepted)
         clones_of = None
         if resampled:
-            ancestors = low_variance_resample(weights, self.rng, count)
-            self.particles = self.particles[ancestors]
-            self.path_log_likelihood = self.path_log_likelihood[ancestors]
-            self.log_weights = np.zeros(count)
-            self.grids.resample(ancestors)
-            self._next_parents = ancestors
-            clones_of = ancestors
+            clones_of = low_variance_resample(weights, self.rng, count)
+            self._take(clones_of, np.zeros(count))
         elif count > n:
             clones_of = self._split(weights, count)
         self._insert(projected, clones_of)
@@ -435,18 +430,22 @@ class SlamFilter:
         of the weight, so the distribution the set stands for is unchanged. Returns the ancestors."""
         n = len(self.particles)
         order = np.argsort(-weights, kind="stable")
-        extra = order[np.arange(count - n) % n]
-        ancestors = np.concatenate([np.arange(n), extra])
+        ancestors = np.concatenate([np.arange(n), order[np.arange(count - n) % n]])
         copies = np.bincount(ancestors, minlength=n)
-        self.log_weights = (self.log_weights - np.log(copies))[ancestors]
-        self.particles = self.particles[ancestors]
-        self.path_log_likelihood = self.path_log_likelihood[ancestors]
-        self.grids.resample(ancestors)
-        self._next_parents = ancestors
+        self._take(ancestors, (self.log_weights - np.log(copies))[ancestors])
         return ancestors
 
+    def _take(self, ancestors: np.ndarray, log_weights: np.ndarray) -> None:
+        """The new set: particle i is a copy of particle ``ancestors[i]`` (pose, path likelihood, map),
+        with ``log_weights[i]``; the next step's parents say who it came from."""
+        self.particles = self.particles[ancestors]
+        self.path_log_likelihood = self.path_log_likelihood[ancestors]
+        self.log_weights = log_weights
+        self.grids.resample(ancestors)
+        self._next_parents = ancestors
+
     def _particles_needed(self) -> int:
-        """How many particles the next resampling draws: ``particles``, or with ``min_particles``
+        """How many particles the set should hold: ``particles``, or with ``min_particles``
         below it, KLD-sampling's count for the bins (``kld_bin_xy_m``, ``kld_bin_theta_rad``) that the
         current poses occupy, within ``[min_particles, particles]``. Every current pose counts, also
         those about to lose the resampling: the count errs on the side of more."""
