@@ -291,6 +291,22 @@ class LoopClosingConfig(_Section):
     closure_sd_rad: float = Field(0.01, gt=0.0, le=3.2, description="Closure edges: heading sd [rad].")
     cauchy_scale: float = Field(1.0, gt=0.0, le=100.0, description="Scale of the Cauchy loss on closure edges "
                                 "(in standard deviations).")
+    far_search: bool = Field(True, description="Where no window can reach the map far behind any more (the "
+                             "drift since the last closure exceeds what max_window_m holds), stretches of the drive "
+                             "are searched for over the whole map behind them (branch and bound, every heading) "
+                             "and a confirmed placement becomes a closure: loops that come back after hundreds of "
+                             "metres without one (outdoors).")
+    far_every_m: float = Field(20.0, gt=0.0, le=1000.0, description="Travel between far searches [m].")
+    far_min_gap_m: float = Field(60.0, gt=0.0, le=100000.0, description="A far search looks only at key frames "
+                                 "at least this much travel behind the stretch [m].")
+    far_stretch_m: float = Field(8.0, gt=0.0, le=100.0, description="Travel per stretch searched for [m]; the "
+                                 "stretch before it, searched for on its own, must land where the front end's "
+                                 "motion puts it.")
+    far_resolution_m: float = Field(0.2, ge=0.02, le=1.0, description="Cell size of the far search's grid [m].")
+    far_min_score: float = Field(0.65, ge=0.0, le=1.0, description="Lowest score of a far placement (both "
+                                 "stretches).")
+    far_rebuild_m: float = Field(50.0, gt=0.0, le=10000.0, description="The map behind is indexed anew when "
+                                 "this much travel was added to it [m] (or a closure moved it).")
 
 
 class SchedulingConfig(_Section):

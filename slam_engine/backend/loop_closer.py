@@ -24,6 +24,15 @@ loose (``HEADING_CLOSURE_SD_M``); the graph is optimised when the correction is 
 more at the end. Heading closures do not shorten the search windows: the position stays as
 uncertain as it was. Drift on long drives is mostly heading drift, so corridors, where most of a
 building's loops close, keep it in check even where no pose closure is found.
+
+Where no window reaches any more (``far_search``: most key frames ``far_min_gap_m`` behind are further
+from the key frame in the graph than ``max_window_m`` holds, as outdoors, where the drive comes back
+after hundreds of metres without a closure), every ``far_every_m`` the stretch of key frames ending
+at the key frame is searched for over the whole map behind it (branch and bound, every heading, on
+``far_resolution_m`` cells). A placement counts when it is unique and confirmed: the stretch before
+it, searched for on its own, or the last far search's placement lands where the front end's motion
+puts it. It is then matched against the submap it landed in and checked as a windowed closure is,
+and becomes a closure: the windows reach again from there.
 """
 
 from __future__ import annotations
@@ -36,7 +45,7 @@ import numpy as np
 
 from slam_engine.backend.correlative import CorrelativeMatch, MatchGrid, angular_step_rad, refine_pose, search
 from slam_engine.backend.pose_graph import Edge, PoseGraph
-from slam_engine.backend.submaps import Submap, SubmapGrids, split_into_submaps
+from slam_engine.backend.submaps import Submap, SubmapGrids, match_grid_from_points, split_into_submaps
 from slam_engine.backend.travel_graph import adjacency, shortest_distances
 from slam_engine.config import LoopClosingConfig
 from slam_engine.model.poses import compose, place_each, place_points, relative, wrap_angle
@@ -52,6 +61,14 @@ OVERLAP_CHECK_M = 2.0
 OUTSCORED = "another submap matched better"
 # standard deviation of a heading closure's position [m]: the match does not fix it
 HEADING_CLOSURE_SD_M = 30.0
+# far searches (LoopClosingConfig.far_search): they start once the map far behind holds this many key
+# frames and this share of them is beyond every window's reach ...
+FAR_MIN_KEY_FRAMES, FAR_OUT_OF_REACH_SHARE = 20, 0.8
+FAR_LEVELS = 10  # ... search a grid with a pyramid up to 512 cells (102 m at 0.2 m) ...
+FAR_STRETCH_POINTS, FAR_MIN_POINTS = 400, 50  # ... with a stretch's end points, at most / at least ...
+# ... and a placement is confirmed when the stretch before it lands within this many grid cells and this
+# turn [rad] of where the front end's motion puts it
+FAR_AGREE_CELLS, FAR_AGREE_RAD = 2.0, 0.1
 
 
 @dataclass(frozen=True)
@@ -98,6 +115,7 @@ class LoopClosingResult:
     submaps: int = 0
     unverified_steps: int = 0  # front-end steps not verified by a scan match (loose motion edges)
     edges: list[Edge] = field(default_factory=list)  # the final pose graph's (motions and accepted closures)
+    far_search: dict | None = None  # far searches made, placed, confirmed, accepted (None: not enabled)
 
     def summary(self) -> dict:
         accepted = [c for c in self.closures if c.accepted]
@@ -112,6 +130,7 @@ class LoopClosingResult:
                 "closures_rejected": reasons,
                 "optimizations": self.optimizations,
                 "largest_correction_m": round(max((c.correction_m for c in accepted), default=0.0), 4),
+                "far_search": self.far_search,
                 "closures": [c.as_dict() for c in self.closures if c.accepted or c.reason != "no match"]}
 
 
@@ -139,6 +158,20 @@ class _Found:
         cos, sin = math.cos(theta), math.sin(theta)
         u = self.line_direction
         return np.array([cos * u[0] - sin * u[1], sin * u[0] + cos * u[1]])
+
+
+@dataclass(frozen=True)
+class _FarIndex:
+    """The map far behind, as far searches take it: the blurred hit grid of key frames ``nodes`` at their
+    estimates then (world frame), its centre pose and the half width that covers it [m], the travel it
+    reaches up to [m] and the estimate's version it was built from."""
+
+    grid: MatchGrid
+    nodes: np.ndarray
+    centre: np.ndarray
+    reach_m: float
+    until_m: float
+    moved: int
 
 
 @dataclass(frozen=True)
@@ -277,6 +310,12 @@ class LoopCloser:
         # (closures it holds, adjacency) of the drive-distance graph, rebuilt when closures are added
         self._links: tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
         self._accepted: list[_Found] = []
+        self._moved = 0  # how often the estimate was re-optimised (the far index is stale after it)
+        self._far_index: _FarIndex | None = None
+        self._last_far_m = -np.inf
+        # a far placement awaiting confirmation: (key frame, its world pose, the estimate's version then)
+        self._far_pending: tuple[int, np.ndarray, int] | None = None
+        self.far_stats = {"searches": 0, "placed": 0, "confirmed": 0, "accepted": 0}
 
     def motion_graph(self) -> PoseGraph:
         """The key frames tied by the front end's motions (loose where a step is unverified)."""
@@ -316,7 +355,16 @@ class LoopCloser:
             if self.travel_m[k] - last_search_m < c.search_every_m or not len(self.points_v[k]):
                 continue
             last_search_m = self.travel_m[k]
-            found = self._search_node(k, est, self._uncertain_travel(k), closures)
+            travel_to = self._uncertain_travel(k)
+            found = self._search_node(k, est, travel_to, closures)
+            if found is None and c.far_search and self._far_due(k, travel_to):
+                far = self._far_search(k, est, closures)
+                if far is not None:  # confirmed by its own second stretch
+                    self._add_closure(far)
+                    est[: k + 1] = self.graph.optimize(est, nodes=k + 1, robust=False)
+                    optimizations += 1
+                    self._moved += 1
+                continue
             if found is None:
                 continue
             kind = found.kind
@@ -341,6 +389,7 @@ class LoopCloser:
             if offset_m > c.reoptimize_m or offset_rad > c.reoptimize_rad:
                 est[: k + 1] = self.graph.optimize(est, nodes=k + 1, robust=False)
                 optimizations += 1
+                self._moved += 1
         for waiting in pending.values():
             closures[waiting.record] = replace(closures[waiting.record], reason="not confirmed")
         if any(cl.accepted for cl in closures):
@@ -354,7 +403,144 @@ class LoopCloser:
             est = self.graph.optimize(self.graph.optimize(est, robust=False))
             optimizations += 2
         return LoopClosingResult(poses=est, closures=closures, optimizations=optimizations, submaps=len(self.submaps),
-                                 unverified_steps=int(self.unverified.sum()), edges=list(self.graph.edges))
+                                 unverified_steps=int(self.unverified.sum()), edges=list(self.graph.edges),
+                                 far_search=dict(self.far_stats) if c.far_search else None)
+
+    # --- far closures: where no window reaches -------------------------------------------------
+    def _far_due(self, k: int, travel_to: np.ndarray) -> bool:
+        """Whether key frame k searches the map far behind it over the whole map: ``far_every_m`` after
+        the last far search, with most key frames at least ``far_min_gap_m`` behind out of every window's
+        reach (``travel_to``: :meth:`_uncertain_travel`, inf beyond what ``max_window_m`` holds)."""
+        c = self.config
+        if self.travel_m[k] - self._last_far_m < c.far_every_m:
+            return False
+        behind = travel_to[: k][self.travel_m[: k] < self.travel_m[k] - c.far_min_gap_m]
+        return len(behind) >= FAR_MIN_KEY_FRAMES and float(np.mean(np.isinf(behind))) >= FAR_OUT_OF_REACH_SHARE
+
+    def _far_search(self, k: int, est: np.ndarray, closures: list[Closure]) -> _Found | None:
+        """Key frame k placed in the map far behind it: the stretch of key frames ending at k and the one
+        before it, each searched for over the whole map behind them (branch and bound, every heading),
+        unique, scoring ``far_min_score`` and agreeing through the front end's motion between them; then
+        matched against the submap it landed in as a windowed closure is. The closure, or None."""
+        c = self.config
+        self._last_far_m = float(self.travel_m[k])
+        first_a = self._stretch_start(k)
+        if first_a is None or first_a < 1:
+            return None
+        j = first_a - 1
+        first_b = self._stretch_start(j)
+        if first_b is None:
+            return None
+        index = self._far_index_for(first_b, est)
+        if index is None:
+            return None
+        self.far_stats["searches"] += 1
+        placed_a = self._far_place(index, first_a, k)
+        if placed_a is None:
+            return None
+        self.far_stats["placed"] += 1
+        # confirmed by the last far search's placement, when it awaits one and the estimate has not moved
+        # since, or else by the stretch before this one, searched for on its own
+        pending, self._far_pending = self._far_pending, None
+        confirmed = pending is not None and pending[2] == self._moved and self._far_agree(pending[0], pending[1], k,
+                                                                                           placed_a)
+        if not confirmed:
+            placed_b = self._far_place(index, first_b, j)
+            confirmed = placed_b is not None and self._far_agree(j, placed_b, k, placed_a)
+        if not confirmed:
+            self._far_pending = (k, placed_a, self._moved)
+            return None
+        self.far_stats["confirmed"] += 1
+        nearest = index.nodes[int(np.argmin(np.hypot(*(est[index.nodes, :2] - placed_a[:2]).T)))]
+        s = self.submaps[self.submap_of[nearest]]
+        grid = self.grids.grid(s.index)
+        if grid is None:
+            return None
+        initial = relative(est[s.anchor], placed_a)
+        cloud, origins = self.match_cloud(k)
+        points = overlapping_points(grid, cloud, initial)
+        if len(points) < MIN_OVERLAP_POINTS:
+            return None
+        window_m, window_rad = FAR_AGREE_CELLS * c.far_resolution_m, FAR_AGREE_RAD
+        result = self._match(k, _Candidate(s, grid, initial, points, window_m, window_rad))
+        if result is None:
+            return None
+        match, pose = result
+        if match.runner_up_score >= c.runner_up_ratio * match.score:
+            return None
+        delta = relative(relative(est[s.anchor], est[k]), pose)
+        correction_m = float(np.hypot(delta[0], delta[1]))
+        if _overlap_fails(grid, cloud, pose, origins, c.overlap_min_score):
+            return None
+        self.far_stats["accepted"] += 1
+        closures.append(Closure(k, s.index, s.anchor, match.score, match.runner_up_score, index.reach_m, math.pi,
+                                True, "accepted (far)", correction_m, float(abs(delta[2])),
+                                (float(pose[0]), float(pose[1]), float(pose[2]))))
+        return _Found(k, s.anchor, pose, index.reach_m, len(closures) - 1)
+
+    def _far_agree(self, i: int, pose_i: np.ndarray, k: int, pose_k: np.ndarray) -> bool:
+        """Whether world poses found for key frames i and k agree through the front end's motion between
+        them (within ``FAR_AGREE_CELLS`` far cells and ``FAR_AGREE_RAD``)."""
+        via_i = compose(pose_i, relative(self.path[i], self.path[k]))
+        return bool(math.hypot(*(via_i[:2] - pose_k[:2])) <= FAR_AGREE_CELLS * self.config.far_resolution_m
+                    and abs(float(wrap_angle(via_i[2] - pose_k[2]))) <= FAR_AGREE_RAD)
+
+    def _stretch_start(self, last: int) -> int | None:
+        """The first key frame of the stretch of ``far_stretch_m`` of travel that ends at ``last`` (None
+        when the drive is not that long yet)."""
+        start_m = self.travel_m[last] - self.config.far_stretch_m
+        if start_m < 0:
+            return None
+        return min(int(np.searchsorted(self.travel_m, start_m, side="right")), last)
+
+    def _stretch_cloud(self, first: int, last: int) -> np.ndarray:
+        """The end points of key frames ``first..last`` in ``last``'s vehicle frame, by the front end's
+        relative poses, thinned to ``FAR_STRETCH_POINTS``."""
+        frames = np.arange(first, last + 1)
+        counts = self.counts[frames]
+        points = thin(np.concatenate([self.points_v[f] for f in frames.tolist()]), FAR_STRETCH_POINTS)
+        owner = thin(np.repeat(np.arange(len(frames)), counts), FAR_STRETCH_POINTS)
+        return np.ascontiguousarray(place_each(relative(self.path[last], self.path[frames]), points, owner))
+
+    def _far_place(self, index: _FarIndex, first: int, last: int) -> np.ndarray | None:
+        """Key frame ``last``'s world pose from its stretch searched for over the whole far index: None
+        unless it scores ``far_min_score`` and nothing farther than the ambiguity distance scores nearly
+        as well."""
+        c = self.config
+        cloud = self._stretch_cloud(first, last)
+        if len(cloud) < FAR_MIN_POINTS:
+            return None
+        match = search(index.grid, cloud, index.centre, index.reach_m, math.pi, c.far_min_score,
+                       ambiguity_m=c.ambiguity_m, ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio,
+                       runner_up_min_score=c.runner_up_ratio * c.far_min_score, threads=self.threads,
+                       any_runner_up=True)
+        if match is None or match.runner_up_score >= c.runner_up_ratio * match.score:
+            return None
+        return match.pose
+
+    def _far_index_for(self, first: int, est: np.ndarray) -> _FarIndex | None:
+        """The whole-map grid of the key frames at least ``far_min_gap_m`` of travel before key frame
+        ``first``, at their current estimates; kept while the estimate has not moved and it lacks less
+        than ``far_rebuild_m`` of that travel."""
+        c = self.config
+        until_m = self.travel_m[first] - c.far_min_gap_m
+        cached = self._far_index
+        if (cached is not None and cached.moved == self._moved and cached.until_m <= until_m
+                and until_m - cached.until_m < c.far_rebuild_m):
+            return cached
+        nodes = np.flatnonzero(self.travel_m[:first] < until_m)
+        nodes = nodes[self.counts[nodes] > 0]
+        if len(nodes) < FAR_MIN_KEY_FRAMES:
+            return None
+        counts = self.counts[nodes]
+        world = place_each(est[nodes], np.concatenate([self.points_v[n] for n in nodes.tolist()]),
+                           np.repeat(np.arange(len(nodes)), counts))
+        grid = match_grid_from_points(world, c.far_resolution_m, 1.0, n_levels=FAR_LEVELS)
+        assert grid.bounds_m is not None  # match_grid_from_points sets it
+        lo, hi = grid.bounds_m[:2], grid.bounds_m[2:]
+        centre = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, 0.0])
+        self._far_index = _FarIndex(grid, nodes, centre, float(np.max(hi - lo)) / 2 + 1.0, until_m, self._moved)
+        return self._far_index
 
     def _candidates(self, k: int, est: np.ndarray, window_m: float) -> list[tuple[int, float]]:
         """Finished submaps, far enough back along the drive, with a key frame within reach of k:
