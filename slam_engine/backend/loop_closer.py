@@ -31,8 +31,8 @@ after hundreds of metres without a closure), every ``far_every_m`` the stretch o
 at the key frame is searched for over the whole map behind it (branch and bound, every heading, on
 ``far_resolution_m`` cells). A placement counts when it is unique and confirmed: the stretch before
 it, searched for on its own, or the last far search's placement lands where the front end's motion
-puts it. It is then matched against the submap it landed in and checked as a windowed closure is,
-and becomes a closure: the windows reach again from there.
+puts it. It is then matched against the submap it landed in (no overlap check: the two stretches
+placed it over the whole map), and becomes a closure: the windows reach again from there.
 """
 
 from __future__ import annotations
@@ -69,6 +69,10 @@ FAR_STRETCH_POINTS, FAR_MIN_POINTS = 400, 50  # ... with a stretch's end points,
 # ... and a placement is confirmed when the stretch before it lands within this many grid cells and this
 # turn [rad] of where the front end's motion puts it
 FAR_AGREE_CELLS, FAR_AGREE_RAD = 2.0, 0.1
+# ... either over the whole map or, when not unique there, within this of where the first puts it [m], [rad]
+FAR_NEAR_WINDOW_M, FAR_NEAR_WINDOW_RAD = 5.0, 0.3
+# a confirmed placement is then matched against the submap it landed in; the lowest score there
+FAR_VERIFY_MIN_SCORE = 0.4
 
 
 @dataclass(frozen=True)
@@ -421,8 +425,7 @@ class LoopCloser:
         """Key frame k placed in the map far behind it: the stretch of key frames ending at k and the one
         before it, each searched for over the whole map behind them (branch and bound, every heading),
         unique, scoring ``far_min_score`` and agreeing through the front end's motion between them; then
-        matched against the submap it landed in as a windowed closure is. The closure, or None."""
-        c = self.config
+        matched against the submap it landed in (:meth:`_far_verified`). The closure, or None."""
         self._last_far_m = float(self.travel_m[k])
         first_a = self._stretch_start(k)
         if first_a is None or first_a < 1:
@@ -446,37 +449,48 @@ class LoopCloser:
                                                                                            placed_a)
         if not confirmed:
             placed_b = self._far_place(index, first_b, j)
+            if placed_b is None:  # not unique over the whole map: then unique near where the first puts it
+                placed_b = self._far_place(index, first_b, j,
+                                           near=compose(placed_a, relative(self.path[k], self.path[j])))
             confirmed = placed_b is not None and self._far_agree(j, placed_b, k, placed_a)
         if not confirmed:
             self._far_pending = (k, placed_a, self._moved)
             return None
         self.far_stats["confirmed"] += 1
+        # verified as a windowed closure would be, against the submap of the key frame nearest to it
         nearest = index.nodes[int(np.argmin(np.hypot(*(est[index.nodes, :2] - placed_a[:2]).T)))]
-        s = self.submaps[self.submap_of[nearest]]
+        found = self._far_verified(k, self.submaps[self.submap_of[nearest]], placed_a, est, index.reach_m, closures)
+        self.far_stats["accepted"] += found is not None
+        return found
+
+    def _far_verified(self, k: int, s: Submap, placed: np.ndarray, est: np.ndarray, reach_m: float,
+                      closures: list[Closure]) -> _Found | None:
+        """A far placement of key frame k (world pose ``placed``) matched against submap ``s`` within the
+        far search's tolerance, scoring ``FAR_VERIFY_MIN_SCORE`` and unique there: the closure, or None.
+        No overlap check: two stretches placed it over the whole map (outdoors, where trees and cars
+        change between passes, the check refused placements 7 cm from the truth)."""
+        c = self.config
         grid = self.grids.grid(s.index)
         if grid is None:
             return None
-        initial = relative(est[s.anchor], placed_a)
-        cloud, origins = self.match_cloud(k)
+        initial = relative(est[s.anchor], placed)
+        cloud = self.match_points(k)
         points = overlapping_points(grid, cloud, initial)
         if len(points) < MIN_OVERLAP_POINTS:
             return None
-        window_m, window_rad = FAR_AGREE_CELLS * c.far_resolution_m, FAR_AGREE_RAD
-        result = self._match(k, _Candidate(s, grid, initial, points, window_m, window_rad))
+        result = self._match(k, _Candidate(s, grid, initial, points, FAR_AGREE_CELLS * c.far_resolution_m,
+                                           FAR_AGREE_RAD), min_score=FAR_VERIFY_MIN_SCORE)
         if result is None:
             return None
         match, pose = result
-        if match.runner_up_score >= c.runner_up_ratio * match.score:
-            return None
         delta = relative(relative(est[s.anchor], est[k]), pose)
         correction_m = float(np.hypot(delta[0], delta[1]))
-        if _overlap_fails(grid, cloud, pose, origins, c.overlap_min_score):
-            return None
-        self.far_stats["accepted"] += 1
-        closures.append(Closure(k, s.index, s.anchor, match.score, match.runner_up_score, index.reach_m, math.pi,
-                                True, "accepted (far)", correction_m, float(abs(delta[2])),
+        reason = "far: ambiguous in its submap" if match.runner_up_score >= c.runner_up_ratio * match.score \
+            else "accepted (far)"
+        closures.append(Closure(k, s.index, s.anchor, match.score, match.runner_up_score, reach_m, math.pi,
+                                reason == "accepted (far)", reason, correction_m, float(abs(delta[2])),
                                 (float(pose[0]), float(pose[1]), float(pose[2]))))
-        return _Found(k, s.anchor, pose, index.reach_m, len(closures) - 1)
+        return _Found(k, s.anchor, pose, reach_m, len(closures) - 1) if closures[-1].accepted else None
 
     def _far_agree(self, i: int, pose_i: np.ndarray, k: int, pose_k: np.ndarray) -> bool:
         """Whether world poses found for key frames i and k agree through the front end's motion between
@@ -502,7 +516,7 @@ class LoopCloser:
         owner = thin(np.repeat(np.arange(len(frames)), counts), FAR_STRETCH_POINTS)
         return np.ascontiguousarray(place_each(relative(self.path[last], self.path[frames]), points, owner))
 
-    def _far_place(self, index: _FarIndex, first: int, last: int) -> np.ndarray | None:
+    def _far_place(self, index: _FarIndex, first: int, last: int, near: np.ndarray | None = None) -> np.ndarray | None:
         """Key frame ``last``'s world pose from its stretch searched for over the whole far index: None
         unless it scores ``far_min_score`` and nothing farther than the ambiguity distance scores nearly
         as well."""
@@ -510,7 +524,9 @@ class LoopCloser:
         cloud = self._stretch_cloud(first, last)
         if len(cloud) < FAR_MIN_POINTS:
             return None
-        match = search(index.grid, cloud, index.centre, index.reach_m, math.pi, c.far_min_score,
+        initial, window_m, window_rad = (index.centre, index.reach_m, math.pi) if near is None else \
+            (near, FAR_NEAR_WINDOW_M, FAR_NEAR_WINDOW_RAD)
+        match = search(index.grid, cloud, initial, window_m, window_rad, c.far_min_score,
                        ambiguity_m=c.ambiguity_m, ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio,
                        runner_up_min_score=c.runner_up_ratio * c.far_min_score, threads=self.threads,
                        any_runner_up=True)
@@ -637,17 +653,20 @@ class LoopCloser:
                 closures[i] = replace(closures[i], accepted=False, reason=OUTSCORED)
         return None if best is None else best[1]
 
-    def _match(self, k: int, task: _Candidate) -> tuple[CorrelativeMatch, np.ndarray] | None:
+    def _match(self, k: int, task: _Candidate, min_score: float | None = None
+               ) -> tuple[CorrelativeMatch, np.ndarray] | None:
         """The global match of key frame k's cloud against one candidate submap and its pose refined
         with the key frame's own scan (the older scans in the cloud carry the front end's relative
-        error: freiburg-079 0.0196 m instead of 0.0206), or None."""
+        error: freiburg-079 0.0196 m instead of 0.0206), or None. ``min_score``: instead of the
+        config's (the runner-up too)."""
         c = self.config
         # a window wider than confirm_window_m needs min_score_wide: the search prunes with it (on
         # infinite-corridor-rough 40 % faster than pruning with min_score and rejecting after), while
         # the runner-up still counts from min_score
         wide = task.window_m > c.confirm_window_m
+        floor = c.min_score if min_score is None else min_score
         match = search(task.grid, task.points, task.initial, task.window_m, task.window_rad,
-                       max(c.min_score, c.min_score_wide) if wide else c.min_score, runner_up_min_score=c.min_score,
+                       max(floor, c.min_score_wide) if wide else floor, runner_up_min_score=floor,
                        ambiguity_m=c.ambiguity_m, ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio,
                        line_half_width_m=c.line_half_width_m if c.heading_closures else 0.0,
                        line_half_width_rad=c.line_half_width_rad, threads=self.threads)
