@@ -1,4 +1,5 @@
-"""Loop closures found without a window, tried on a recorded front end (an experiment, not the product).
+"""Loop closures found without a window, tried on a recorded front end (the experiment that led to the
+back end's far searches, ``loop_closing.far_search``; this one places stretches with the localiser).
 
 The loop closer searches for a key frame's loop only within a window that grows with the drift since
 the last closure (``loop_closing.max_window_m``). Outdoors (freiburg-campus-rough) the front end is
