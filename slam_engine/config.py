@@ -305,6 +305,10 @@ class LoopClosingConfig(_Section):
     far_resolution_m: float = Field(0.2, ge=0.02, le=1.0, description="Cell size of the far search's grid [m].")
     far_min_score: float = Field(0.65, ge=0.0, le=1.0, description="Lowest score of a far placement (both "
                                  "stretches).")
+    far_second_pass_m: float = Field(30.0, ge=0.0, le=100000.0, description="A far closure that moves its key "
+                                     "frame farther than this [m] sends the back end through the key frames once "
+                                     "more, from the corrected poses (their windowed searches had started from "
+                                     "estimates too far off).")
     far_rebuild_m: float = Field(50.0, gt=0.0, le=10000.0, description="The map behind is indexed anew when "
                                  "this much travel was added to it [m] (or a closure moved it).")
 

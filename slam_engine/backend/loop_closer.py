@@ -32,7 +32,10 @@ at the key frame is searched for over the whole map behind it (branch and bound,
 ``far_resolution_m`` cells). A placement counts when it is unique and confirmed: the stretch before
 it, searched for on its own, or the last far search's placement lands where the front end's motion
 puts it. It is then matched against the submap it landed in (no overlap check: the two stretches
-placed it over the whole map), and becomes a closure: the windows reach again from there.
+placed it over the whole map), and becomes a closure: the windows reach again from there. After a far
+closure that moved its key frame farther than ``far_second_pass_m``, :func:`close_loops` goes through
+the key frames once more from the corrected poses: the windowed searches before it had started from
+estimates too far off to reach the map they overlap.
 """
 
 from __future__ import annotations
@@ -73,6 +76,7 @@ FAR_AGREE_CELLS, FAR_AGREE_RAD = 2.0, 0.1
 FAR_NEAR_WINDOW_M, FAR_NEAR_WINDOW_RAD = 5.0, 0.3
 # a confirmed placement is then matched against the submap it landed in; the lowest score there
 FAR_VERIFY_MIN_SCORE = 0.4
+FAR_ACCEPTED = "accepted (far)"  # a far closure's reason
 
 
 @dataclass(frozen=True)
@@ -486,9 +490,9 @@ class LoopCloser:
         delta = relative(relative(est[s.anchor], est[k]), pose)
         correction_m = float(np.hypot(delta[0], delta[1]))
         reason = "far: ambiguous in its submap" if match.runner_up_score >= c.runner_up_ratio * match.score \
-            else "accepted (far)"
+            else FAR_ACCEPTED
         closures.append(Closure(k, s.index, s.anchor, match.score, match.runner_up_score, reach_m, math.pi,
-                                reason == "accepted (far)", reason, correction_m, float(abs(delta[2])),
+                                reason == FAR_ACCEPTED, reason, correction_m, float(abs(delta[2])),
                                 (float(pose[0]), float(pose[1]), float(pose[2]))))
         return _Found(k, s.anchor, pose, reach_m, len(closures) - 1) if closures[-1].accepted else None
 
@@ -759,7 +763,17 @@ def close_loops(path: np.ndarray, points_v: list[np.ndarray], config: LoopClosin
     ``unverified`` (K,) bool marks the steps whose motion the front end did not verify by a scan match.
     Each global search runs in ``threads`` threads (same result for any: :func:`correlative.branch_and_bound`).
     ``progress`` hears the share of key frames searched (0..1) after each one (an exception raised there
-    stops the search)."""
+    stops the search).
+
+    When a far closure moved its key frame farther than ``far_second_pass_m``, the windowed searches
+    before it ran from estimates too far off to reach the map they overlap: the key frames are searched
+    once more, from the corrected poses (as the front end's path; ``progress`` then hears 1.0)."""
     if not config.enabled or len(path) < 3:
         return LoopClosingResult(poses=np.asarray(path, np.float64).copy())
-    return LoopCloser(path, points_v, config, resolution_m, unverified, threads).run(progress)
+    first = LoopCloser(path, points_v, config, resolution_m, unverified, threads).run(progress)
+    if not any(c.reason == FAR_ACCEPTED and c.correction_m > config.far_second_pass_m for c in first.closures):
+        return first
+    second = LoopCloser(first.poses, points_v, config, resolution_m, unverified, threads).run(
+        None if progress is None else lambda _done: progress(1.0))
+    second.far_search = {**(first.far_search or {}), "second_pass": second.far_search}
+    return second
