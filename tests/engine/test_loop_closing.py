@@ -609,19 +609,27 @@ def test_travel_graph_distances_are_the_shortest_paths_within_the_limit() -> Non
         adjacency(2, np.array([0]), np.array([2]), np.array([1.0]))
 
 
+def _office_turning_too_far() -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """The office's key frames: truth, a front-end path that turns 0.02 rad too far per metre, end points."""
+    truth, points = _office_key_frames()
+    path = [truth[0]]
+    for m in relative(truth[:-1], truth[1:]):
+        path.append(compose(path[-1], np.array([m[0], m[1], m[2] + 0.02 * float(np.hypot(m[0], m[1]))])))
+    return truth, np.array(path), points
+
+
+# search windows of at most 2 m, and far searches from 20 m behind, every 2 m
+NARROW = {"max_window_m": 2.0, "max_window_rad": 0.2, "far_min_gap_m": 20.0, "far_every_m": 2.0}
+
+
 def test_a_far_search_closes_the_loop_no_window_reaches() -> None:
     """A front end that turns 0.02 rad too far per metre comes back to the office's start 5 m off; with
     search windows of at most 2 m no windowed search reaches, and the map stays drifted. The far search
     places the returning stretch over the whole map behind it, confirmed by the stretch before it, and
     the closure brings the drive back (measured: ATE 2.84 m -> 0.23 m with one far closure, 8.3 m)."""
-    truth, points = _office_key_frames()
-    path = [truth[0]]
-    for m in relative(truth[:-1], truth[1:]):
-        path.append(compose(path[-1], np.array([m[0], m[1], m[2] + 0.02 * float(np.hypot(m[0], m[1]))])))
-    path_arr = np.array(path)
-    narrow = {"max_window_m": 2.0, "max_window_rad": 0.2, "far_min_gap_m": 20.0, "far_every_m": 2.0}
-    without = close_loops(path_arr, points, LoopClosingConfig(**narrow, far_search=False), 0.05)
-    result = close_loops(path_arr, points, LoopClosingConfig(**narrow), 0.05)
+    truth, path_arr, points = _office_turning_too_far()
+    without = close_loops(path_arr, points, LoopClosingConfig(**NARROW, far_search=False), 0.05)
+    result = close_loops(path_arr, points, LoopClosingConfig(**NARROW), 0.05)
     assert _ate(path_arr, truth) > 2.5 and _ate(without.poses, truth) > 2.5
     assert without.far_search is None and not any(c.accepted for c in without.closures)
     far = [c for c in result.closures if c.reason == "accepted (far)"]
@@ -651,14 +659,9 @@ def test_a_far_correction_beyond_the_second_pass_distance_searches_the_drive_aga
     searched once more from the corrected poses: the office's windows, which could not reach the start
     from the drifted estimate, then close loops along the whole way back (measured: 13 closures against
     4, ATE 0.226 m)."""
-    truth, points = _office_key_frames()
-    path = [truth[0]]
-    for m in relative(truth[:-1], truth[1:]):
-        path.append(compose(path[-1], np.array([m[0], m[1], m[2] + 0.02 * float(np.hypot(m[0], m[1]))])))
-    path_arr = np.array(path)
-    narrow = {"max_window_m": 2.0, "max_window_rad": 0.2, "far_min_gap_m": 20.0, "far_every_m": 2.0}
-    once = close_loops(path_arr, points, LoopClosingConfig(**narrow), 0.05)  # the 8.3 m correction: below 30 m
-    twice = close_loops(path_arr, points, LoopClosingConfig(**narrow, far_second_pass_m=5.0), 0.05)
+    truth, path_arr, points = _office_turning_too_far()
+    once = close_loops(path_arr, points, LoopClosingConfig(**NARROW), 0.05)  # the 8.3 m correction: below 30 m
+    twice = close_loops(path_arr, points, LoopClosingConfig(**NARROW, far_second_pass_m=5.0), 0.05)
     assert once.far_search is not None and "second_pass" not in once.far_search
     assert twice.far_search is not None and "second_pass" in twice.far_search
     assert sum(c.accepted for c in twice.closures) >= 2 * sum(c.accepted for c in once.closures)
