@@ -84,6 +84,14 @@ class MatchGrid:
     def n_levels(self) -> int:
         return int(self.pyramid.shape[0])
 
+    def centre_and_reach(self) -> tuple[np.ndarray, float]:
+        """The centre pose of what the map holds (heading 0) and the half width that covers all of it
+        [m]: the window of a search over the whole map. Needs ``bounds_m``."""
+        if self.bounds_m is None:
+            raise ValueError("centre_and_reach: the grid has no bounds_m")
+        lo, hi = self.bounds_m[:2], self.bounds_m[2:]
+        return np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, 0.0]), float(np.max(hi - lo)) / 2 + 1.0
+
 
 @dataclass(frozen=True)
 class CorrelativeMatch:

@@ -365,15 +365,13 @@ class LoopCloser:
             last_search_m = self.travel_m[k]
             travel_to = self._uncertain_travel(k)
             found = self._search_node(k, est, travel_to, closures)
-            if found is None and c.far_search and self._far_due(k, travel_to):
-                far = self._far_search(k, est, closures)
-                if far is not None:  # confirmed by its own second stretch
+            if found is None:
+                far = self._far_search(k, est, closures) if c.far_search and self._far_due(k, travel_to) else None
+                if far is not None:  # already confirmed by a second stretch
                     self._add_closure(far)
                     est[: k + 1] = self.graph.optimize(est, nodes=k + 1, robust=False)
                     optimizations += 1
                     self._moved += 1
-                continue
-            if found is None:
                 continue
             kind = found.kind
             if found.window_m > c.confirm_window_m:
@@ -514,11 +512,7 @@ class LoopCloser:
     def _stretch_cloud(self, first: int, last: int) -> np.ndarray:
         """The end points of key frames ``first..last`` in ``last``'s vehicle frame, by the front end's
         relative poses, thinned to ``FAR_STRETCH_POINTS``."""
-        frames = np.arange(first, last + 1)
-        counts = self.counts[frames]
-        points = thin(np.concatenate([self.points_v[f] for f in frames.tolist()]), FAR_STRETCH_POINTS)
-        owner = thin(np.repeat(np.arange(len(frames)), counts), FAR_STRETCH_POINTS)
-        return np.ascontiguousarray(place_each(relative(self.path[last], self.path[frames]), points, owner))
+        return np.ascontiguousarray(self._frames_cloud(np.arange(first, last + 1), last, FAR_STRETCH_POINTS)[0])
 
     def _far_place(self, index: _FarIndex, first: int, last: int, near: np.ndarray | None = None) -> np.ndarray | None:
         """Key frame ``last``'s world pose from its stretch searched for over the whole far index: None
@@ -556,10 +550,7 @@ class LoopCloser:
         world = place_each(est[nodes], np.concatenate([self.points_v[n] for n in nodes.tolist()]),
                            np.repeat(np.arange(len(nodes)), counts))
         grid = match_grid_from_points(world, c.far_resolution_m, 1.0, n_levels=FAR_LEVELS)
-        assert grid.bounds_m is not None  # match_grid_from_points sets it
-        lo, hi = grid.bounds_m[:2], grid.bounds_m[2:]
-        centre = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, 0.0])
-        self._far_index = _FarIndex(grid, nodes, centre, float(np.max(hi - lo)) / 2 + 1.0, until_m, self._moved)
+        self._far_index = _FarIndex(grid, nodes, *grid.centre_and_reach(), until_m, self._moved)
         return self._far_index
 
     def _candidates(self, k: int, est: np.ndarray, window_m: float) -> list[tuple[int, float]]:
@@ -694,10 +685,14 @@ class LoopCloser:
         first = int(np.searchsorted(self.travel_m, self.travel_m[k] - c.match_span_m, side="left"))
         if first >= k:
             return self.points_v[k], np.zeros_like(self.points_v[k])
-        frames = np.arange(k, first - 1, -1)  # k first, then back along the drive
+        return self._frames_cloud(np.arange(k, first - 1, -1), k, c.max_points)  # k first, then back along the drive
+
+    def _frames_cloud(self, frames: np.ndarray, k: int, budget: int) -> tuple[np.ndarray, np.ndarray]:
+        """The end points of key frames ``frames`` (in that order) in key frame k's vehicle frame, by the
+        front end's relative poses, thinned to ``budget``, and where each point's scan was taken."""
         counts = self.counts[frames]
-        owner = thin(np.repeat(np.arange(len(frames)), counts), c.max_points)
-        rows = thin(np.arange(int(counts.sum())), c.max_points)
+        owner = thin(np.repeat(np.arange(len(frames)), counts), budget)
+        rows = thin(np.arange(int(counts.sum())), budget)
         T = relative(self.path[k], self.path[frames])  # each key frame in k's frame
         points = np.concatenate([self.points_v[j] for j in frames.tolist()])[rows]
         return place_each(T, points, owner), np.ascontiguousarray(T[owner, :2])

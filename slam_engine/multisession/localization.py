@@ -163,12 +163,6 @@ class MapIndex:
         origins = max_pyramid(coverage.near_cells_of(coarse, ORIGIN_REACH_M).astype(np.uint8), coarse.n_levels)
         return cls(coarse, fine, coverage, origins)
 
-    def centre_and_reach(self) -> tuple[np.ndarray, float]:
-        """The map's centre pose (heading 0) and the half width that covers the whole map [m]."""
-        assert self.coarse.bounds_m is not None  # match_grid_from_points sets it
-        lo, hi = self.coarse.bounds_m[:2], self.coarse.bounds_m[2:]
-        return np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, 0.0]), float(np.max(hi - lo)) / 2 + 1.0
-
 
 @dataclass
 class DriveScans:
@@ -346,7 +340,7 @@ class Localizer:
         if len(cloud) < 20:
             return None, False
         if near is None:
-            initial, window_m = self.index.centre_and_reach()
+            initial, window_m = self.index.coarse.centre_and_reach()
             window_rad = math.pi
         else:
             initial, window_m, window_rad = near
