@@ -33,6 +33,7 @@ from slam_engine.evaluation.memory_estimate import peak_resident_bytes
 from slam_engine.frontend.lidar_points import ProjectedScan
 from slam_engine.frontend.odometry import dead_reckoning, odometry_source
 from slam_engine.frontend.odometry_noise import estimate_noise
+from slam_engine.frontend.open_ground import open_ground_config
 from slam_engine.frontend.particle_filter import SlamFilter, engine_threads
 from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.map_bundle import MapBundle
@@ -119,10 +120,12 @@ def run_slam(log: DriveLog, config: SlamConfig | None = None, rng: np.random.Gen
         raise ConfigError(f"the LiDAR model has {log.lidar.num_beams} beams but the scans have "
                           f"{log.scans.ranges_m.shape[1]} ranges")
 
+    config, open_ground = open_ground_config(config, log)
     slam = run_filter(log, config, rng, progress, start, live_previews)
     if progress is not None:
         progress(RunProgress(scans_total, scans_total, time.perf_counter() - start))
     result = filter_result(slam, log, config, start, progress)
+    result.input_summary["open_ground"] = open_ground
     del slam
     _return_freed_memory()
     return result
