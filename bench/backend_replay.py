@@ -51,11 +51,14 @@ def record(name: str, seed: int, out_dir: Path, overrides: dict) -> Path:
     """Run the filter over log ``name`` with ``seed``; write ``<stem>_seed<k>.npz`` into ``out_dir``."""
     from slam_engine.config import SlamConfig
     from slam_engine.formats import load_log
+    from slam_engine.frontend.open_ground import open_ground_config
     from slam_engine.pipeline import run_filter
 
     path = _log_path(name)
-    config = SlamConfig.model_validate({**overrides, "seed": seed})
-    slam = run_filter(load_log(path), config, np.random.default_rng(config.seed))
+    log = load_log(path)
+    # the front end of `lidarmap run`: a drive on open ground is mapped without no-return clearing
+    config, _ = open_ground_config(SlamConfig.model_validate({**overrides, "seed": seed}), log)
+    slam = run_filter(log, config, np.random.default_rng(config.seed))
     points = [scan.hits_v for scan in slam.key_frame_scans]
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / f"{path.stem}_seed{seed}.npz"

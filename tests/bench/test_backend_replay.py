@@ -52,3 +52,18 @@ def test_false_closures_are_those_off_the_ground_truth() -> None:
     ignored = closure(17, 2, 0.0, accepted=False)  # rejected closures are not counted
     found = false_closures([right, aliased, ignored], key_frame_t_s, truth)
     assert [(f["node"], f["off_m"]) for f in found] == [(16, 14.0)]
+
+
+def test_a_recording_of_a_drive_on_open_ground_has_the_full_runs_front_end(tmp_path) -> None:
+    """The campus driven by the robot's level LiDAR is open ground (a fifth of its beams return nothing):
+    ``lidarmap run`` maps it without no-return clearing, and so does the recorded front end."""
+    log_path = write_simulated(simulate("campus", seed=0, cameras=False, max_duration_s=20.0), "carmen",
+                               tmp_path / "campus")
+    recording = record(str(log_path), 0, tmp_path / "fe", {"particles": 3})
+    recorded = SlamConfig.model_validate_json(str(np.load(recording)["config"]))
+    assert recorded.grid.no_return_clear_m == 0.0
+    full = run_slam(load_log(log_path), SlamConfig.model_validate({"particles": 3, "seed": 0}))
+    assert full.input_summary["open_ground"]["open_ground"] and full.config.grid == recorded.grid
+    expected, row = full.input_summary["loop_closing"], replay(recording, {})
+    for key in ("submaps", "candidates_matched", "closures_accepted"):
+        assert row[key] == expected[key], key
