@@ -104,7 +104,7 @@ class ScanProjector:
         if r.shape != (self.lidar.num_beams,):
             raise ValueError(f"scan has {r.shape} ranges, the LiDAR model {self.lidar.name!r} "
                              f"has {self.lidar.num_beams} beams")
-        returned = np.isfinite(r) & (r >= self.lidar.range_min_m) & (r <= self.lidar.range_max_m)
+        returned = returned_beams(r, self.lidar)
         is_hit = returned & (r <= self.max_range_m)
         no_return_m = np.full(r.shape, self.no_return_clear_m)
         if self.no_return_bounded and self.planar and self.no_return_clear_m > 0 and not returned.all():
@@ -151,6 +151,12 @@ def _moved(scan: ProjectedScan, poses: np.ndarray) -> ProjectedScan:
     x, y = scan.ends_v[:, 0], scan.ends_v[:, 1]
     ends = np.column_stack([poses[:, 0] + c * x - s * y, poses[:, 1] + s * x + c * y])
     return ProjectedScan(ends_v=ends, is_hit=scan.is_hit, free_from_m=scan.free_from_m, beams=scan.beams)
+
+
+def returned_beams(ranges_m: np.ndarray, lidar: LidarModel) -> np.ndarray:
+    """Which of ``ranges_m`` (any shape) [m] are returns: finite and within the LiDAR's range (``inf``,
+    NaN and readings outside ``[range_min_m, range_max_m]`` mean no return)."""
+    return np.isfinite(ranges_m) & (ranges_m >= lidar.range_min_m) & (ranges_m <= lidar.range_max_m)
 
 
 def bracketed_no_return_m(ranges_m: np.ndarray, returned: np.ndarray, dirs: np.ndarray) -> np.ndarray:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from slam_engine.config import SlamConfig
+from slam_engine.frontend.lidar_points import returned_beams
 from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.poses import is_planar_4x4
 
@@ -32,8 +33,7 @@ def no_return_share(log: DriveLog) -> float | None:
         return None
     if not is_planar_4x4(np.asarray(log.lidar.T_vehicle_from_lidar, np.float64)):
         return None
-    r = log.scans.ranges_m
-    returned = np.isfinite(r) & (r >= log.lidar.range_min_m) & (r <= log.lidar.range_max_m)
+    returned = returned_beams(log.scans.ranges_m, log.lidar)
     return 1.0 - float(np.count_nonzero(returned)) / returned.size
 
 
