@@ -225,6 +225,21 @@ class LoopClosingConfig(_Section):
                                       "scan onto the map of all of them this many times (each onto the map of the "
                                       "last fits) and combine the fits with the graph's poses by their measured "
                                       "noise (0: keep the graph's poses).")
+    rematch_steps: bool = Field(True, description="Before loop closing, score each key frame's scan where the "
+                                "front end's step puts it on the map of the key frames just before it, and replace a "
+                                "step that fits poorly by a clearly better, unique fit nearby (a step whose heading "
+                                "is off bends its submap; outdoors, tens per drive).")
+    rematch_key_frames: int = Field(6, ge=1, le=100, description="The map a step is checked against: this many "
+                                    "key frames before it, as placed so far.")
+    rematch_below_score: float = Field(0.3, ge=0.0, le=1.0, description="A step whose scan scores below this "
+                                       "there is searched for anew ...")
+    rematch_window_m: float = Field(1.0, gt=0.0, le=10.0, description="... within this half width [m] ...")
+    rematch_window_rad: float = Field(0.5, gt=0.0, le=3.2, description="... and this heading half width [rad] "
+                                      "of where the step put it ...")
+    rematch_min_score: float = Field(0.25, ge=0.0, le=1.0, description="... and replaced by the pose found when "
+                                     "it scores at least this ...")
+    rematch_gain: float = Field(0.1, ge=0.0, le=1.0, description="... and this much more than the step's pose "
+                                "(and no pose 0.5 m or 0.2 rad away comes within runner_up_ratio of it).")
     submap_length_m: float = Field(8.0, gt=0.0, le=1000.0, description="Travel per submap [m].")
     submap_max_nodes: int = Field(80, ge=2, le=100000, description="At most this many key frames per submap.")
     search_every_m: float = Field(0.5, ge=0.0, le=100.0, description="Look for loops every this much travel [m].")

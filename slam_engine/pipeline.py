@@ -26,6 +26,7 @@ from slam_engine.backend.map_alignment import align_to_map
 from slam_engine.backend.map_builder import render_occupancy
 from slam_engine.backend.odometry_smoothing import smooth_with_odometry
 from slam_engine.backend.pose_graph import Edge
+from slam_engine.backend.step_rematch import rematch_steps
 from slam_engine.config import SlamConfig
 from slam_engine.errors import ConfigError
 from slam_engine.evaluation.consistency import map_consistency
@@ -175,7 +176,9 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     _return_freed_memory()
     front_end_path = slam.key_frame_path()
     key_frame_points = [scan.hits_v for scan in slam.key_frame_scans]
-    backend = close_loops(front_end_path, key_frame_points, config.loop_closing, config.grid.resolution_m,
+    rematched = rematch_steps(front_end_path, key_frame_points, config.loop_closing, config.grid.resolution_m,
+                              threads=engine_threads())
+    backend = close_loops(rematched.path, key_frame_points, config.loop_closing, config.grid.resolution_m,
                           unverified=~slam.key_frame_matched(), threads=engine_threads(),
                           progress=None if progress is None else lambda done: report(CLOSING_LOOPS, done))
     report(ALIGNING_TO_MAP)
@@ -234,7 +237,8 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
                        "odometry_calibration": slam.heading_calibration.summary(),
                        "odometry_precision": slam.odometry_precision.summary(),
                        "time_offset": _time_offset_summary(slam, log, config),
-                       "loop_closing": _with_places(backend.summary(), key_frames), "map_alignment": alignment,
+                       "loop_closing": {**_with_places(backend.summary(), key_frames), **rematched.summary()},
+                       "map_alignment": alignment,
                        "odometry_smoothing": smoothing, "map_consistency": consistency.as_dict()},
         bundle=bundle,
     )

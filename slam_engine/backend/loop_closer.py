@@ -35,7 +35,9 @@ puts it. It is then matched against the submap it landed in (no overlap check: t
 placed it over the whole map), and becomes a closure: the windows reach again from there. After a far
 closure that moved its key frame farther than ``far_second_pass_m``, :func:`close_loops` goes through
 the key frames once more from the corrected poses: the windowed searches before it had started from
-estimates too far off to reach the map they overlap.
+estimates too far off to reach the map they overlap. That pass predicts each key frame by the corrected
+poses' motion, but its graph and submaps keep the front end's motions, which are locally consistent (the
+first pass's result may be bent where its closures pulled).
 """
 
 from __future__ import annotations
@@ -283,10 +285,15 @@ class LoopCloser:
     and end points ``points_v`` (K lists of (B, 2) [m], vehicle frame)."""
 
     def __init__(self, path: np.ndarray, points_v: list[np.ndarray], config: LoopClosingConfig, resolution_m: float,
-                 unverified: np.ndarray | None = None, threads: int = 1):
+                 unverified: np.ndarray | None = None, threads: int = 1, guide: np.ndarray | None = None):
         self.config = config
         self.threads = max(1, int(threads))
         self.path = np.asarray(path, np.float64)
+        # the poses the walk predicts each key frame from (a second pass: the first's corrected poses); the
+        # motion edges and the submaps keep the front end's path, which is locally consistent
+        self.guide = self.path if guide is None else np.asarray(guide, np.float64)
+        if self.guide.shape != self.path.shape:
+            raise ValueError(f"guide has shape {self.guide.shape}, the path {self.path.shape}")
         # steps whose motion from the key frame before the front end did not verify by a scan match
         self.unverified = np.zeros(len(self.path), bool) if unverified is None else np.array(unverified, bool)
         if self.unverified.shape != (len(self.path),):
@@ -349,7 +356,7 @@ class LoopCloser:
         :func:`close_loops`."""
         c = self.config
         n = len(self.path)
-        est = self.path.copy()
+        est = self.guide.copy()
         closures: list[Closure] = []
         optimizations = 0
         last_search_m = -np.inf
@@ -359,7 +366,7 @@ class LoopCloser:
         for k in range(1, n):
             if progress is not None:
                 progress((k - 1) / n)
-            est[k] = compose(est[k - 1], relative(self.path[k - 1], self.path[k]))
+            est[k] = compose(est[k - 1], relative(self.guide[k - 1], self.guide[k]))
             if self.travel_m[k] - last_search_m < c.search_every_m or not len(self.points_v[k]):
                 continue
             last_search_m = self.travel_m[k]
@@ -762,13 +769,14 @@ def close_loops(path: np.ndarray, points_v: list[np.ndarray], config: LoopClosin
 
     When a far closure moved its key frame farther than ``far_second_pass_m``, the windowed searches
     before it ran from estimates too far off to reach the map they overlap: the key frames are searched
-    once more, from the corrected poses (as the front end's path; ``progress`` then hears 1.0)."""
+    once more, each predicted from the one before by the corrected poses' motion, while the graph and the
+    submaps keep the front end's motions (``progress`` then hears 1.0)."""
     if not config.enabled or len(path) < 3:
         return LoopClosingResult(poses=np.asarray(path, np.float64).copy())
     first = LoopCloser(path, points_v, config, resolution_m, unverified, threads).run(progress)
     if not any(c.reason == FAR_ACCEPTED and c.correction_m > config.far_second_pass_m for c in first.closures):
         return first
-    second = LoopCloser(first.poses, points_v, config, resolution_m, unverified, threads).run(
+    second = LoopCloser(path, points_v, config, resolution_m, unverified, threads, guide=first.poses).run(
         None if progress is None else lambda _done: progress(1.0))
     second.far_search = {**(first.far_search or {}), "second_pass": second.far_search}
     return second
