@@ -268,6 +268,10 @@ class LoopClosingConfig(_Section):
                                     "it); seen free space scores 0, a hit 1.")
     min_score: float = Field(0.6, ge=0.0, le=1.0, description="Lowest mean blurred hit value under the scan's end "
                              "points for a closure.")
+    open_ground_min_score: float = Field(0.5, ge=0.0, le=1.0, description="min_score on open ground "
+                                         "(grid.no_return_open_share; batch runs), where a revisit's scan scores "
+                                         "about 0.5 at its true pose (foliage, cars and people change between "
+                                         "passes); the lower of the two is used.")
     min_score_wide: float = Field(0.7, ge=0.0, le=1.0, description="Lowest score of a closure found with a "
                                   "window wider than confirm_window_m (more poses tried, more chance of a false "
                                   "match).")

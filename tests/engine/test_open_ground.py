@@ -35,7 +35,8 @@ def test_the_share_of_beams_without_a_return(office) -> None:
     assert no_return_share(car) is None  # a tilted LiDAR is not judged
 
 
-def test_only_a_level_long_range_lidar_on_open_ground_stops_clearing(office) -> None:
+def test_only_a_level_long_range_lidar_on_open_ground_stops_clearing_and_lowers_the_closure_bar(
+        office) -> None:
     config = SlamConfig()
     ranges = office.scans.ranges_m.copy()
     ranges[:, ::4] = np.inf  # a quarter of every scan's beams return nothing
@@ -43,7 +44,15 @@ def test_only_a_level_long_range_lidar_on_open_ground_stops_clearing(office) -> 
     mapped, summary = open_ground_config(config, open_ground)
     assert summary["open_ground"] and summary["no_return_share"] == pytest.approx(0.26, abs=0.01)
     assert mapped.grid.no_return_clear_m == 0.0 and config.grid.no_return_clear_m == 30.0
-    assert mapped.model_dump(exclude={"grid"}) == config.model_dump(exclude={"grid"})
+    # loops close from open_ground_min_score (0.5) there, the lower of it and min_score
+    assert mapped.loop_closing.min_score == 0.5 and config.loop_closing.min_score == 0.6
+    assert mapped.model_dump(exclude={"grid", "loop_closing"}) == config.model_dump(exclude={"grid", "loop_closing"})
+    assert (mapped.loop_closing.model_dump(exclude={"min_score"})
+            == config.loop_closing.model_dump(exclude={"min_score"}))
+    # a configuration that asks for less keeps it, and one that clears nothing anyway is still open ground
+    strict = SlamConfig.model_validate({"loop_closing": {"min_score": 0.4}, "grid": {"no_return_clear_m": 0.0}})
+    mapped_strict, decided_strict = open_ground_config(strict, open_ground)
+    assert decided_strict["open_ground"] and mapped_strict.loop_closing.min_score == 0.4
     # the office itself, a bar of 1, and a short-range scanner (whose no-return beams clear nothing anyway)
     short_range = dataclasses.replace(open_ground, lidar=dataclasses.replace(office.lidar, range_max_m=5.6))
     never = SlamConfig.model_validate({"grid": {"no_return_open_share": 1.0}})
@@ -60,6 +69,6 @@ def test_a_simulated_outdoor_drive_is_mapped_as_open_ground() -> None:
     outdoor = simulate("campus", seed=0, rig="robot", cameras=False)
     result = run_slam(outdoor.log, SlamConfig(particles=10, seed=0))
     assert result.input_summary["open_ground"]["open_ground"] is True
-    assert result.config.grid.no_return_clear_m == 0.0
+    assert result.config.grid.no_return_clear_m == 0.0 and result.config.loop_closing.min_score == 0.5
     dead_reckoning = absolute_trajectory_error(result.dead_reckoning, outdoor.ground_truth)
     assert absolute_trajectory_error(result.trajectory, outdoor.ground_truth) < 0.04 * dead_reckoning
