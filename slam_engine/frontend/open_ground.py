@@ -12,12 +12,13 @@ against 0.94 / 8.93 m with it (docs/engine.md, Known weaknesses).
 So a drive whose level LiDAR returned nothing on more than ``grid.no_return_open_share`` of its beams is
 mapped with ``grid.no_return_clear_m`` 0. Its loops close from ``loop_closing.open_ground_min_score``
 (0.5) rather than ``min_score`` (0.6): outdoors a revisit's scan scores about 0.5 at its true pose
-(foliage, cars and people move; the 8 m submap saw less of what a long-range scan sees), and with the
-front end's steps checked first, the campus's ten seeds came to 0.17 / 0.65 m (median / worst) against
-0.20 / 1.23 m at 0.6 (docs/engine.md, Known weaknesses). This needs the whole drive before mapping: a batch run
-(:func:`slam_engine.pipeline.run_slam`); a live job, which sees the drive as it comes, keeps the
-configured setting. A tilted LiDAR is left as it is: its no-return beams already stop where they leave
-the height band.
+(foliage, cars and people move; the 8 m submap saw less of what a long-range scan sees). With the
+front end's steps checked first, the campus's ten seeds (replayed) came to 0.17 / 0.65 m (median /
+worst) against 0.20 / 1.23 m at 0.6 (docs/engine.md, Known weaknesses).
+
+This needs the whole drive before mapping: a batch run (:func:`slam_engine.pipeline.run_slam`); a live
+job, which sees the drive as it comes, keeps the configured setting. A tilted LiDAR is left as it is: its
+no-return beams already stop where they leave the height band.
 """
 
 from __future__ import annotations
