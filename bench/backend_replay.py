@@ -73,8 +73,7 @@ def record(name: str, seed: int, out_dir: Path, overrides: dict) -> Path:
 def replay(recording: Path, overrides: dict) -> dict:
     """The back end on one recording with the recorded configuration plus ``overrides``; its summary
     and, where the log has relations, the key frames' relation errors."""
-    from slam_engine.backend.loop_closer import close_loops
-    from slam_engine.backend.step_rematch import rematch_steps
+    from slam_engine.backend.submap_choice import close_loops_checked
     from slam_engine.config import SlamConfig, merge_settings
     from slam_engine.evaluation.metrics import files_beside_log, read_ground_truth, read_relations, relation_errors
     from slam_engine.frontend.particle_filter import engine_threads
@@ -86,12 +85,12 @@ def replay(recording: Path, overrides: dict) -> dict:
     points = np.split(data["points"], np.cumsum(data["counts"])[:-1])
     started = time.perf_counter()
     unverified = ~data["matched"] if "matched" in data else None
-    # as lidarmap run: the front end's steps checked, then loop closing
-    path = rematch_steps(data["path"], points, config.loop_closing, config.grid.resolution_m, engine_threads()).path
-    result = close_loops(path, points, config.loop_closing, config.grid.resolution_m, unverified,
-                         threads=engine_threads())
+    # as lidarmap run: the front end's steps checked, then loop closing with each submap length tried
+    checked = close_loops_checked(data["path"], points, config.loop_closing, config.grid, unverified,
+                                  threads=engine_threads())
+    result = checked.backend
     row = {"recording": recording.name, "backend_s": round(time.perf_counter() - started, 2)}
-    summary = result.summary()
+    summary = {**result.summary(), **checked.summary()}
     summary.pop("closures")
     row.update({k: v for k, v in summary.items() if k != "closures_rejected"})
     relations, truth = files_beside_log(str(data["log"]))

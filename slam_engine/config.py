@@ -21,6 +21,9 @@ class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+SubmapLength = Annotated[float, Field(gt=0.0, le=1000.0)]  # travel per submap [m]
+
+
 class GridConfig(_Section):
     """Log-odds occupancy grid."""
 
@@ -241,6 +244,14 @@ class LoopClosingConfig(_Section):
     rematch_gain: float = Field(0.1, ge=0.0, le=1.0, description="... and this much more than the step's pose "
                                 "(and no pose 0.5 m or 0.2 rad away comes within runner_up_ratio of it).")
     submap_length_m: float = Field(8.0, gt=0.0, le=1000.0, description="Travel per submap [m].")
+    alternative_submap_lengths_m: list[SubmapLength] = Field(
+        default_factory=list, max_length=4, description="Loops are also closed with each of these submap "
+        "lengths [m] (each in (0, 1000]), and the result whose key frames contradict its map least is kept "
+        "(the back end's time times the lengths tried); empty: only submap_length_m.")
+    open_ground_alternative_submap_lengths_m: list[SubmapLength] = Field(
+        default_factory=lambda: [16.0], max_length=4, description="alternative_submap_lengths_m on open ground "
+        "(grid.no_return_open_share; batch runs) where none are set: outdoors 8 m and 16 m submaps each "
+        "gave the better campus map on about half of the seeds.")
     submap_max_nodes: int = Field(80, ge=2, le=100000, description="At most this many key frames per submap.")
     search_every_m: float = Field(0.5, ge=0.0, le=100.0, description="Look for loops every this much travel [m].")
     min_loop_travel_m: float = Field(10.0, ge=0.0, le=10000.0, description="A submap is a loop candidate once "

@@ -21,12 +21,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from slam_engine.backend.loop_closer import close_loops
 from slam_engine.backend.map_alignment import align_to_map
 from slam_engine.backend.map_builder import render_occupancy
 from slam_engine.backend.odometry_smoothing import smooth_with_odometry
 from slam_engine.backend.pose_graph import Edge
-from slam_engine.backend.step_rematch import rematch_steps
+from slam_engine.backend.submap_choice import close_loops_checked
 from slam_engine.config import SlamConfig
 from slam_engine.errors import ConfigError
 from slam_engine.evaluation.consistency import map_consistency
@@ -176,11 +175,10 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     _return_freed_memory()
     front_end_path = slam.key_frame_path()
     key_frame_points = [scan.hits_v for scan in slam.key_frame_scans]
-    rematched = rematch_steps(front_end_path, key_frame_points, config.loop_closing, config.grid.resolution_m,
-                              threads=engine_threads())
-    backend = close_loops(rematched.path, key_frame_points, config.loop_closing, config.grid.resolution_m,
-                          unverified=~slam.key_frame_matched(), threads=engine_threads(),
-                          progress=None if progress is None else lambda done: report(CLOSING_LOOPS, done))
+    checked = close_loops_checked(front_end_path, key_frame_points, config.loop_closing, config.grid,
+                                  unverified=~slam.key_frame_matched(), threads=engine_threads(),
+                                  progress=None if progress is None else lambda done: report(CLOSING_LOOPS, done))
+    backend = checked.backend
     report(ALIGNING_TO_MAP)
     aligned, alignment = backend.poses, {"applied": False, "reason": "loop closing is disabled"}
     if config.loop_closing.enabled:
@@ -237,7 +235,7 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
                        "odometry_calibration": slam.heading_calibration.summary(),
                        "odometry_precision": slam.odometry_precision.summary(),
                        "time_offset": _time_offset_summary(slam, log, config),
-                       "loop_closing": {**_with_places(backend.summary(), key_frames), **rematched.summary()},
+                       "loop_closing": {**_with_places(backend.summary(), key_frames), **checked.summary()},
                        "map_alignment": alignment,
                        "odometry_smoothing": smoothing, "map_consistency": consistency.as_dict()},
         bundle=bundle,

@@ -47,12 +47,17 @@ def test_only_a_level_long_range_lidar_on_open_ground_stops_clearing_and_lowers_
     # loops close from open_ground_min_score (0.5) there, the lower of it and min_score
     assert mapped.loop_closing.min_score == 0.5 and config.loop_closing.min_score == 0.6
     assert mapped.model_dump(exclude={"grid", "loop_closing"}) == config.model_dump(exclude={"grid", "loop_closing"})
-    assert (mapped.loop_closing.model_dump(exclude={"min_score"})
-            == config.loop_closing.model_dump(exclude={"min_score"}))
+    # and try 16 m submaps beside the 8 m ones (backend/submap_choice.py)
+    assert mapped.loop_closing.alternative_submap_lengths_m == [16.0]
+    assert config.loop_closing.alternative_submap_lengths_m == []
+    changed = {"min_score", "alternative_submap_lengths_m"}
+    assert mapped.loop_closing.model_dump(exclude=changed) == config.loop_closing.model_dump(exclude=changed)
     # a configuration that asks for less keeps it, and one that clears nothing anyway is still open ground
     strict = SlamConfig.model_validate({"loop_closing": {"min_score": 0.4}, "grid": {"no_return_clear_m": 0.0}})
     mapped_strict, decided_strict = open_ground_config(strict, open_ground)
     assert decided_strict["open_ground"] and mapped_strict.loop_closing.min_score == 0.4
+    chosen = SlamConfig.model_validate({"loop_closing": {"alternative_submap_lengths_m": [12.0]}})
+    assert open_ground_config(chosen, open_ground)[0].loop_closing.alternative_submap_lengths_m == [12.0]
     # the office itself, a bar of 1, and a short-range scanner (whose no-return beams clear nothing anyway)
     short_range = dataclasses.replace(open_ground, lidar=dataclasses.replace(office.lidar, range_max_m=5.6))
     never = SlamConfig.model_validate({"grid": {"no_return_open_share": 1.0}})
