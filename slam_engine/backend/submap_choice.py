@@ -73,20 +73,19 @@ def close_loops_checked(path: np.ndarray, points_v: list[np.ndarray], config: Lo
     its map least is kept (the first of equal ones). ``progress`` hears the share of the work done."""
     rematched = rematch_steps(path, points_v, config, grid.resolution_m, threads=threads)
     lengths = submap_lengths(config)
-    best: tuple[float, float, LoopClosingResult] | None = None
-    tried: list[tuple[float, float]] = []
-    for i, length in enumerate(lengths):
-        def report(done: float, i: int = i) -> None:
+
+    def closed_with(i: int) -> LoopClosingResult:
+        def report(done: float) -> None:
             if progress is not None:
                 progress((i + done) / len(lengths))
 
-        result = close_loops(rematched.path, points_v, config.model_copy(update={"submap_length_m": length}),
-                             grid.resolution_m, unverified=unverified, threads=threads, progress=report)
-        if len(lengths) == 1:
-            return CheckedLoopClosing(rematched, result, length)
-        share = key_frames_contradicted(result.poses, points_v, grid)
-        tried.append((length, share))
-        if best is None or share < best[0]:
-            best = (share, length, result)
-    assert best is not None
-    return CheckedLoopClosing(rematched, best[2], best[1], tried)
+        return close_loops(rematched.path, points_v, config.model_copy(update={"submap_length_m": lengths[i]}),
+                           grid.resolution_m, unverified=unverified, threads=threads, progress=report)
+
+    results = [closed_with(i) for i in range(len(lengths))]
+    if len(lengths) == 1:
+        return CheckedLoopClosing(rematched, results[0], lengths[0])
+    tried = [(length, key_frames_contradicted(result.poses, points_v, grid))
+             for length, result in zip(lengths, results, strict=True)]
+    kept = min(range(len(lengths)), key=lambda i: tried[i][1])  # the first of equal shares
+    return CheckedLoopClosing(rematched, results[kept], lengths[kept], tried)
