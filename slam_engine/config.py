@@ -298,6 +298,11 @@ class LoopClosingConfig(_Section):
     heading_closures: bool = Field(True, description="A match that is ambiguous only along a line (a corridor: "
                                    "every pose along it fits as well, and a parallel corridor may be in the "
                                    "window instead of the true one) still fixes the heading.")
+    heading_closure_max_turn_rad: float = Field(0.2, gt=0.0, le=3.2, description="A key frame whose best "
+                                                "match is a heading closure turning it more than this "
+                                                "[rad] closes no loop there: a line alone, turned that far, "
+                                                "is as likely another straight wall (the corridor's heading "
+                                                "closures turn theirs at most 0.15 rad).")
     line_half_width_m: float = Field(0.3, gt=0.0, le=10.0, description="The line runs through the best pose "
                                      "and the runner-up (which must lie within line_half_width_rad of the best's "
                                      "heading); no pose farther than this from it [m] may score within "

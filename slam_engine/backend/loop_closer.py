@@ -79,6 +79,7 @@ FAR_NEAR_WINDOW_M, FAR_NEAR_WINDOW_RAD = 5.0, 0.3
 # a confirmed placement is then matched against the submap it landed in; the lowest score there
 FAR_VERIFY_MIN_SCORE = 0.4
 FAR_ACCEPTED = "accepted (far)"  # a far closure's reason
+HEADING_TURN_TOO_FAR = "heading closure turns too far"  # see LoopClosingConfig.heading_closure_max_turn_rad
 
 
 @dataclass(frozen=True)
@@ -653,6 +654,12 @@ class LoopCloser:
         for i in range(first_record, len(closures)):  # only the best verified candidate is used
             if closures[i].accepted and (best is None or i != best[1].record):
                 closures[i] = replace(closures[i], accepted=False, reason=OUTSCORED)
+        if best is not None and best[1].line_direction is not None \
+                and closures[best[1].record].correction_rad > c.heading_closure_max_turn_rad:
+            # a line alone, turned that far: as likely another straight wall (campus seed 4: two such
+            # closures 1.4 rad off the truth turned their key frames 0.25 rad)
+            closures[best[1].record] = replace(closures[best[1].record], accepted=False, reason=HEADING_TURN_TOO_FAR)
+            return None
         return None if best is None else best[1]
 
     def _match(self, k: int, task: _Candidate, min_score: float | None = None

@@ -17,7 +17,14 @@ from slam_engine.backend.correlative import (
     refine_poses,
     search,
 )
-from slam_engine.backend.loop_closer import OUTSCORED, LoopCloser, close_loops, overlap_score, overlapping_points
+from slam_engine.backend.loop_closer import (
+    HEADING_TURN_TOO_FAR,
+    OUTSCORED,
+    LoopCloser,
+    close_loops,
+    overlap_score,
+    overlapping_points,
+)
 from slam_engine.backend.map_alignment import align_to_map
 from slam_engine.backend.pose_graph import PoseGraph
 from slam_engine.backend.submaps import match_grid_from_points, observed_mask
@@ -333,6 +340,22 @@ def test_loop_closer_rejects_the_symmetric_corridor() -> None:
     assert np.max(np.abs(wrap_angle(result.poses[:, 2] - path[:, 2]))) < 0.005
     assert not any(c.accepted for c in close_loops(path, points, config.model_copy(update={"heading_closures": False}),
                                                    0.05).closures)
+
+
+def test_a_heading_closure_that_turns_its_key_frame_too_far_is_refused() -> None:
+    """The symmetric corridor's heading closures turn their key frames by up to a few milliradians
+    (the heading was right). Allowed a turn of half a milliradian, the key frames whose best match is
+    such a closure close no loop, and the records say why."""
+    truth, path, points = _there_and_back(0.0)
+    config = LoopClosingConfig(base_window_m=5.0, min_loop_travel_m=8.0)
+    free = close_loops(path, points, config, 0.05)
+    turns = [c.correction_rad for c in free.closures if c.accepted and c.kind == "heading"]
+    assert turns and max(turns) > 0.0005 and max(turns) < config.heading_closure_max_turn_rad
+    capped = close_loops(path, points, config.model_copy(update={"heading_closure_max_turn_rad": 0.0005}), 0.05)
+    refused = [c for c in capped.closures if c.reason == HEADING_TURN_TOO_FAR]
+    assert refused and all(c.correction_rad > 0.0005 and c.kind == "heading" for c in refused)
+    assert all(c.correction_rad <= 0.0005 for c in capped.closures if c.accepted and c.kind == "heading")
+    assert sum(c.accepted for c in capped.closures) < sum(c.accepted for c in free.closures)
 
 
 def test_a_stretch_of_corridor_tells_apart_what_one_scan_cannot() -> None:
