@@ -654,13 +654,14 @@ class LoopCloser:
         for i in range(first_record, len(closures)):  # only the best verified candidate is used
             if closures[i].accepted and (best is None or i != best[1].record):
                 closures[i] = replace(closures[i], accepted=False, reason=OUTSCORED)
-        if best is not None and best[1].line_direction is not None \
-                and closures[best[1].record].correction_rad > c.heading_closure_max_turn_rad:
+        found = None if best is None else best[1]
+        if found is not None and found.line_direction is not None \
+                and closures[found.record].correction_rad > c.heading_closure_max_turn_rad:
             # a line alone, turned that far: as likely another straight wall (campus seed 4: two such
             # closures 1.4 rad off the truth turned their key frames 0.25 rad)
-            closures[best[1].record] = replace(closures[best[1].record], accepted=False, reason=HEADING_TURN_TOO_FAR)
+            closures[found.record] = replace(closures[found.record], accepted=False, reason=HEADING_TURN_TOO_FAR)
             return None
-        return None if best is None else best[1]
+        return found
 
     def _match(self, k: int, task: _Candidate, min_score: float | None = None
                ) -> tuple[CorrelativeMatch, np.ndarray] | None:
