@@ -232,14 +232,14 @@ class LoopClosingConfig(_Section):
                                 "front end's step puts it on the map of the key frames just before it, and replace a "
                                 "step that fits poorly by a clearly better, unique fit nearby (a step whose heading "
                                 "is off bends its submap; outdoors, tens per drive).")
-    rematch_key_frames: int = Field(6, ge=1, le=100, description="The map a step is checked against: this many "
+    rematch_key_frames: int = Field(10, ge=1, le=100, description="The map a step is checked against: this many "
                                     "key frames before it, as placed so far.")
     rematch_below_score: float = Field(0.3, ge=0.0, le=1.0, description="A step whose scan scores below this "
                                        "there is searched for anew ...")
     rematch_window_m: float = Field(1.0, gt=0.0, le=10.0, description="... within this half width [m] ...")
     rematch_window_rad: float = Field(0.5, gt=0.0, le=3.2, description="... and this heading half width [rad] "
                                       "of where the step put it ...")
-    rematch_min_score: float = Field(0.25, ge=0.0, le=1.0, description="... and replaced by the pose found when "
+    rematch_min_score: float = Field(0.12, ge=0.0, le=1.0, description="... and replaced by the pose found when "
                                      "it scores at least this ...")
     rematch_gain: float = Field(0.1, ge=0.0, le=1.0, description="... and this much more than the step's pose "
                                 "(and no pose 0.5 m or 0.2 rad away comes within runner_up_ratio of it).")

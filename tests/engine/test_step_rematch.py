@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from slam_engine.backend.loop_closer import close_loops
-from slam_engine.backend.step_rematch import rematch_steps
+from slam_engine.backend.step_rematch import REMATCH_MIN_POINTS, rematch_steps
 from slam_engine.config import LoopClosingConfig
 from slam_engine.model.poses import compose, relative, wrap_angle
 from tests.engine.test_loop_closing import NARROW, _office_key_frames, _office_turning_too_far
@@ -24,6 +24,11 @@ def office() -> tuple[np.ndarray, list[np.ndarray]]:
 def _step_heading_errors(path: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """(K-1,) each step's heading error against the truth's step [rad]."""
     return np.abs(wrap_angle(relative(path[:-1], path[1:])[:, 2] - relative(truth[:-1], truth[1:])[:, 2]))
+
+
+def _thin(points: np.ndarray, count: int) -> np.ndarray:
+    """``count`` of ``points`` (N, 2), spread evenly over the scan."""
+    return points[np.linspace(0, len(points) - 1, count).astype(np.int64)]
 
 
 def _with_turned_steps(truth: np.ndarray) -> np.ndarray:
@@ -52,6 +57,30 @@ def test_turned_steps_are_replaced_by_the_fit_to_the_key_frames_before(office) -
     end_off = relative(truth[0], truth[-1]) - relative(result.path[0], result.path[-1])
     assert np.hypot(end_off[0], end_off[1]) < 0.3 and abs(float(wrap_angle(end_off[2]))) < 0.03
     assert result.summary() == {"steps_replaced": 3}
+
+
+def test_a_turned_step_with_few_returns_is_replaced(office) -> None:
+    """The turned steps' scans keep 20 of their ~520 returns (outdoors, where the campus's front end
+    turns its steps most, 82 of 1995 key frames have fewer than 30 returns within match_range_m):
+    still found and replaced within 0.01 rad of the truth's step."""
+    truth, points = office
+    path = _with_turned_steps(truth)
+    sparse = [_thin(p, 20) if k in TURNED else p for k, p in enumerate(points)]
+    result = rematch_steps(path, sparse, LoopClosingConfig(), 0.05)
+    assert {k for k, _, _ in result.replaced} == set(TURNED), result.replaced
+    errors = _step_heading_errors(result.path, truth)
+    assert max(errors[k - 1] for k in TURNED) < 0.01
+
+
+def test_a_scan_with_too_few_returns_keeps_its_step(office) -> None:
+    """Below REMATCH_MIN_POINTS returns a scan is not searched for: its turned step stays."""
+    truth, points = office
+    path = _with_turned_steps(truth)
+    sparse = [_thin(p, REMATCH_MIN_POINTS - 1) if k in TURNED else p for k, p in enumerate(points)]
+    result = rematch_steps(path, sparse, LoopClosingConfig(), 0.05)
+    assert not {k for k, _, _ in result.replaced} & set(TURNED)
+    errors = _step_heading_errors(result.path, truth)
+    np.testing.assert_allclose([errors[k - 1] for k in TURNED], [abs(t) for t in TURNED.values()], atol=1e-9)
 
 
 def test_a_right_path_is_left_as_it_is(office) -> None:
