@@ -194,11 +194,16 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
         warnings.append("the particle set was resampled after almost every scan: the map may be unreliable "
                         "(odometry much worse than the motion noise assumes?)")
     # the particles' maps hold only their recent tiles when local_map_m is set: re-rendered then too
-    if (any(c.accepted for c in backend.closures) or config.grid.no_return_bounded or smoothing.get("applied")
-            or alignment.get("applied") or config.matcher.local_map_m > 0):
-        slam.grids.keep_only(None)  # the product map is re-rendered: no particle's map is read any more
+    rerender = (any(c.accepted for c in backend.closures) or config.grid.no_return_bounded
+                or smoothing.get("applied") or alignment.get("applied") or config.matcher.local_map_m > 0)
+    if rerender or slam.frame_marks:
+        # the poses are the best particle's when not re-rendered: its own map is then the same grid
+        own_map = None if rerender else slam.best_grid()
+        slam.grids.keep_only(None)  # no particle's map is read any more
         _return_freed_memory()
-        key_frames_in = _key_frames_in_snapshots(slam.snapshots, slam.key_frame_times())
+        marks = slam.frame_marks or [(s.scan_index, s.t_s) for s in slam.snapshots]
+        # how many key frames each frame's map takes: those at or before its time
+        key_frames_in = np.searchsorted(slam.key_frame_times(), [t_s for _, t_s in marks], side="right").tolist()
         frames: dict[int, MapSnapshot] = {}
 
         def keep_frame(n: int, partial: OccupancyGrid) -> None:
@@ -207,9 +212,10 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
         grid = render_occupancy(slam.product_scans(), key_frames, slam.projector.origin_v, config.grid,
                                 frames_after=set(key_frames_in), on_frame=keep_frame,
                                 frame_max_side_cells=SNAPSHOT_MAX_SIDE_CELLS)
-        snapshots = [MapSnapshot(s.scan_index, s.t_s, frames[n].grid, trajectory.until(s.t_s))
-                     for s, n in zip(slam.snapshots, key_frames_in, strict=True) if n in frames]
-    else:  # the poses are the best particle's: its own map is the same grid, its snapshots the map being built
+        grid = grid if own_map is None else own_map
+        snapshots = [MapSnapshot(scan_index, t_s, frames[n].grid, trajectory.until(t_s))
+                     for (scan_index, t_s), n in zip(marks, key_frames_in, strict=True) if n in frames]
+    else:  # live: the snapshots taken during the filter are the map being built
         grid = slam.best_grid()
         snapshots = [s.reduced() for s in slam.snapshots]
     consistency = map_consistency(grid, key_frames, key_frame_points)
@@ -249,11 +255,6 @@ def _with_places(loop_summary: dict, key_frames: np.ndarray) -> dict:
         for end in ("node", "anchor"):
             closure[f"{end}_xy_m"] = [round(float(v), 4) for v in key_frames[closure[end], :2]]
     return loop_summary
-
-
-def _key_frames_in_snapshots(snapshots: Sequence[MapSnapshot], key_frame_t_s: np.ndarray) -> list[int]:
-    """For each snapshot, how many key frames its map had taken: those at or before its time."""
-    return [int(np.searchsorted(key_frame_t_s, s.t_s, side="right")) for s in snapshots]
 
 
 def map_bundle(poses: np.ndarray, t_s: np.ndarray, unverified: np.ndarray, scans: Sequence[ProjectedScan],

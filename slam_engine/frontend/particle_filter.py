@@ -66,7 +66,6 @@ from slam_engine.model.drive_log import DriveLog, LidarModel
 from slam_engine.model.messages import EncoderMessage, GyroMessage, Message, OdometryMessage, ScanMessage
 from slam_engine.model.poses import compose, relative, wrap_angle
 from slam_engine.model.result import (
-    SNAPSHOT_MAX_SIDE_CELLS,
     MapSnapshot,
     OccupancyGrid,
     ScanStats,
@@ -240,9 +239,10 @@ class SlamFilter:
         self._pending: deque[ScanMessage] = deque()  # scans waiting for odometry past their stamp
         self._stats: list[tuple[float, float, bool, float, bool, float, int]] = []
         self.snapshots: list[MapSnapshot] = []
-        # the newest snapshot at preview size for live maps; False: every snapshot at an animation
-        # frame's size from the start (the full-resolution preview, tens of MB, is never built)
+        # True: a snapshot every snapshot_every_scans, the newest at preview size for live maps; False:
+        # only where each would be (frame_marks), its frame drawn after the back end at the final poses
         self.live_previews = True
+        self.frame_marks: list[tuple[int, float]] = []  # (scan index, time [s]) of each frame, offline
         self._last_forget_m = 0.0  # the maps' travel clock [m] when stale tiles were last forgotten
 
     @classmethod
@@ -328,12 +328,13 @@ class SlamFilter:
         self._stats[-1] = self._stats[-1][:5] + (time.perf_counter() - start,) + self._stats[-1][6:]
         every = self.config.snapshot_every_scans
         if every and self.steps_processed % every == 0:
-            if self.snapshots and self.live_previews:  # kept for the animation: a frame's size is enough
-                self.snapshots[-1] = self.snapshots[-1].reduced()
-            grid = self.preview_grid() if self.live_previews else self.frame_grid()
-            snapshot = MapSnapshot(scan_index=len(self._records) - 1, t_s=scan.t_s, grid=grid,
-                                   trajectory=self.trajectory())
-            self.snapshots.append(snapshot if self.live_previews else snapshot.reduced())
+            if not self.live_previews:  # the frame is drawn by the pipeline, after the back end
+                self.frame_marks.append((len(self._records) - 1, scan.t_s))
+            else:
+                if self.snapshots:  # kept for the animation: a frame's size is enough
+                    self.snapshots[-1] = self.snapshots[-1].reduced()
+                self.snapshots.append(MapSnapshot(scan_index=len(self._records) - 1, t_s=scan.t_s,
+                                                  grid=self.preview_grid(), trajectory=self.trajectory()))
 
     def _due(self, t_s: float, odom: np.ndarray) -> bool:
         assert self._last_odom is not None and self._last_t_s is not None  # set by the first scan's step
@@ -632,12 +633,6 @@ class SlamFilter:
 
     def best_grid(self) -> OccupancyGrid:
         return self.grids.occupancy_grid(self.best_particle())
-
-    def frame_grid(self) -> OccupancyGrid:
-        """The best particle's map pooled to an animation frame's size (at most
-        ``SNAPSHOT_MAX_SIDE_CELLS`` a side: what :meth:`MapSnapshot.reduced` makes of the preview),
-        built a few tile rows at a time."""
-        return self.grids.occupancy_grid_within(self.best_particle(), SNAPSHOT_MAX_SIDE_CELLS)
 
     def preview_grid(self) -> OccupancyGrid:
         """The best particle's map pooled to at most about ``PREVIEW_MAX_SIDE_CELLS`` a side (what a

@@ -156,15 +156,19 @@ def test_clones_after_resampling_share_one_insertion_with_identical_results(monk
 
 
 def test_snapshots_without_live_previews_are_the_same_frames() -> None:
-    """Without live previews every snapshot is built at an animation frame's size (a few tile rows at
-    a time) instead of at preview size and pooled later: the frames are identical. (The filter's own
-    snapshots: no loop closing and unbounded no-return rays, so the final map is the filter's.)"""
+    """Without live previews the filter only marks where each frame goes, and the frames are drawn
+    after the back end, at an animation frame's size, in one pass over the key frames' scans. Where
+    the final map is the filter's own (no loop closing, unbounded no-return rays), they are the
+    snapshots that live previews take during the filter, cell for cell."""
     from slam_engine.model.result import SNAPSHOT_MAX_SIDE_CELLS
+    from slam_engine.pipeline import run_filter
     from slam_engine.simulation import simulate
 
     drive = simulate("office", seed=0, rig="carmen-robot", max_duration_s=80.0, cameras=False)
     config = SlamConfig(particles=4, seed=0, snapshot_every_scans=40, loop_closing={"enabled": False},
                         grid={"no_return_bounded": False})
+    offline = run_filter(drive.log, config, np.random.default_rng(config.seed), live_previews=False)
+    assert offline.snapshots == [] and len(offline.frame_marks) == offline.steps_processed // 40
     live = run_slam(drive.log, config, progress=lambda p: None)
     frames = run_slam(drive.log, config, live_previews=False)
     assert len(live.snapshots) == len(frames.snapshots) >= 5
