@@ -78,7 +78,6 @@ def run_job(job: dict) -> dict:
     from slam_engine.config import SlamConfig, merge_settings, shortcut_overrides
     from slam_engine.evaluation.memory_estimate import peak_resident_bytes
     from slam_engine.evaluation.metrics import align_rigid_2d, read_ground_truth, read_relations
-    from slam_engine.frontend import engine_threads
     from slam_engine.model.result import Trajectory
     from slam_engine.products import write_products
     from slam_engine.products.animation import snapshot_interval
@@ -104,7 +103,7 @@ def run_job(job: dict) -> dict:
     wall_s = time.perf_counter() - started
     out_dir = Path(job["out_dir"])
     started = time.perf_counter()
-    write_products(result, out_dir / f"{case['name']}_seed{seed}_products", log=log, threads=engine_threads())
+    write_products(result, out_dir / f"{case['name']}_seed{seed}_products", log=log)
     products_done = time.perf_counter()
     products_s = products_done - started
     # what a user's `lidarmap run` peaks at: the scoring below (bench only) is not part of it

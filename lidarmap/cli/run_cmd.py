@@ -174,7 +174,6 @@ def register(app: typer.Typer) -> None:
         from lidarmap.cli.progress_bar import StageProgressBar
         from slam_engine.evaluation import metrics as evaluation
         from slam_engine.formats import load_log
-        from slam_engine.frontend import engine_threads
         from slam_engine.pipeline import WRITING_PRODUCTS, stage_progress
         from slam_engine.products import write_products
         from slam_engine.products.map_bundle import read_bundle
@@ -206,8 +205,7 @@ def register(app: typer.Typer) -> None:
                     written = extend(saved, result, slam_config, out, relation_table)
                 else:
                     written = write_products(result, out, geo=geo, relations=relation_table, ground_truth=truth,
-                                             log=drive_log, texture_accuracy=texture_figures(result, truth, floor),
-                                             threads=engine_threads())
+                                             log=drive_log, texture_accuracy=texture_figures(result, truth, floor))
                 bar.finish()
             print_summary(result, written, out)
             print_warnings(written["run.json"])

@@ -51,7 +51,6 @@ def write_job_products(ctx: JobContext, result: SlamResult, log: DriveLog, extra
                        ) -> None:
     """Write a finished run's products into the job's folder, list them in the store (with ``extra``:
     products the caller wrote there itself), drop the live snapshot."""
-    from slam_engine.frontend import engine_threads
     from slam_engine.products import GeoOrigin, write_products
     from slam_engine.progress import WRITING_PRODUCTS
 
@@ -67,7 +66,7 @@ def write_job_products(ctx: JobContext, result: SlamResult, log: DriveLog, extra
                                                      longitude_deg=session.geo["lon_deg"],
                                                      heading_deg=session.geo["heading_deg"])
     files = {**(extra or {}), **write_products(result, out_dir / "products", geo=geo, log=log,
-                                               extra_products=sorted(extra or {}), threads=engine_threads())}
+                                               extra_products=sorted(extra or {}))}
     save_grid(result.grid, out_dir / GRID_FILE)
     if result.texture is not None:
         save_texture(result.texture, out_dir / TEXTURE_FILE)

@@ -18,8 +18,6 @@ Files (each written under a temporary name, then renamed):
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 from PIL import Image
@@ -76,45 +74,17 @@ def accuracy_figures(trajectory: Trajectory, relations=None, ground_truth=None) 
 
 def write_products(result: SlamResult, out_dir: str | Path, geo: GeoOrigin | None = None,
                    relations=None, ground_truth=None, log=None,
-                   texture_accuracy: dict | None = None, extra_products: list[str] | None = None,
-                   threads: int = 1) -> dict[str, Path]:
+                   texture_accuracy: dict | None = None, extra_products: list[str] | None = None) -> dict[str, Path]:
     """Write every product of ``result`` into ``out_dir``; returns {file name: path}.
 
     ``geo`` places the GeoTIFFs in UTM (else the local map frame); ``relations`` / ``ground_truth``
     add accuracy figures to run.json, ``texture_accuracy`` (colour error and placement against a known
     floor, :mod:`slam_engine.texture.accuracy`) as its ``accuracy.texture``; ``log`` (the DriveLog)
     fills run.json's input summary when the result carries none; ``extra_products``: files the caller
-    writes beside these, listed in run.json too. With ``threads`` above 1 the animation is drawn and
-    encoded in a second thread while the other products are written (the same files).
+    writes beside these, listed in run.json too.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    with ThreadPoolExecutor(1, thread_name_prefix="products") if threads > 1 else _InlineExecutor() as beside:
-        return _write_products(result, out, beside, geo, relations, ground_truth, log, texture_accuracy,
-                               extra_products)
-
-
-class _InlineExecutor:
-    """What :func:`write_products` submits to when it runs in one thread: each call at once."""
-
-    def __enter__(self) -> _InlineExecutor:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        return None
-
-    def submit(self, fn: Callable[..., Path], *args) -> Future[Path]:
-        future: Future[Path] = Future()
-        future.set_result(fn(*args))
-        return future
-
-
-def _write_products(result: SlamResult, out: Path, beside: ThreadPoolExecutor | _InlineExecutor,
-                    geo: GeoOrigin | None, relations, ground_truth, log, texture_accuracy: dict | None,
-                    extra_products: list[str] | None) -> dict[str, Path]:
-    """:func:`write_products`, the animation submitted to ``beside`` first (the slowest product)."""
-    animation = None if not result.snapshots else beside.submit(
-        write_animation_gif, result.snapshots, result.grid, result.trajectory, out / "animation.gif")
     georef = georeference_for(result, geo)
     config = to_jsonable(result.config)
     written: dict[str, Path] = {}
@@ -141,12 +111,13 @@ def _write_products(result: SlamResult, out: Path, beside: ThreadPoolExecutor | 
     if result.texture is not None:
         save_image(texture_image(result.texture), "texture.png", "PNG")
         written["texture.tif"] = write_texture_geotiff(result.texture, out / "texture.tif", georef)
+    if result.snapshots:
+        written["animation.gif"] = write_animation_gif(result.snapshots, result.grid, result.trajectory,
+                                                       out / "animation.gif")
     if result.bundle is not None:
         written[BUNDLE_FILE] = write_bundle(result.bundle, out / BUNDLE_FILE)
         if len(result.bundle):
             written[POINT_CLOUD_FILE] = write_map_point_cloud(result.bundle, out / POINT_CLOUD_FILE)
-    if animation is not None:
-        written["animation.gif"] = animation.result()
     input_summary = result.input_summary or (log.summary() if log is not None else {})
     accuracy = accuracy_figures(result.trajectory, relations, ground_truth)
     if texture_accuracy is not None:

@@ -244,28 +244,6 @@ def test_run_json_has_config_input_timings_and_per_scan_stats(products: dict[str
     assert "run.json" in run["products"] and "occupancy.tif" in run["products"]
 
 
-def test_products_written_in_two_threads_are_the_same_files(products: dict[str, Path], tmp_path: Path) -> None:
-    """With ``threads`` 2 the animation is drawn beside the other products: the same files, byte for
-    byte (run.json but its products list is not timed, so it is compared whole too)."""
-    written = write_products(make_result(), tmp_path, threads=2)
-    assert set(written) == set(products) and "animation.gif" in written
-    for name, path in products.items():
-        assert written[name].read_bytes() == path.read_bytes(), name
-
-
-def test_a_failing_animation_fails_the_products_in_two_threads(tmp_path: Path, monkeypatch) -> None:
-    """An error in the animation's thread reaches the caller (no run.json claims the products)."""
-    import slam_engine.products.export as export
-
-    def broken(*args):
-        raise OSError("disk full")
-
-    monkeypatch.setattr(export, "write_animation_gif", broken)
-    with pytest.raises(OSError, match="disk full"):
-        write_products(make_result(), tmp_path, threads=2)
-    assert not (tmp_path / "run.json").exists()
-
-
 def test_products_without_texture_or_snapshots_skip_those_files(tmp_path: Path) -> None:
     written = write_products(make_result(texture=False, snapshots=0), tmp_path)
     assert not {"texture.png", "texture.tif", "animation.gif"} & set(written)
