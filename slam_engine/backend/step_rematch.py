@@ -20,14 +20,9 @@ Against a map of the key frames before placed by the ground truth, the pose foun
 of the true heading at 37 of 39 such steps of campus seed 0, even where it scores as little as 0.2:
 a scan holds its heading where its position along a wall or hedge is loose.
 
-The check takes what outdoors gives it: scans with as few as ``REMATCH_MIN_POINTS`` (12) returns,
-fits scoring 0.12, a map of 10 key frames (until 2026-11-28: 30 returns, 0.25 and 6). The steps it used to
-leave turned were mostly such scans: on a turn between open squares (campus key frames 962-967,
-1004-1018, 1031-1044), 14-29 returns within ``match_range_m`` and true fits scoring 0.1-0.4. Over
-13 recorded campus front ends (2026-11-28) the steps off by more than 0.1 rad went from 18 to 11
-(median), their summed heading error from 4.8 to 2.6 rad, and the loose stretch between key frames
-958 and 1155 from 1.3 to 0.14 rad off (median). Indoors, where scans are dense and fit well, it
-replaces the same steps as before, or one fewer.
+The check takes what outdoors gives it: scans with as few as ``REMATCH_MIN_POINTS`` returns and fits
+scoring ``rematch_min_score`` (the steps the campus's front end turns are mostly such scans;
+measurements in docs/engine.md, "Sparse scans and weak fits").
 """
 
 from __future__ import annotations
