@@ -202,3 +202,34 @@ def test_flaser_beam_count_may_change_when_the_spacing_does_not(tmp_path) -> Non
     f361 = "FLASER 361 " + " ".join(["2.0"] * 361) + " 0 0 0 0 0 0 {t} host {t}"
     with pytest.raises(LogFormatError, match="line 2: FLASER beam spacing changes"):
         load_log(write_clf(tmp_path, f181.format(t=1.0), f361.format(t=2.0)))
+
+
+def _flaser(pose: tuple[float, float, float], t_s: float, ranges: str = "1.0 2.0 3.0 4.0") -> str:
+    x, y, th = pose
+    return f"FLASER 4 {ranges} {x} {y} {th} {x} {y} {th} {t_s} host {t_s}\n"
+
+
+def test_each_scan_pairs_with_the_odometry_its_own_record_carries(tmp_path) -> None:
+    """Real Intel: ODOM records interpolated at a scan's (late, jittered) stamp put 154 scans more than
+    0.1 rad off the pose their FLASER record carries. The scan's own pose is the one it was taken at."""
+    lines = [f"ODOM {0.1 * k} 0 {0.2 * k} 0 0 0 {float(k)} host {float(k)}\n" for k in range(10)]
+    lines += [_flaser((0.1 * k, 0.0, 0.2 * k), float(k)) for k in range(9)]
+    # scan 6 was taken at 6.0 s but stamped 6.4 s: the ODOM records there say heading 1.28, not 1.2
+    lines[10 + 6] = _flaser((0.6, 0.0, 1.2), 6.4)
+    (tmp_path / "jitter.clf").write_text("".join(lines))
+    log = load_log(tmp_path / "jitter.clf")
+    from slam_engine.model.poses import interpolate
+
+    at_scans = interpolate(log.odometry.t_s, log.odometry.poses, log.scans.t_s)
+    np.testing.assert_allclose(at_scans[:, 2], [0.2 * k for k in range(9)], atol=1e-9)
+    np.testing.assert_allclose(at_scans[6], [0.6, 0.0, 1.2], atol=1e-9)
+    assert len(log.odometry) == 11  # the ODOM records, and scan 6's own pose at 6.4 s
+    assert any("at 1 of 9 FLASER records" in w and "own record's pose" in w for w in log.warnings)
+
+
+def test_agreeing_odom_and_laser_poses_keep_the_odom_stream(tmp_path) -> None:
+    lines = [f"ODOM {0.1 * k} 0 0 0 0 0 {float(k)} host {float(k)}\n" for k in range(10)]
+    lines += [_flaser((0.1 * k + 0.05, 0.0, 0.0), k + 0.5) for k in range(9)]
+    (tmp_path / "agree.clf").write_text("".join(lines))
+    log = load_log(tmp_path / "agree.clf")
+    assert len(log.odometry) == 10 and log.warnings == []
