@@ -20,6 +20,12 @@ Against a map of the key frames before placed by the ground truth, the pose foun
 of the true heading at 37 of 39 such steps of campus seed 0, even where it scores as little as 0.2:
 a scan holds its heading where its position along a wall or hedge is loose.
 
+A key frame whose front-end match was rejected (an *unverified* step: the particle kept its motion
+sample) is searched for whatever its step scores. The original Freiburg 079 log's odometry drives
+forward where the robot backs up (its poses advance while its ``tv`` reads -0.5 m/s), 0.3-0.65 m off
+per key frame; its scans still fit the key frames before them at 0.3 and more along the corridors,
+so only a search finds the true step (docs/engine.md, "Steps checked before loop closing").
+
 The check takes what outdoors gives it: scans with as few as ``REMATCH_MIN_POINTS`` returns and fits
 scoring ``rematch_min_score`` (the steps the campus's front end turns are mostly such scans;
 measurements in docs/engine.md, "Sparse scans and weak fits").
@@ -49,13 +55,15 @@ PYRAMID_LEVELS = 6  # blocks up to 32 cells: the window is at most a few tens of
 @dataclass
 class StepRematch:
     """The key frames' poses (K, 3, world frame) after the check, and the key frames whose step from
-    the one before was replaced, each with the step's score and the replacing pose's."""
+    the one before was replaced, each with the step's score and the replacing pose's; how many of
+    those the front end had left unverified."""
 
     path: np.ndarray
     replaced: list[tuple[int, float, float]] = field(default_factory=list)
+    unverified_replaced: int = 0
 
     def summary(self) -> dict:
-        return {"steps_replaced": len(self.replaced)}
+        return {"steps_replaced": len(self.replaced), "unverified_steps_replaced": self.unverified_replaced}
 
 
 def _thin(points: np.ndarray, budget: int) -> np.ndarray:
@@ -65,10 +73,11 @@ def _thin(points: np.ndarray, budget: int) -> np.ndarray:
 
 
 def rematch_steps(path: np.ndarray, points_v: list[np.ndarray], config: LoopClosingConfig, resolution_m: float,
-                  threads: int = 1) -> StepRematch:
+                  threads: int = 1, unverified: np.ndarray | None = None) -> StepRematch:
     """Key-frame poses ``path`` (K, 3) with the steps that fit the key frames before them poorly replaced
     by a better fit (module docstring); ``points_v``: each key frame's end points (B, 2) [m, vehicle frame].
-    Nothing is replaced when loop closing or ``config.rematch_steps`` is off."""
+    ``unverified`` (K,): the key frames whose front-end match was rejected, each searched for whatever
+    its step scores. Nothing is replaced when loop closing or ``config.rematch_steps`` is off."""
     path = np.asarray(path, np.float64)
     out = StepRematch(path=path.copy())
     if not (config.enabled and config.rematch_steps) or len(path) < 2:
@@ -77,30 +86,33 @@ def rematch_steps(path: np.ndarray, points_v: list[np.ndarray], config: LoopClos
     near = [p[np.hypot(p[:, 0], p[:, 1]) <= c.match_range_m] for p in points_v]
     poses = out.path
     before: deque[np.ndarray] = deque([place_points(poses[0], near[0])], maxlen=c.rematch_key_frames)
+    always = np.zeros(len(path), bool) if unverified is None else np.asarray(unverified, bool)
     for k in range(1, len(path)):
         predicted = compose(poses[k - 1], relative(path[k - 1], path[k]))
         scan = _thin(near[k], REMATCH_MAX_POINTS)
-        found = _better_fit(scan, predicted, np.concatenate(before), c, resolution_m, threads)
+        found = _better_fit(scan, predicted, np.concatenate(before), c, resolution_m, threads, bool(always[k]))
         if found is None:
             poses[k] = predicted
         else:
             poses[k] = found[0]
             out.replaced.append((k, found[1], found[2]))
+            out.unverified_replaced += int(always[k])
         before.append(place_points(poses[k], near[k]))
     return out
 
 
 def _better_fit(scan: np.ndarray, predicted: np.ndarray, map_points: np.ndarray, c: LoopClosingConfig,
-                resolution_m: float, threads: int) -> tuple[np.ndarray, float, float] | None:
+                resolution_m: float, threads: int, always: bool = False) -> tuple[np.ndarray, float, float] | None:
     """The pose that replaces ``predicted`` for ``scan`` (B, 2) [m, vehicle frame] on the map of
-    ``map_points`` (N, 2) [m, world frame], with the scores of both; None to keep ``predicted``."""
+    ``map_points`` (N, 2) [m, world frame], with the scores of both; None to keep ``predicted``.
+    ``always``: searched even where the step's pose scores ``rematch_below_score`` or more."""
     if len(scan) < REMATCH_MIN_POINTS or len(map_points) < REMATCH_MIN_POINTS:
         return None
     # one level: the check at the step's pose searches one cell and angular step around it
     grid = match_grid_from_points(map_points, resolution_m, margin_m=1.0, n_levels=1)
     here = search(grid, scan, predicted, resolution_m, angular_step_rad(scan, resolution_m), 0.0)
     step_score = 0.0 if here is None else here.score
-    if step_score >= c.rematch_below_score:
+    if step_score >= c.rematch_below_score and not always:
         return None
     grid = MatchGrid.from_values(grid.values, grid.origin_m, resolution_m, PYRAMID_LEVELS)
     best = search(grid, scan, predicted, c.rematch_window_m, c.rematch_window_rad, c.rematch_min_score,

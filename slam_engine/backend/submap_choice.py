@@ -71,7 +71,7 @@ def close_loops_checked(path: np.ndarray, points_v: list[np.ndarray], config: Lo
     """:func:`rematch_steps` on the front end's key-frame ``path`` (K, 3), then :func:`close_loops`
     with each of :func:`submap_lengths`; with more than one, the result whose key frames contradict
     its map least is kept (the first of equal ones). ``progress`` hears the share of the work done."""
-    rematched = rematch_steps(path, points_v, config, grid.resolution_m, threads=threads)
+    rematched = rematch_steps(path, points_v, config, grid.resolution_m, threads=threads, unverified=unverified)
     lengths = submap_lengths(config)
 
     def closed_with(i: int) -> LoopClosingResult:
