@@ -17,18 +17,20 @@ import ctypes
 import ctypes.util
 import functools
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
+from slam_engine.backend.flagged_retry import FlaggedRetry, kept_alternative, retry_alternatives
 from slam_engine.backend.map_alignment import align_to_map
 from slam_engine.backend.map_builder import render_occupancy
 from slam_engine.backend.odometry_smoothing import smooth_with_odometry
 from slam_engine.backend.pose_graph import Edge
-from slam_engine.backend.submap_choice import close_loops_checked
-from slam_engine.config import SlamConfig
+from slam_engine.backend.submap_choice import CheckedLoopClosing, close_loops_checked
+from slam_engine.config import LoopClosingConfig, SlamConfig
 from slam_engine.errors import ConfigError
-from slam_engine.evaluation.consistency import map_consistency
+from slam_engine.evaluation.consistency import MapConsistency, map_consistency
 from slam_engine.evaluation.memory_estimate import peak_resident_bytes
 from slam_engine.frontend.lidar_points import ProjectedScan
 from slam_engine.frontend.odometry import dead_reckoning, odometry_source
@@ -175,52 +177,39 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
     _return_freed_memory()
     front_end_path = slam.key_frame_path()
     key_frame_points = [scan.hits_v for scan in slam.key_frame_scans]
-    checked = close_loops_checked(front_end_path, key_frame_points, config.loop_closing, config.grid,
-                                  unverified=~slam.key_frame_matched(), threads=engine_threads(),
-                                  progress=None if progress is None else lambda done: report(CLOSING_LOOPS, done))
-    backend = checked.backend
-    report(ALIGNING_TO_MAP)
-    aligned, alignment = backend.poses, {"applied": False, "reason": "loop closing is disabled"}
-    if config.loop_closing.enabled:
-        aligned, alignment = align_to_map(backend.poses, key_frame_points, config.grid.resolution_m,
-                                          config.loop_closing.map_alignment_passes, config.loop_closing.match_range_m)
+    unverified = ~slam.key_frame_matched()
+
+    def back_end(loop_config: LoopClosingConfig, reported: bool = False) -> _BackEnd:
+        return _close_loops_and_align(
+            front_end_path, key_frame_points, unverified, loop_config, slam, config,
+            progress=(lambda done: report(CLOSING_LOOPS, done)) if reported else None,
+            aligning=(lambda: report(ALIGNING_TO_MAP)) if reported else None)
+
+    run = back_end(config.loop_closing, reported=True)
     _return_freed_memory()
-    key_frames, smoothing = _keep_odometry_precision(aligned, slam.key_frame_odometry, slam.key_frame_wheels,
-                                                     config)
     report(RENDERING_MAP)
-    trajectory = slam.trajectory(key_frames)
     resampled = slam.scan_stats().resampled
     if len(resampled) > 1 and resampled.mean() > 0.9:
         warnings.append("the particle set was resampled after almost every scan: the map may be unreliable "
                         "(odometry much worse than the motion noise assumes?)")
     # the particles' maps hold only their recent tiles when local_map_m is set: re-rendered then too
-    rerender = (any(c.accepted for c in backend.closures) or config.grid.no_return_bounded
-                or smoothing.get("applied") or alignment.get("applied") or config.matcher.local_map_m > 0)
-    if rerender or slam.frame_marks:
-        # the poses are the best particle's when not re-rendered: its own map is then the same grid
-        own_map = None if rerender else slam.best_grid()
-        slam.grids.keep_only(None)  # no particle's map is read any more
-        _return_freed_memory()
-        marks = slam.frame_marks or [(s.scan_index, s.t_s) for s in slam.snapshots]
-        # how many key frames each frame's map takes: those at or before its time
-        key_frames_in = np.searchsorted(slam.key_frame_times(), [t_s for _, t_s in marks], side="right").tolist()
-        frames: dict[int, MapSnapshot] = {}
-
-        def keep_frame(n: int, partial: OccupancyGrid) -> None:
-            frames[n] = MapSnapshot(-1, 0.0, partial, trajectory).reduced()
-
-        grid = render_occupancy(slam.product_scans(), key_frames, slam.projector.origin_v, config.grid,
-                                frames_after=set(key_frames_in), on_frame=keep_frame,
-                                frame_max_side_cells=SNAPSHOT_MAX_SIDE_CELLS)
-        grid = grid if own_map is None else own_map
-        snapshots = [MapSnapshot(scan_index, t_s, frames[n].grid, trajectory.until(t_s))
-                     for (scan_index, t_s), n in zip(marks, key_frames_in, strict=True) if n in frames]
-    else:  # live: the snapshots taken during the filter are the map being built
-        grid = slam.best_grid()
-        snapshots = [s.reduced() for s in slam.snapshots]
-    consistency = map_consistency(grid, key_frames, key_frame_points)
+    rerender = (any(c.accepted for c in run.checked.backend.closures) or config.grid.no_return_bounded
+                or run.smoothing.get("applied") or run.alignment.get("applied") or config.matcher.local_map_m > 0)
+    grid, snapshots = _product_map(slam, run.key_frames, run.trajectory, config, rerender)
+    consistency = map_consistency(grid, run.key_frames, key_frame_points)
+    retry = None
+    if consistency.flagged:
+        retry, kept = _retry_flagged(consistency, run, back_end, slam, key_frame_points, config)
+        if kept is not None:
+            run = kept
+            grid, snapshots = _product_map(slam, run.key_frames, run.trajectory, config, rerender=True)
+            consistency = map_consistency(grid, run.key_frames, key_frame_points)
     if (inconsistent := consistency.warning()) is not None:
         warnings.append(inconsistent)
+    key_frames, trajectory, backend, checked = run.key_frames, run.trajectory, run.checked.backend, run.checked
+    loop_summary = {**_with_places(backend.summary(), key_frames), **checked.summary()}
+    if retry is not None:
+        loop_summary["flagged_retry"] = retry.summary()
     texture, texture_status = _ground_texture(log, trajectory, grid, config, warnings)
     bundle = map_bundle(key_frames, slam.key_frame_times(), ~slam.key_frame_matched(), slam.product_scans(),
                         slam.projector.origin_v, backend.edges, trajectory, config, log)
@@ -241,11 +230,96 @@ def filter_result(slam: SlamFilter, log: DriveLog, config: SlamConfig, started_s
                        "odometry_calibration": slam.heading_calibration.summary(),
                        "odometry_precision": slam.odometry_precision.summary(),
                        "time_offset": _time_offset_summary(slam, log, config),
-                       "loop_closing": {**_with_places(backend.summary(), key_frames), **checked.summary()},
-                       "map_alignment": alignment,
-                       "odometry_smoothing": smoothing, "map_consistency": consistency.as_dict()},
+                       "loop_closing": loop_summary, "map_alignment": run.alignment,
+                       "odometry_smoothing": run.smoothing, "map_consistency": consistency.as_dict()},
         bundle=bundle,
     )
+
+
+@dataclass
+class _BackEnd:
+    """One pass of the back end over the front end's key frames: the loop closing (with its step
+    check), the key frames aligned to the map and smoothed with the odometry, and every scan's pose."""
+
+    checked: CheckedLoopClosing
+    key_frames: np.ndarray
+    alignment: dict
+    smoothing: dict
+    trajectory: Trajectory
+
+
+def _close_loops_and_align(front_end_path: np.ndarray, points_v: list[np.ndarray], unverified: np.ndarray,
+                           loop_config: LoopClosingConfig, slam: SlamFilter, config: SlamConfig,
+                           progress: Callable[[float], None] | None = None,
+                           aligning: Callable[[], None] | None = None) -> _BackEnd:
+    """The back end with ``loop_config`` on the front end's key frames (``front_end_path`` (K, 3),
+    their end points ``points_v`` [m, vehicle frame], the steps the front end left ``unverified``).
+    ``progress`` hears the loop closing's share done, ``aligning`` when the alignment starts."""
+    checked = close_loops_checked(front_end_path, points_v, loop_config, config.grid, unverified=unverified,
+                                  threads=engine_threads(), progress=progress)
+    if aligning is not None:
+        aligning()
+    aligned, alignment = checked.backend.poses, {"applied": False, "reason": "loop closing is disabled"}
+    if loop_config.enabled:
+        aligned, alignment = align_to_map(checked.backend.poses, points_v, config.grid.resolution_m,
+                                          loop_config.map_alignment_passes, loop_config.match_range_m)
+    key_frames, smoothing = _keep_odometry_precision(aligned, slam.key_frame_odometry, slam.key_frame_wheels,
+                                                     config)
+    return _BackEnd(checked, key_frames, alignment, smoothing, slam.trajectory(key_frames))
+
+
+def _retry_flagged(consistency: MapConsistency, first: _BackEnd, back_end: Callable[..., _BackEnd],
+                   slam: SlamFilter, points_v: list[np.ndarray], config: SlamConfig
+                   ) -> tuple[FlaggedRetry, _BackEnd | None]:
+    """The back end again with each of :func:`retry_alternatives` of a map its own key frames flag
+    (``consistency``), each alternative's map judged the same way; the alternative kept
+    (:func:`kept_alternative`), or None (:mod:`slam_engine.backend.flagged_retry`)."""
+    retry = FlaggedRetry(consistency.contradicted_share)
+    runs = []
+    for name, loop_config in retry_alternatives(config.loop_closing, first.checked):
+        run = back_end(loop_config)
+        grid = render_occupancy(slam.product_scans(), run.key_frames, slam.projector.origin_v, config.grid)
+        retry.tried.append((name, map_consistency(grid, run.key_frames, points_v).contradicted_share))
+        runs.append(run)
+        del grid
+        _return_freed_memory()
+    if not runs:
+        retry.reason = ("the submap lengths were all tried already (submap_lengths_tried)" if first.checked.tried
+                        else "no alternative: loop closing is off")
+        return retry, None
+    kept = kept_alternative(retry.first_share, [share for _, share in retry.tried])
+    if kept is None:
+        return retry, None
+    retry.kept = retry.tried[kept][0]
+    return retry, runs[kept]
+
+
+def _product_map(slam: SlamFilter, key_frames: np.ndarray, trajectory: Trajectory, config: SlamConfig,
+                 rerender: bool) -> tuple[OccupancyGrid, list[MapSnapshot]]:
+    """The product map at the final ``key_frames`` (K, 3) and the animation's frames: rendered from the
+    key frames' scans where ``rerender`` or the filter marked frames, else the best particle's own."""
+    if rerender or slam.frame_marks:
+        # the poses are the best particle's when not re-rendered: its own map is then the same grid
+        own_map = None if rerender else slam.best_grid()
+        slam.grids.keep_only(None)  # no particle's map is read any more
+        _return_freed_memory()
+        marks = slam.frame_marks or [(s.scan_index, s.t_s) for s in slam.snapshots]
+        # how many key frames each frame's map takes: those at or before its time
+        key_frames_in = np.searchsorted(slam.key_frame_times(), [t_s for _, t_s in marks], side="right").tolist()
+        frames: dict[int, MapSnapshot] = {}
+
+        def keep_frame(n: int, partial: OccupancyGrid) -> None:
+            frames[n] = MapSnapshot(-1, 0.0, partial, trajectory).reduced()
+
+        grid = render_occupancy(slam.product_scans(), key_frames, slam.projector.origin_v, config.grid,
+                                frames_after=set(key_frames_in), on_frame=keep_frame,
+                                frame_max_side_cells=SNAPSHOT_MAX_SIDE_CELLS)
+        grid = grid if own_map is None else own_map
+        snapshots = [MapSnapshot(scan_index, t_s, frames[n].grid, trajectory.until(t_s))
+                     for (scan_index, t_s), n in zip(marks, key_frames_in, strict=True) if n in frames]
+        return grid, snapshots
+    # live: the snapshots taken during the filter are the map being built
+    return slam.best_grid(), [s.reduced() for s in slam.snapshots]
 
 
 def _with_places(loop_summary: dict, key_frames: np.ndarray) -> dict:
