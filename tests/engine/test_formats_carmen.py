@@ -233,3 +233,21 @@ def test_agreeing_odom_and_laser_poses_keep_the_odom_stream(tmp_path) -> None:
     (tmp_path / "agree.clf").write_text("".join(lines))
     log = load_log(tmp_path / "agree.clf")
     assert len(log.odometry) == 10 and log.warnings == []
+
+
+def test_odometry_that_advances_while_backing_up_is_taken_backwards(tmp_path) -> None:
+    """The original Freiburg 079 log: where its ODOM records read tv -0.5 m/s, their poses advance
+    forward along the heading (392 records, 0.3-0.65 m per key frame off the truth). The steps are
+    taken backwards, and each scan's own record pose is carried along with them."""
+    lines = [f"ODOM {0.1 * k} 0 0 0.5 0 0 {float(k)} host {float(k)}\n" for k in range(5)]
+    # backing up from x = 0.4 at 0.5 m/s, but the poses go on forward
+    lines += [f"ODOM {0.4 + 0.1 * k} 0 0 -0.5 0 0 {4.0 + k} host {4.0 + k}\n" for k in range(1, 5)]
+    lines += [_flaser((0.4 + 0.1 * k, 0.0, 0.0), 4.0 + k) for k in range(1, 5)]
+    (tmp_path / "reverse.clf").write_text("".join(lines))
+    log = load_log(tmp_path / "reverse.clf")
+    np.testing.assert_allclose(log.odometry.poses[:, 0], [0.0, 0.1, 0.2, 0.3, 0.4, 0.3, 0.2, 0.1, 0.0], atol=1e-9)
+    assert any("at 4 ODOM records the robot backs up" in w for w in log.warnings)
+    from slam_engine.model.poses import interpolate
+
+    at_scans = interpolate(log.odometry.t_s, log.odometry.poses, log.scans.t_s)
+    np.testing.assert_allclose(at_scans[:, 0], [0.3, 0.2, 0.1, 0.0], atol=1e-9)
