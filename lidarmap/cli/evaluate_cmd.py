@@ -13,7 +13,7 @@ from pathlib import Path
 import typer
 
 from lidarmap.cli.bad_input import bad_input_exits
-from slam_engine.errors import ConfigError
+from slam_engine.errors import ConfigError, LogFormatError
 
 
 def read_any_trajectory(path: Path):
@@ -21,14 +21,17 @@ def read_any_trajectory(path: Path):
     from slam_engine.evaluation.metrics import read_ground_truth
     from slam_engine.products import read_trajectory
 
-    with open(path, encoding="utf-8") as handle:
-        for line in handle:
-            stripped = line.strip()
-            if stripped and not stripped.startswith("#"):
-                if stripped[0] not in "{[" and len(stripped.split()) == 4:
-                    return read_ground_truth(path)
-                break
-    return read_trajectory(path)
+    try:
+        with open(path, encoding="utf-8") as handle:
+            for line in handle:
+                stripped = line.strip()
+                if stripped and not stripped.startswith("#"):
+                    if stripped[0] not in "{[" and len(stripped.split()) == 4:
+                        return read_ground_truth(path)
+                    break
+        return read_trajectory(path)
+    except UnicodeDecodeError as error:
+        raise LogFormatError(f"not a text trajectory (byte {error.start} is not UTF-8)", path) from None
 
 
 def register(app: typer.Typer) -> None:

@@ -119,6 +119,8 @@ def _read_table(path: str | Path, n_columns: int, what: str) -> np.ndarray:
         text = path.read_text()
     except OSError as exc:
         raise LogFormatError(f"cannot read {what}: {exc.strerror or exc}", path) from exc
+    except UnicodeDecodeError as exc:
+        raise LogFormatError(f"not a text {what} file (byte {exc.start} is not UTF-8)", path) from None
     rows: list[list[float]] = []
     for line_number, line in enumerate(text.splitlines(), start=1):
         content = line.split("#", 1)[0].strip()

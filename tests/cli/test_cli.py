@@ -122,6 +122,12 @@ def test_evaluate_bad_input_is_one_line(tmp_path: Path, dataset) -> None:
     assert_one_line_bad_input(invoke("evaluate", tmp_path / "t.tum", "--relations", relations),
                               "t.tum", "line 1", "TUM")
     assert_one_line_bad_input(invoke("evaluate", dataset("benchmark/intel.gt.txt")), "--relations")
+    # a binary file as the trajectory or the relations: one line naming it, exit 2 (was a traceback, exit 1)
+    (tmp_path / "binary.dat").write_bytes(bytes(range(256)) * 8)
+    assert_one_line_bad_input(invoke("evaluate", tmp_path / "binary.dat", "--relations", relations),
+                              "binary.dat", "not a text trajectory")
+    assert_one_line_bad_input(invoke("evaluate", dataset("benchmark/intel.gt.txt"), "--relations",
+                                     tmp_path / "binary.dat"), "binary.dat", "not a text relation")
 
 
 # --- run ------------------------------------------------------------------------------------------
