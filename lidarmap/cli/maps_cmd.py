@@ -41,7 +41,8 @@ def register(app: typer.Typer) -> None:
         start: str | None = typer.Option(None, help="Where the drive starts in the map, if known: X,Y,THETA "
                                          "[m, m, rad] (a hint: it is searched near there and still confirmed)."),
         config_file: Path | None = typer.Option(None, "--config", "-c", help="SlamConfig as YAML or JSON."),
-        relations: Path | None = typer.Option(None, help="Relations file for accuracy figures."),
+        relations: Path | None = typer.Option(None, help="Relations file for accuracy figures "
+                                              "(default: NAME.relations beside the log, as lidarmap run)."),
         force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty --out folder."),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Show tracebacks."),
     ) -> None:
@@ -50,6 +51,7 @@ def register(app: typer.Typer) -> None:
         map. A drive that is not in the map is refused (exit 1, run.json says localised: false)."""
         import numpy as np
 
+        from slam_engine.evaluation.metrics import files_beside_log
         from slam_engine.formats import load_log
         from slam_engine.frontend.particle_filter import engine_threads
         from slam_engine.multisession.localization import localize_log, refusal_reason
@@ -59,6 +61,7 @@ def register(app: typer.Typer) -> None:
         with bad_input_exits(verbose):
             prepare_out_dir(out, force)
             hint = parse_pose(start)
+            relations = relations or files_beside_log(log)[0]
             config = load_config(config_file)
             bundle = read_bundle(map_dir)
             drive, result = localize_log(bundle, load_log(log, format), config,

@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 
 from lidarmap.cli import app
 from slam_engine.formats import write_log
+from slam_engine.model.poses import relative
 from slam_engine.products.map_bundle import read_bundle
 from slam_engine.simulation import simulate
 
@@ -30,7 +31,16 @@ def logs(tmp_path_factory) -> dict[str, Path]:
     middle = (start + end) / 2
     parts = {"a": office.log.between(start, middle), "b": office.log.between(middle, end + 1.0),
              "elsewhere": simulate("campus", seed=1, rig="robot", cameras=False, max_duration_s=40.0).log}
-    return {name: write_log(log, "carmen", folder / name) for name, log in parts.items()}
+    written = {name: write_log(log, "carmen", folder / name) for name, log in parts.items()}
+    # b's relations beside it (NAME.relations), from the truth's consecutive scans: localize finds them as run does
+    truth = office.ground_truth
+    inside = truth.t_s >= middle
+    t, poses = truth.t_s[inside], truth.poses[inside]
+    motion = relative(poses[:-1], poses[1:])
+    table = np.column_stack([t[:-1], t[1:], motion[:, 0], motion[:, 1], np.zeros((len(motion), 3)), motion[:, 2]])
+    b = written["b"] if written["b"].is_file() else next(written["b"].glob("*.clf"))
+    np.savetxt(b.with_name(b.name.split(".", 1)[0] + ".relations"), table, fmt="%.6f")
+    return written
 
 
 def test_localize_extend_and_merge_from_the_command_line(tmp_path, logs) -> None:
@@ -45,6 +55,9 @@ def test_localize_extend_and_merge_from_the_command_line(tmp_path, logs) -> None
     assert {"trajectory.tum", "trajectory.json", "confidence.json", "localization.png"} <= set(run["products"])
     trajectory = np.loadtxt(tmp_path / "loc" / "trajectory.tum")
     assert len(trajectory) == run["localization"]["scans"]
+    # NAME.relations beside the log is used without --relations, as lidarmap run does
+    scored = run["accuracy"]["relations"]["all"]
+    assert scored["n_relations"] > 100 and scored["trans_mean_m"] < 0.05
 
     refused = invoke("localize", logs["elsewhere"], "--map", tmp_path / "a", "--out", tmp_path / "refused")
     assert refused.exit_code == 1 and refused.stderr.startswith("refused: ")
