@@ -80,3 +80,28 @@ def test_pose_reads_the_api_naming_and_that_of_version_1_files() -> None:
     api = Pose.model_validate({"t_s": 1.5, "x_m": 2.0, "y_m": -1.0, "theta_rad": 0.25})
     old_file = Pose.model_validate({"t": 1.5, "x": 2.0, "y": -1.0, "theta": 0.25})
     assert api == old_file and api.model_dump() == {"t_s": 1.5, "x_m": 2.0, "y_m": -1.0, "theta_rad": 0.25}
+
+
+def test_byte_ranges_serve_parts_and_bad_ranges_answer_the_json_error_body(tmp_path) -> None:
+    """A valid Range gets 206 with those bytes; a malformed one 400 and one past the file's end 416 with
+    Content-Range, each in the API's JSON error body (Starlette alone answers them in plain text)."""
+    with service_client(tmp_path, job_function="service_job_functions:counting") as client:
+        sid = streaming_session(client)
+        job = client.post(f"/v1/sessions/{sid}/jobs", json={"particles": 2, "seed": 1}).json()
+        assert wait_for(client, job["id"])["status"] == "succeeded"
+        url = f"/v1/jobs/{job['id']}/run.json"
+        whole = client.get(url).content
+        part = client.get(url, headers={"Range": "bytes=0-9"})
+        assert part.status_code == 206 and part.content == whole[:10]
+        for method in (client.get, client.head):
+            bad = method(url, headers={"Range": "bytes=abc"})
+            assert bad.status_code == 400 and bad.headers["content-type"] == "application/json"
+            if method is client.get:
+                assert bad.json()["error"]["code"] == "bad_range" and "Range header" in bad.json()["error"]["message"]
+            past = method(url, headers={"Range": f"bytes={len(whole) + 10}-"})
+            assert past.status_code == 416 and past.headers["content-range"] == f"bytes */{len(whole)}"
+            if method is client.get:
+                assert past.json()["error"]["code"] == "range_not_satisfiable"
+        # a Range that an If-Range no longer matches is ignored, as Starlette does: the whole file
+        stale = client.get(url, headers={"Range": "bytes=abc", "If-Range": '"not-the-etag"'})
+        assert stale.status_code == 200 and stale.content == whole

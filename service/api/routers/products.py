@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from enum import StrEnum
 from functools import partial
 from typing import Annotated, Any
@@ -11,11 +12,15 @@ from fastapi import APIRouter, Path, Query, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from starlette.concurrency import run_in_threadpool
+from starlette.datastructures import Headers
+from starlette.responses import MalformedRangeHeader, RangeNotSatisfiable
+from starlette.types import Receive, Scope, Send
 
 from api_schemas.error_body import ErrorResponse
 from api_schemas.jobs import JobStatus
 from api_schemas.products import Pose, TrajectoryPublic
 from service.api.deps import DataDep, JobDep, StoreDep
+from service.api.error_handlers import error_response
 from service.http_errors import InvalidInput
 from service.jobs.products import MEDIA_TYPES, product_path, tile_source
 from service.jobs.trajectory_body import trajectory_body
@@ -60,10 +65,45 @@ def _georeference(store: JobStore, job: JobRow) -> Any:
     return Georeference.utm(origin, start_pose=np.zeros(3))  # the map frame starts at the first pose
 
 
+class ProductFileResponse(FileResponse):
+    """A product file with byte ranges as Starlette serves them, except that a malformed or
+    unsatisfiable ``Range`` header answers with the API's JSON error body (400 ``bad_range``, 416
+    ``range_not_satisfiable`` with ``Content-Range: bytes */SIZE``), not Starlette's plain text."""
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        headers = Headers(scope=scope)
+        http_range, if_range = headers.get("range"), headers.get("if-range")
+        if http_range is not None and self.stat_result is None:
+            try:
+                self.stat_result = os.stat(self.path)
+                self.set_stat_headers(self.stat_result)  # If-Range compares with them
+            except OSError:
+                http_range = None  # Starlette's own answer
+        if (http_range is not None and self.stat_result is not None and self.status_code == 200
+                and scope.get("method", "GET").upper() in ("GET", "HEAD")
+                and (if_range is None or self._should_use_range(if_range))):
+            size = self.stat_result.st_size
+            try:
+                self._parse_range_header(http_range, size)
+            except MalformedRangeHeader as exc:
+                answer = error_response(400, "bad_range", f"Range header: {exc.content}",
+                                        {"range": http_range[:200]})
+                await answer(scope, receive, send)
+                return
+            except RangeNotSatisfiable:
+                answer = error_response(416, "range_not_satisfiable",
+                                        f"Range header: no byte of the range lies in the file ({size} bytes)",
+                                        {"range": http_range[:200], "size_bytes": size},
+                                        headers={"Content-Range": f"bytes */{size}"})
+                await answer(scope, receive, send)
+                return
+        await super().__call__(scope, receive, send)
+
+
 def _file(data: DataDir, job: JobRow, name: str) -> FileResponse:
     path = product_path(data, job, name)
     headers = {"Cache-Control": "no-store"} if job.status is JobStatus.RUNNING else None
-    return FileResponse(path, media_type=MEDIA_TYPES[name], headers=headers)
+    return ProductFileResponse(path, media_type=MEDIA_TYPES[name], headers=headers)
 
 
 def _trajectory(request: Request, data: DataDir, job: JobRow, stem: str, kind: str,
