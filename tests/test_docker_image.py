@@ -177,6 +177,11 @@ def test_compose_publishes_on_loopback_and_has_no_default_password() -> None:
     uses = re.findall(r"\$\{POSTGRES_PASSWORD([^}]*)\}", text)
     assert uses and all(use.startswith(":?") for use in uses), uses  # required: compose stops with the message
     assert compose["services"]["worker"]["healthcheck"] == {"disable": True}
+    # the worker's command reads its concurrency in the container: docker/.env's value must be passed in
+    worker_env = compose["services"]["worker"]["environment"]
+    assert "$${LIDARMAP_WORKER_CONCURRENCY" in text
+    assert worker_env["LIDARMAP_WORKER_CONCURRENCY"] == "${LIDARMAP_WORKER_CONCURRENCY:-1}"
+    assert worker_env["LIDARMAP_RUNNER"] == "celery"  # and the shared settings still
     assert "docker/.env" in (REPO / ".gitignore").read_text().splitlines()
     required = set(re.findall(r"\$\{(\w+):\?", text))
     example = dict(line.split("=", 1) for line in ENV_EXAMPLE.read_text().splitlines()
