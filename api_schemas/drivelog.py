@@ -144,32 +144,48 @@ class DriveLogManifest(BaseModel):
 
 # ---------------------------------------------------------------------------------------------- messages
 
+# The engine's bounds on a log's values (slam_engine.model.drive_log: what an uploaded log may not hold,
+# far beyond any real drive); a streamed message is held to the same (a test keeps them equal)
+MAX_TIME_S = 1e10  # |t| [s]
+MAX_COORDINATE_M = 1e6  # |x|, |y| of an odometry pose [m]
+MAX_ANGLE_RAD = 1e6  # |theta| of an odometry pose [rad]
+MAX_RANGE_M = 1e6  # a LiDAR range [m]
+MAX_YAW_RATE_RAD_S = 1e3  # a gyro's yaw rate [rad/s]
+MAX_TICKS = 2**62  # |cumulative ticks| (int64 with room for differences)
+
+def _bounded(limit: float, description: str) -> Any:
+    return Field(strict=True, allow_inf_nan=False, ge=-limit, le=limit, description=description)
+
+
 class EncoderMessageModel(BaseModel):
     type: Literal["encoder"] = "encoder"
-    t_s: float = Field(strict=True, allow_inf_nan=False)
-    ticks: list[int] = Field(strict=True,
-                             min_length=1, max_length=8, description="cumulative ticks, vehicle wheel_names order")
+    t_s: float = _bounded(MAX_TIME_S, "time [s]")
+    ticks: list[Annotated[int, Field(strict=True, ge=-MAX_TICKS, le=MAX_TICKS)]] = Field(
+        strict=True, min_length=1, max_length=8, description="cumulative ticks, vehicle wheel_names order")
 
 
 class GyroMessageModel(BaseModel):
     type: Literal["gyro"] = "gyro"
-    t_s: float = Field(strict=True, allow_inf_nan=False)
-    yaw_rate_rad_s: float = Field(strict=True, allow_inf_nan=False)
+    t_s: float = _bounded(MAX_TIME_S, "time [s]")
+    yaw_rate_rad_s: float = _bounded(MAX_YAW_RATE_RAD_S, "yaw rate [rad/s]")
 
 
 class OdometryMessageModel(BaseModel):
     type: Literal["odometry"] = "odometry"
-    t_s: float = Field(strict=True, allow_inf_nan=False)
-    x_m: float = Field(strict=True, allow_inf_nan=False)
-    y_m: float = Field(strict=True, allow_inf_nan=False)
-    theta_rad: float = Field(strict=True, allow_inf_nan=False)
+    t_s: float = _bounded(MAX_TIME_S, "time [s]")
+    x_m: float = _bounded(MAX_COORDINATE_M, "odometry position [m]")
+    y_m: float = _bounded(MAX_COORDINATE_M, "odometry position [m]")
+    theta_rad: float = _bounded(MAX_ANGLE_RAD, "odometry heading [rad]")
+
+
+Range = Annotated[float, Field(strict=True, ge=0, le=MAX_RANGE_M, allow_inf_nan=False)]  # [m]
 
 
 class ScanMessageModel(BaseModel):
     type: Literal["scan"] = "scan"
-    t_s: float = Field(strict=True, allow_inf_nan=False)
-    ranges_m: list[Annotated[float, Field(strict=True, ge=0, allow_inf_nan=False)] | None] = Field(strict=True,
-        min_length=1, max_length=100_000, description="metres in beam order; null = no return")
+    t_s: float = _bounded(MAX_TIME_S, "time [s]")
+    ranges_m: list[Range | None] = Field(
+        strict=True, min_length=1, max_length=100_000, description="metres in beam order; null = no return")
     angle_offset_rad: float | None = Field(
         default=None, strict=True, ge=-2 * math.pi, le=2 * math.pi, allow_inf_nan=False,
         description="this scan's start angle beyond the lidar's angle_min_rad [rad] (a laser whose start "

@@ -70,3 +70,32 @@ def test_chunks_idempotent_gaps_and_order(tmp_path) -> None:
         assert_error(client.post(url, json=huge), 413, "payload_too_large")
         assert_error(client.post("/v1/sessions/00000000-0000-0000-0000-000000000000/chunks", json=chunk(0, 0.0)), 404)
         assert client.get(f"/v1/sessions/{sid}").json()["chunks"] == 4
+
+
+def test_values_an_upload_refuses_are_refused_in_a_chunk_and_the_stream_goes_on(tmp_path) -> None:
+    """1e308 as a position or range, 1e300 as a time: an uploaded log with them is refused, and so is a
+    chunk (it was taken with 201 and the job then failed with an OverflowError; a chunk stamped 1e300
+    also blocked every later chunk of its session)."""
+    import api_schemas.drivelog as schema
+    import slam_engine.model.drive_log as engine
+
+    for name in ("MAX_TIME_S", "MAX_COORDINATE_M", "MAX_ANGLE_RAD", "MAX_RANGE_M", "MAX_YAW_RATE_RAD_S"):
+        assert getattr(schema, name) == getattr(engine, name), name  # the same bounds as a log's
+    with service_client(tmp_path) as client:
+        sid = new_session(client, calibration=CALIBRATION)
+        url = f"/v1/sessions/{sid}/chunks"
+        bad_messages = [
+            {"type": "odometry", "t_s": 0.0, "x_m": 1e308, "y_m": 0.0, "theta_rad": 0.0},
+            {"type": "odometry", "t_s": 1e300, "x_m": 0.0, "y_m": 0.0, "theta_rad": 0.0},
+            {"type": "odometry", "t_s": 0.0, "x_m": 0.0, "y_m": 0.0, "theta_rad": 1e7},
+            {"type": "scan", "t_s": 0.0, "ranges_m": [1e308, 1.0, 1.0, 1.0]},
+            {"type": "gyro", "t_s": 0.0, "yaw_rate_rad_s": 1e9},
+            {"type": "encoder", "t_s": 0.0, "ticks": [10**30, 0]},
+        ]
+        for message in bad_messages:
+            answer = client.post(url, json={"seq": 0, "messages": [message]})
+            err = assert_error(answer, 422, "validation_error")
+            assert "less than or equal" in str(err) or "greater than or equal" in str(err), (message, err)
+        # nothing was taken: chunk 0 is still free and the stream carries on
+        assert client.post(url, json=chunk(0, 0.0)).status_code == 201
+        assert client.post(url, json=chunk(1, 0.3)).status_code == 201
