@@ -32,8 +32,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from bench.cases import datasets_root
-from bench.cli import parse_seeds
 from bench.engine_profile import BENCHMARK, overrides_from_pairs
+from bench.options import parse_seeds
 
 if TYPE_CHECKING:
     from slam_engine.model.result import Trajectory

@@ -12,6 +12,14 @@ from slam_engine.evaluation.metrics import files_beside_log
 REPO_ROOT = Path(__file__).resolve().parent.parent  # a source checkout, or site-packages when installed
 SOURCE_CHECKOUT = (REPO_ROOT / "pyproject.toml").exists()
 
+# Original logs with real wheel odometry and official relations (folders inside the datasets folder):
+# every log there with NAME.relations beside it, named "real-NAME" beside the benchmark's own logs.
+REAL_ODOMETRY_FOLDERS = ("real",)
+
+# Published relation errors on the original logs [m]: the field's best known result, for the tables.
+PUBLISHED = {"real-intel": ("Cartographer (Hess et al. 2016)", 0.0229),
+             "real-fr079": ("Cartographer (Hess et al. 2016)", 0.0452)}
+
 # Logs without ground truth whose maps a person should look at (paths inside the datasets folder).
 MAP_ONLY_LOGS = ("breezyslam/exp2.dat", "malaga/*.clf")
 
@@ -81,11 +89,28 @@ def cases_for_path(path: Path) -> list[BenchCase]:
     return [case_for_log(p) for p in logs]
 
 
+def real_odometry_cases(root: Path | None = None) -> list[BenchCase]:
+    """The original logs with real odometry (:data:`REAL_ODOMETRY_FOLDERS`): each log file with its
+    ``NAME.relations`` beside it, as case ``real-NAME``."""
+    root = datasets_root() if root is None else Path(root)
+    cases = []
+    for folder in REAL_ODOMETRY_FOLDERS:
+        if (root / folder).is_dir():
+            for case in cases_for_path(root / folder):
+                if case.scored:
+                    cases.append(BenchCase(name=f"{folder}-{case.name}", log_path=case.log_path,
+                                           relations_path=case.relations_path,
+                                           ground_truth_path=case.ground_truth_path))
+    return cases
+
+
 def default_cases(root: Path | None = None, map_only: bool = True) -> list[BenchCase]:
-    """The benchmark logs (``benchmark/*.clf`` with relations) and, with ``map_only``, the logs
-    without ground truth listed in :data:`MAP_ONLY_LOGS`. Missing files are skipped."""
+    """The benchmark logs (``benchmark/*.clf`` with relations), the original logs with real odometry
+    (:func:`real_odometry_cases`) and, with ``map_only``, the logs without ground truth listed in
+    :data:`MAP_ONLY_LOGS`. Missing files are skipped."""
     root = datasets_root() if root is None else Path(root)
     cases = [case_for_log(p) for p in sorted((root / "benchmark").glob("*.clf"))]
+    cases.extend(real_odometry_cases(root))
     if map_only:
         for pattern in MAP_ONLY_LOGS:
             cases.extend(case_for_log(p) for p in sorted(root.glob(pattern)))

@@ -1,5 +1,6 @@
 """The benchmark's command line (``python -m bench`` and ``lidarmap bench``): thin wrapper over
-:func:`bench.harness.run_benchmark` and :func:`bench.report.print_report`, followed by the sessions
+:func:`bench.harness.run_benchmark` and :func:`bench.report.print_report`, the scored logs against
+the record (:mod:`bench.regression`), followed by the sessions
 table (:mod:`bench.sessions`) on the shared datasets' two-session drives, the margin table
 (:mod:`bench.margin`: the sparse logs at 15 particles, seeds 0-9) and the live table (:mod:`bench.live`:
 the simulated car streamed at real time into a live job)."""
@@ -10,21 +11,7 @@ from pathlib import Path
 
 import typer
 
-SEEDS_HELP = "Seeds to run, e.g. '0-4' or '0,3,7'."
-
-
-def parse_seeds(text: str) -> list[int]:
-    """'0-4' -> [0, 1, 2, 3, 4]; '0,3,7' -> [0, 3, 7]; ranges and lists can be mixed."""
-    seeds: list[int] = []
-    for part in filter(None, (p.strip() for p in text.split(","))):
-        first, dash, last = part.partition("-")
-        try:
-            seeds.extend(range(int(first), int(last) + 1) if dash else [int(first)])
-        except ValueError:
-            raise typer.BadParameter(f"{part!r} is not a seed or a range like 0-4") from None
-    if not seeds:
-        raise typer.BadParameter("no seeds given")
-    return seeds
+from bench.options import SEEDS_HELP, parse_seeds, read_overrides, report_console
 
 
 def readable_cases(cases: list, loader: str, console) -> list:
@@ -66,6 +53,8 @@ def accuracy(
     live: bool = typer.Option(True, help="Then the live table (the simulated car streamed at real time into a "
                               "live job beside one busy process, about 2 minutes; not with --quick)."),
     out: Path | None = typer.Option(None, help="Output folder (default bench/results/<date-time>)."),
+    record: bool = typer.Option(False, help="Write this run's relation errors (median and worst seed per scored "
+                                "log) into bench/recorded.json, the record later runs are compared with."),
     timeout_s: float = typer.Option(3600.0, min=1.0, help="Time limit per run, seconds."),
     busy: int = typer.Option(0, min=0, max=64, help="CPU-bound processes to run beside every run "
                              "('while True: pass'): timings on a busy machine."),
@@ -116,7 +105,9 @@ def accuracy(
 
     options = BenchOptions(seeds=seed_list, particles=particles, config=overrides or {}, out_dir=out,
                            timeout_s=timeout_s, runner=runner, loader=loader, busy=busy)
-    print_report(run_benchmark(cases, options, on_run=progress), console)
+    results = run_benchmark(cases, options, on_run=progress)
+    print_report(results, console)
+    report_regressions(results, console, record)
     if sessions and datasets and not quick and (runner, loader) == (DEFAULT_RUNNER, DEFAULT_LOADER):
         run_sessions_table(seed_list, out, overrides or {}, particles, console)
     if margin and datasets and not quick and (runner, loader) == (DEFAULT_RUNNER, DEFAULT_LOADER):
@@ -127,6 +118,25 @@ def accuracy(
         from bench.live import run_live_table
 
         run_live_table(out, console)
+
+
+def report_regressions(results: dict, console, record: bool) -> None:
+    """The scored logs against the record (:mod:`bench.regression`), written into ``regression.json``
+    beside the results; with ``record`` this run becomes the record."""
+    import json
+
+    from bench.regression import compare, print_regressions, read_recorded
+    from bench.regression import record as write_record
+
+    recorded = read_recorded()
+    rows = compare(results, recorded)
+    print_regressions(rows, recorded, console)
+    Path(results["out_dir"]).mkdir(parents=True, exist_ok=True)
+    Path(results["out_dir"], "regression.json").write_text(json.dumps(
+        {"recorded": recorded.get("recorded"), "rows": rows}, indent=1))
+    if record:
+        write_record(results)
+        console.print("recorded as bench/recorded.json", highlight=False)
 
 
 def run_sessions_table(seeds: list[int], out: Path, overrides: dict, particles: int | None, console) -> None:
@@ -143,22 +153,3 @@ def run_sessions_table(seeds: list[int], out: Path, overrides: dict, particles: 
     results = run_sessions(drives, seeds, out, overrides, particles,
                            say=lambda line: console.print(line, highlight=False))
     print_sessions(results, console)
-
-
-def read_overrides(config: Path | None) -> dict:
-    """The SlamConfig overrides in ``config`` (YAML/JSON), none without one; a bad file is a usage error."""
-    from slam_engine.config import read_settings
-    from slam_engine.errors import ConfigError
-
-    try:
-        return read_settings(config) if config is not None else {}
-    except ConfigError as error:
-        raise typer.BadParameter(str(error)) from None
-
-
-def report_console():
-    """A rich console for the tables: files and pipes get the whole table, not an 80-column squeeze."""
-    from rich.console import Console
-
-    console = Console()
-    return console if console.is_terminal else Console(width=200)

@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 from bench.cases import datasets_root
-from bench.cli import parse_seeds
+from bench.options import parse_seeds
 
 BENCHMARK = {"intel": "benchmark/intel.clf", "freiburg": "benchmark/freiburg-079.clf",
              "aces": "benchmark/aces-rough.clf", "corridor": "benchmark/infinite-corridor-rough.clf"}

@@ -256,8 +256,8 @@ def live(
     out: Path | None = typer.Option(None, help="Output folder (default bench/results/<date-time>)."),
 ) -> None:
     """The simulated car streamed through the API at real time into a live job: does it keep up?"""
-    from bench.cli import report_console
     from bench.harness import default_out_dir
+    from bench.options import report_console
 
     results = run_live_table(out if out is not None else default_out_dir(), report_console(), busy, speed,
                              duration_s, particles, chunk_s)

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import typer
 
-from bench.cli import SEEDS_HELP, parse_seeds, read_overrides, report_console
+from bench.options import SEEDS_HELP, parse_seeds, read_overrides, report_console
 
 MARGIN_LOGS = ("aces-rough", "infinite-corridor-rough")  # benchmark logs with scans about 1 m apart
 MARGIN_PARTICLES = 15

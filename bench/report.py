@@ -103,6 +103,10 @@ def print_report(results: dict, console: Console | None = None) -> None:
         for seed, error in summary["errors"].items():
             last_line = (error or "").strip().splitlines()[-1:] or ["unknown error"]
             console.print(f"[red]seed {seed} failed:[/red] {last_line[0]}", highlight=False)
+        if summary.get("flagged_retries"):
+            console.print(f"map flagged and the back end tried again on {summary['flagged_retries']} of "
+                          f"{summary['seeds_ok']} runs, an alternative kept on {summary['alternatives_kept']}",
+                          highlight=False)
         if summary["map_pngs"]:
             console.print(f"maps: {summary['map_pngs'][0]} …", highlight=False)
     console.print(f"results: {results['out_dir']}/results.json", highlight=False)

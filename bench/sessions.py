@@ -36,7 +36,7 @@ from typing import Any
 
 import typer
 
-from bench.cli import SEEDS_HELP, parse_seeds, read_overrides, report_console
+from bench.options import SEEDS_HELP, parse_seeds, read_overrides, report_console
 
 # The two-session drives, in the order of the tables.
 DRIVES = ("intel", "aces-rough")

@@ -144,6 +144,8 @@ def run_job(job: dict) -> dict:
         "dead_reckoning_map": dead_reckoning_agreement(log, result.dead_reckoning, config),
         "map_png": str(png),
         "warnings": list(result.warnings),
+        # the back end tried again on a flagged map (slam_engine.backend.flagged_retry): None when not
+        "flagged_retry": (result.input_summary.get("loop_closing") or {}).get("flagged_retry"),
         "config": config.model_dump(mode="json"),
     }
     # the bench's own work after the products (map PNG with the ground truth, scores): the parent

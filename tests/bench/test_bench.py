@@ -15,8 +15,8 @@ from scipy import ndimage
 
 from bench.agreement import half_agreement, occupied_with_neighbour, wall_thickness_m
 from bench.cases import cases_for_path, simulated_cases
-from bench.cli import parse_seeds
 from bench.harness import BUSY_LOOP, BenchOptions, busy_processes, run_benchmark
+from bench.options import parse_seeds
 from bench.report import print_report
 from slam_engine.evaluation.metrics import Relations, read_ground_truth, read_relations, relation_errors
 from slam_engine.formats import load_log, write_log
