@@ -127,8 +127,8 @@ def inspect_bundle(path: str, max_decompressed_bytes: int, hidden_prefix: str = 
     try:
         check_bundle_size(path, max_decompressed_bytes)
         bundle = read_bundle(path)
-    except SlamEngineError as exc:
-        return _error("map_bundle", str(exc), None, hidden_prefix)
+    except SlamEngineError as exc:  # the message without the upload's temporary file name
+        return _error("map_bundle", str(exc).removeprefix(f"{path}: "), None, hidden_prefix)
     except MemoryError:
         return _error("memory", "", None)
     return {"summary": {"key_frames": len(bundle), "drives": bundle.drives, "resolution_m": bundle.resolution_m,

@@ -11,7 +11,17 @@ from pathlib import Path
 import numpy as np
 
 from slam_engine.errors import MapBundleError
+from slam_engine.model.drive_log import MAX_ANGLE_RAD, MAX_COORDINATE_M, MAX_RANGE_M, MAX_TIME_S, first_beyond
 from slam_engine.model.map_bundle import MapBundle
+
+MAX_BEAMS = 100_000  # a scan's beams (as a streamed scan message may hold)
+# (array, columns or None for all, bound, unit): the bounds of a drive log's values
+BOUNDS = (("poses", slice(0, 2), MAX_COORDINATE_M, "m"), ("poses", 2, MAX_ANGLE_RAD, "rad"),
+          ("trajectory", slice(0, 2), MAX_COORDINATE_M, "m"), ("trajectory", 2, MAX_ANGLE_RAD, "rad"),
+          ("t_s", None, MAX_TIME_S, "s"), ("trajectory_t_s", None, MAX_TIME_S, "s"),
+          ("ends_v", None, MAX_RANGE_M, "m"), ("free_from_m", None, MAX_RANGE_M, "m"),
+          ("origin_v", None, MAX_RANGE_M, "m"), ("edges_T_i_from_j", slice(0, 2), MAX_COORDINATE_M, "m"),
+          ("edges_T_i_from_j", 2, MAX_ANGLE_RAD, "rad"), ("edges_sigmas", None, MAX_COORDINATE_M, "m or rad"))
 
 BUNDLE_FILE = "map_bundle.npz"
 BUNDLE_FORMAT = "lidarmap-map-bundle"
@@ -54,7 +64,7 @@ def read_bundle(path: str | Path) -> MapBundle:
                 raise MapBundleError(f"{path}: map bundle lacks {', '.join(missing)}")
             arrays = {name: archive[name] for name in ARRAYS}
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise MapBundleError(f"{path}: not a readable map bundle ({type(error).__name__}: {error})") from None
+        raise MapBundleError(f"{path}: not a readable map bundle ({error})") from None
     bundle = MapBundle(**arrays, resolution_m=float(header["resolution_m"]), config=header.get("config") or {},
                        sensors=header.get("sensors") or {})
     _check_shapes(path, bundle)
@@ -89,7 +99,7 @@ def check_bundle_size(path: str | Path, max_bytes: int, max_members: int = 64) -
                     raise MapBundleError(f"{path}: {member.filename} claims shape {shape}, more than its "
                                          f"{member.file_size} bytes")
     except (OSError, ValueError, zipfile.BadZipFile) as error:
-        raise MapBundleError(f"{path}: not a readable map bundle ({type(error).__name__}: {error})") from None
+        raise MapBundleError(f"{path}: not a readable map bundle ({error})") from None
 
 
 def _check_header(path: Path, header: object) -> None:
@@ -101,8 +111,14 @@ def _check_header(path: Path, header: object) -> None:
         raise MapBundleError(f"{path}: map bundle format version {version}; this lidarmap reads version "
                              f"{BUNDLE_VERSION} (written by {'a newer' if newer else 'another'} lidarmap)")
     resolution = header.get("resolution_m")
-    if not isinstance(resolution, int | float) or not 0.001 <= resolution <= 10.0:
+    if isinstance(resolution, bool) or not isinstance(resolution, int | float) or not 0.001 <= resolution <= 10.0:
         raise MapBundleError(f"{path}: map bundle resolution_m {resolution!r} is not a cell size in [0.001, 10] m")
+    lidar = (header.get("sensors") or {}).get("lidar") if isinstance(header.get("sensors"), dict) else None
+    if lidar is not None:
+        beams = lidar.get("num_beams") if isinstance(lidar, dict) else None
+        if isinstance(beams, bool) or not isinstance(beams, int) or not 1 <= beams <= MAX_BEAMS:
+            raise MapBundleError(f"{path}: map bundle sensors.lidar.num_beams {beams!r} is not a beam count in "
+                                 f"[1, {MAX_BEAMS}]")
 
 
 def _check_shapes(path: Path, b: MapBundle) -> None:
@@ -128,3 +144,13 @@ def _check_shapes(path: Path, b: MapBundle) -> None:
     for name in ("poses", "t_s", "ends_v", "free_from_m", "trajectory", "edges_T_i_from_j", "edges_sigmas"):
         if not np.all(np.isfinite(getattr(b, name))):
             raise MapBundleError(f"{path}: map bundle array {name} holds values that are not finite")
+    # the bounds a drive log's values keep (slam_engine.model.drive_log): beyond them the maths overflows
+    for name, columns, limit, unit in BOUNDS:
+        values = np.asarray(getattr(b, name))
+        values = values if columns is None else values[:, columns]
+        bad = first_beyond(values, limit)
+        if bad is not None:
+            raise MapBundleError(f"{path}: map bundle array {name} holds {values.reshape(-1)[bad]:g}, beyond "
+                                 f"+-{limit:g} {unit}")
+    if len(b.edges_sigmas) and b.edges_sigmas.min() <= 0:
+        raise MapBundleError(f"{path}: map bundle edges_sigmas holds a standard deviation that is not positive")

@@ -5,6 +5,7 @@ it; a drive in another building refused; bad references answered 404 / 409 / 422
 from __future__ import annotations
 
 import io
+import json
 
 import numpy as np
 import pytest
@@ -134,12 +135,29 @@ def test_an_uploaded_map_is_checked_and_a_job_can_start_from_it(tmp_path) -> Non
                 if item == "ends_v.npy":  # claims 10^12 rows: reading it would allocate terabytes
                     data = data.replace(b"'shape': (", b"'shape': (1000000000000, ", 1).replace(b", 2)", b")", 0)
                 target.writestr(item, data)
+        # values an uploaded log may not hold, in a bundle (they were taken, and localise then failed with
+        # an OverflowError), a boolean cell size and a billion beams
+        far, boolean, beams = tmp_path / "far.npz", tmp_path / "boolean.npz", tmp_path / "beams.npz"
+        arrays = dict(np.load(bundle))
+        header = json.loads(arrays["header"].tobytes())
+        poses = arrays["poses"].copy()
+        poses[3, 0] = 1e308
+        np.savez(far, **{**arrays, "poses": poses})
+        for target, change in ((boolean, {"resolution_m": True}),
+                               (beams, {"sensors": {**header.get("sensors", {}), "lidar": {"num_beams": 10**9}}})):
+            text = json.dumps({**header, **change}).encode()
+            np.savez(target, **{**arrays, "header": np.frombuffer(text, np.uint8)})
         for path, words in ((tmp_path / "junk.npz", "not a readable map bundle"),
-                            (future, "format version 7"), (lying, "claims shape")):
+                            (future, "format version 7"), (lying, "claims shape"),
+                            (far, "poses holds 1e+308, beyond +-1e+06 m"), (boolean, "resolution_m True"),
+                            (beams, "num_beams 1000000000")):
             with path.open("rb") as f:
                 answer = client.post(f"/v1/sessions/{sid}/maps", files={"file": (path.name, f)})
             body = assert_error(answer, 422, "map_bundle")
             assert words in body["message"], body
             assert str(tmp_path) not in body["message"]  # no server paths in messages
+            # nor the upload's temporary file or exception class names
+            assert "upload-" not in body["message"] and "Error" not in body["message"], body
+            assert not body["message"].startswith(":"), body
         listed = client.get(f"/v1/jobs?session={sid}").json()
         assert sum(j["source"] == "map" for j in listed["data"]) == 1  # nothing half-stored
