@@ -243,6 +243,9 @@ class LoopClosingConfig(_Section):
                                      "it scores at least this ...")
     rematch_gain: float = Field(0.1, ge=0.0, le=1.0, description="... and this much more than the step's pose "
                                 "(and no pose 0.5 m or 0.2 rad away comes within runner_up_ratio of it).")
+    rematch_unverified: bool = Field(True, description="Search every step the front end left unverified (its "
+                                     "match rejected), whatever it scores; off on open ground, where it made the "
+                                     "campus worse (docs/engine.md).")
     submap_length_m: SubmapLength = Field(8.0, description="Travel per submap [m].")
     alternative_submap_lengths_m: list[SubmapLength] = Field(
         default_factory=list, max_length=4, description="Loops are also closed with each of these submap "

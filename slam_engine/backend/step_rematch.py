@@ -77,7 +77,8 @@ def rematch_steps(path: np.ndarray, points_v: list[np.ndarray], config: LoopClos
     """Key-frame poses ``path`` (K, 3) with the steps that fit the key frames before them poorly replaced
     by a better fit (module docstring); ``points_v``: each key frame's end points (B, 2) [m, vehicle frame].
     ``unverified`` (K,): the key frames whose front-end match was rejected, each searched for whatever
-    its step scores. Nothing is replaced when loop closing or ``config.rematch_steps`` is off."""
+    its step scores (with ``config.rematch_unverified``). Nothing is replaced when loop closing or
+    ``config.rematch_steps`` is off."""
     path = np.asarray(path, np.float64)
     out = StepRematch(path=path.copy())
     if not (config.enabled and config.rematch_steps) or len(path) < 2:
@@ -86,7 +87,9 @@ def rematch_steps(path: np.ndarray, points_v: list[np.ndarray], config: LoopClos
     near = [p[np.hypot(p[:, 0], p[:, 1]) <= c.match_range_m] for p in points_v]
     poses = out.path
     before: deque[np.ndarray] = deque([place_points(poses[0], near[0])], maxlen=c.rematch_key_frames)
-    always = np.zeros(len(path), bool) if unverified is None else np.asarray(unverified, bool)
+    always = np.zeros(len(path), bool)
+    if unverified is not None and c.rematch_unverified:
+        always = np.asarray(unverified, bool)
     for k in range(1, len(path)):
         predicted = compose(poses[k - 1], relative(path[k - 1], path[k]))
         scan = _thin(near[k], REMATCH_MAX_POINTS)

@@ -44,9 +44,10 @@ def no_return_share(log: DriveLog) -> float | None:
 
 def open_ground_config(config: SlamConfig, log: DriveLog) -> tuple[SlamConfig, dict]:
     """``config`` for mapping ``log``: with ``grid.no_return_clear_m`` 0, closures from
-    ``loop_closing.open_ground_min_score`` and the submap lengths
-    ``loop_closing.open_ground_alternative_submap_lengths_m`` tried (where no alternatives are set) when
-    the drive is on open ground, else as given; and what was decided, for run.json."""
+    ``loop_closing.open_ground_min_score``, the submap lengths
+    ``loop_closing.open_ground_alternative_submap_lengths_m`` tried (where no alternatives are set) and
+    unverified steps searched only where they fit poorly (``rematch_unverified`` off) when the drive
+    is on open ground, else as given; and what was decided, for run.json."""
     share = no_return_share(log)
     bar = config.grid.no_return_open_share
     summary = {"no_return_share": None if share is None else round(share, 4), "open_ground_above": bar,
@@ -57,7 +58,7 @@ def open_ground_config(config: SlamConfig, log: DriveLog) -> tuple[SlamConfig, d
     grid = config.grid.model_copy(update={"no_return_clear_m": 0.0})
     closing = config.loop_closing
     loop_closing = closing.model_copy(
-        update={"min_score": min(closing.min_score, closing.open_ground_min_score),
+        update={"min_score": min(closing.min_score, closing.open_ground_min_score), "rematch_unverified": False,
                 "alternative_submap_lengths_m": (closing.alternative_submap_lengths_m
                                                  or closing.open_ground_alternative_submap_lengths_m)})
     return config.model_copy(update={"grid": grid, "loop_closing": loop_closing}), {**summary, "open_ground": True}

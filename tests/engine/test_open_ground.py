@@ -50,7 +50,9 @@ def test_only_a_level_long_range_lidar_on_open_ground_stops_clearing_and_lowers_
     # and try 16 m submaps beside the 8 m ones (backend/submap_choice.py)
     assert mapped.loop_closing.alternative_submap_lengths_m == [16.0]
     assert config.loop_closing.alternative_submap_lengths_m == []
-    changed = {"min_score", "alternative_submap_lengths_m"}
+    # and search the steps the front end left unverified only where they fit poorly, as any step
+    assert not mapped.loop_closing.rematch_unverified and config.loop_closing.rematch_unverified
+    changed = {"min_score", "alternative_submap_lengths_m", "rematch_unverified"}
     assert mapped.loop_closing.model_dump(exclude=changed) == config.loop_closing.model_dump(exclude=changed)
     # a configuration that asks for less keeps it, and one that clears nothing anyway is still open ground
     strict = SlamConfig.model_validate({"loop_closing": {"min_score": 0.4}, "grid": {"no_return_clear_m": 0.0}})

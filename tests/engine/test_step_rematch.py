@@ -103,6 +103,9 @@ def test_an_unverified_step_is_searched_even_where_its_scan_fits(office) -> None
     off = relative(result.path[49], result.path[50]) - relative(truth[49], truth[50])
     assert np.hypot(off[0], off[1]) < 0.02 and abs(off[2]) < 0.01
     assert result.summary() == {"steps_replaced": 1, "unverified_steps_replaced": 1}
+    # on open ground (rematch_unverified off) it is left, as a step the front end matched
+    outdoors = rematch_steps(path, points, LoopClosingConfig(rematch_unverified=False), 0.05, unverified=unverified)
+    assert outdoors.replaced == []
 
 
 def test_a_right_path_is_left_as_it_is(office) -> None:
