@@ -161,8 +161,9 @@ def summarise(case: BenchCase, records: list[dict]) -> dict:
         "dead_reckoning_map": {name: _get(first.get("dead_reckoning_map"), path)
                                for name, path, _ in MAP_METRICS if name.startswith("half")},
         "map_pngs": [r["map_png"] for r in ok if r.get("map_png")],
-        # runs whose map was flagged and the back end tried again, and those that kept an alternative
-        "flagged_retries": sum(1 for r in ok if r.get("flagged_retry")),
+        # runs whose map was flagged, those where the back end tried alternatives, those that kept one
+        "flagged_runs": sum(1 for r in ok if r.get("flagged_retry")),
+        "flagged_retries": sum(1 for r in ok if (r.get("flagged_retry") or {}).get("alternatives")),
         "alternatives_kept": sum(1 for r in ok if (r.get("flagged_retry") or {}).get("kept", "the first map")
                                  != "the first map"),
     }

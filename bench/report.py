@@ -103,10 +103,11 @@ def print_report(results: dict, console: Console | None = None) -> None:
         for seed, error in summary["errors"].items():
             last_line = (error or "").strip().splitlines()[-1:] or ["unknown error"]
             console.print(f"[red]seed {seed} failed:[/red] {last_line[0]}", highlight=False)
-        if summary.get("flagged_retries"):
-            console.print(f"map flagged and the back end tried again on {summary['flagged_retries']} of "
-                          f"{summary['seeds_ok']} runs, an alternative kept on {summary['alternatives_kept']}",
-                          highlight=False)
+        if summary.get("flagged_runs"):
+            console.print(f"map flagged on {summary['flagged_runs']} of {summary['seeds_ok']} runs: the back end's "
+                          f"alternatives tried on {summary['flagged_retries']}, one kept on "
+                          f"{summary['alternatives_kept']} (none left to try on open ground: its submap lengths "
+                          "are tried on every run)", highlight=False)
         if summary["map_pngs"]:
             console.print(f"maps: {summary['map_pngs'][0]} …", highlight=False)
     console.print(f"results: {results['out_dir']}/results.json", highlight=False)
