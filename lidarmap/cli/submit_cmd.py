@@ -85,7 +85,9 @@ def register(app: typer.Typer) -> None:
                     raise fail(f"job {job.id} {job.status.value}: {job.error}", JOB_FAILED_EXIT_CODE)
                 written = api.download_products(job.id, out)
         except ApiError as error:
-            raise fail(f"{server}: {error.message} (HTTP {error.status})") from None
+            where = error.detail.get("location") if isinstance(error.detail, dict) else None
+            at = f" ({where})" if where and str(where) not in error.message else ""
+            raise fail(f"{server}: {error.message}{at} (HTTP {error.status})") from None
         except httpx.HTTPError as error:
             raise fail(f"{server}: {error or type(error).__name__}") from None
         except TimeoutError as error:

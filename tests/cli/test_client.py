@@ -129,6 +129,13 @@ def test_submit_maps_a_log_on_the_service_and_downloads_every_product(room_servi
     assert bad.exit_code == 2 and bad.stderr.strip().splitlines() == [
         "error: job settings: bad config: particles: Input should be greater than or equal to 1"]
     assert not (tmp_path / "o2").exists()
+    # a log the service refuses: the line it names is in the one line printed (the API's detail.location)
+    broken = tmp_path / "broken.clf"
+    broken.write_text(small_log.read_text() + "FLASER 4 1.0 2.0\n")
+    lines = len(broken.read_text().splitlines())
+    refused = runner.invoke(app, ["submit", str(broken), "--server", room_service, "--out", str(tmp_path / "o4")])
+    assert refused.exit_code == 2 and len(refused.stderr.strip().splitlines()) == 1, refused.output
+    assert f"line {lines}" in refused.stderr and "HTTP 422" in refused.stderr, refused.stderr
     unreachable = runner.invoke(app, ["submit", str(small_log), "--server", f"http://127.0.0.1:{free_port()}",
                                       "--out", str(tmp_path / "o3")])
     assert unreachable.exit_code == 2 and unreachable.stderr.startswith("error: http://127.0.0.1:")
