@@ -1,6 +1,10 @@
 """The run's progress bar on stderr: the stage (mapping scans, closing loops, ... writing products), the
 whole run's share done (``RunProgress.fraction``: the bar reaches its end only when the products are
-written), scans, scans/s, elapsed time and ETA."""
+written), scans, scans/s, elapsed time and ETA.
+
+Where stderr is not a terminal (a log file, a CI job, a pipe) no bar is drawn: one plain line is
+written when each stage starts and at every tenth of the scans mapped (elapsed time, stage, share
+done, scans, scans/s), so a log shows how far the run got."""
 
 from __future__ import annotations
 
@@ -18,6 +22,7 @@ from rich.progress import (
 )
 
 DONE = "done"
+PLAIN_EVERY = 0.1  # without a terminal, a line at every tenth of the scans mapped
 
 
 class StageProgressBar:
@@ -27,24 +32,37 @@ class StageProgressBar:
     def __init__(self, console: Console | None = None):
         self.stages: list[str] = []
         self._started_s = time.perf_counter()
+        self._console = console or Console(stderr=True)
+        self._plain = not self._console.is_terminal
+        self._next_plain_share = PLAIN_EVERY
+        self._scans, self._rate = "", ""
         self._bar = Progress(TextColumn("{task.description:<19}"), BarColumn(), TaskProgressColumn(),
                              TextColumn("{task.fields[scans]}"), TextColumn("{task.fields[rate]}"),
                              TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
-                             console=console or Console(stderr=True), transient=False)
+                             console=self._console, transient=False)
         self._task = self._bar.add_task("starting", total=1.0, scans="", rate="")
 
     def __enter__(self) -> StageProgressBar:
-        self._bar.start()
+        if not self._plain:
+            self._bar.start()
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self._bar.stop()
+        if not self._plain:
+            self._bar.stop()
 
     def __call__(self, progress: Any) -> None:
         """Show a ``slam_engine.pipeline.RunProgress``."""
         mapping = progress.stage_fraction is None  # the scans' stage: their rate means something
         rate = f"{progress.scans_done / progress.elapsed_s:.1f} scans/s" if mapping and progress.elapsed_s > 0 else ""
-        self._bar.update(self._task, scans=f"{progress.scans_done}/{progress.scans_total} scans", rate=rate)
+        self._scans, self._rate = f"{progress.scans_done}/{progress.scans_total} scans", rate
+        self._bar.update(self._task, scans=self._scans, rate=rate)
+        if (self._plain and mapping and progress.scans_total
+                and progress.scans_done >= self._next_plain_share * progress.scans_total):
+            while self._next_plain_share * progress.scans_total <= progress.scans_done:
+                self._next_plain_share += PLAIN_EVERY
+            if progress.scans_done < progress.scans_total:
+                self._line(progress.stage, progress.fraction)
         self._show(progress.stage, progress.fraction)
 
     def finish(self) -> None:
@@ -55,4 +73,13 @@ class StageProgressBar:
         self._bar.update(self._task, completed=fraction, description=stage)
         if not self.stages or self.stages[-1] != stage:
             self.stages.append(stage)
-            self._bar.refresh()  # every stage is drawn, however short
+            if self._plain:
+                self._line(stage, fraction)
+            else:
+                self._bar.refresh()  # every stage is drawn, however short
+
+    def _line(self, stage: str, fraction: float) -> None:
+        """One plain line for a log: elapsed [s], stage, share of the run done, scans, rate."""
+        parts = [f"{time.perf_counter() - self._started_s:7.1f} s", f"{stage:<19}", f"{100 * fraction:3.0f}%",
+                 self._scans, self._rate]
+        self._console.print("  ".join(p for p in parts if p), highlight=False, markup=False, soft_wrap=True)

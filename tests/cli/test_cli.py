@@ -193,6 +193,25 @@ def test_run_progress_bar_names_each_stage_in_order_and_ends_after_the_products(
     assert percents[stages.index("writing products")] == 97 and percents.count(100) == stages.count("done")
 
 
+def test_run_progress_without_a_terminal_is_a_plain_line_per_stage(tmp_path: Path) -> None:
+    """stderr a log file or a pipe: no bar (it printed only "done 100%" at the end), a line when each stage
+    starts and at every tenth of the scans mapped, in order, the share done never backwards."""
+    from slam_engine.simulation import simulate, write_simulated
+
+    log = write_simulated(simulate("office", seed=3, rig="carmen-robot", max_duration_s=15.0), "carmen", tmp_path)
+    result = CliRunner().invoke(app, ["run", str(log), "--out", str(tmp_path / "out"), "--particles", "3"])
+    assert result.exit_code == 0, result.output
+    assert "\x1b" not in result.stderr and "\r" not in result.stderr  # nothing drawn over
+    lines = re.findall(r"^ *[\d.]+ s  (mapping scans|closing loops|aligning to the map|rendering the map|"
+                       r"writing products|done) +(\d+)%", result.stderr, re.MULTILINE)
+    stages, percents = [stage for stage, _ in lines], [int(percent) for _, percent in lines]
+    shown = [s for i, s in enumerate(stages) if i == 0 or s != stages[i - 1]]
+    assert shown == ["mapping scans", "closing loops", "aligning to the map", "rendering the map",
+                     "writing products", "done"]
+    assert percents == sorted(percents) and percents[-1] == 100
+    assert 5 <= stages.count("mapping scans") <= 11  # its start and the tenths of the scans
+
+
 def test_run_prints_each_run_json_warning_as_one_line_on_stderr(tmp_path: Path) -> None:
     log = saturated_log(tmp_path / "sim")
     result = CliRunner().invoke(app, ["run", str(log), "--out", str(tmp_path / "out"), "--particles", "3"])
