@@ -120,9 +120,29 @@ def joined_result(joined: JoinedMap, config: SlamConfig, base_result: SlamResult
     placed = joined.placement.T_map_from_drive
     odometry = base_result.dead_reckoning
     dead_reckoning = trajectory if placed is None else Trajectory(odometry.t_s, compose(placed, odometry.poses))
+    own_loops = base_result.input_summary.get("loop_closing")
+    if isinstance(own_loops, dict) and "closures" in own_loops:
+        summary["loop_closing"] = _closures_on_the_joint_map(own_loops, joined, base_result)
     return dataclasses.replace(base_result, trajectory=trajectory, grid=joined.grid, bundle=joined.bundle,
                                texture=None, snapshots=[], dead_reckoning=dead_reckoning, warnings=warnings,
                                input_summary={**base_result.input_summary, **summary})
+
+
+def _closures_on_the_joint_map(loop_summary: dict, joined: JoinedMap, own: SlamResult) -> dict:
+    """The new drive's own loop-closing summary with each closure's two key frames placed where they
+    ended in the joint map (``node_xy_m``, ``anchor_xy_m`` [m, map frame]: what the viewer draws; they
+    were the drive's own frame's). The drive's key frames are the joint bundle's last ones, in order;
+    a drive not placed in the map keeps its counts but lists no closures (its frame is not the map's)."""
+    out = dict(loop_summary)
+    k = 0 if own.bundle is None else len(own.bundle)
+    first = len(joined.bundle) - k
+    if not joined.connected or k == 0 or first < 0 or len(np.unique(joined.bundle.drive[first:])) != 1:
+        out["closures"] = []
+        return out
+    poses = joined.bundle.poses[first:]
+    out["closures"] = [{**c, **{f"{end}_xy_m": [round(float(v), 4) for v in poses[c[end], :2]]
+                                for end in ("node", "anchor")}} for c in loop_summary["closures"]]
+    return out
 
 
 def write_joined_products(joined: JoinedMap, config: SlamConfig, out_dir: str | Path, relations=None,

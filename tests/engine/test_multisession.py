@@ -27,6 +27,7 @@ from slam_engine.multisession.localization import (
 )
 from slam_engine.pipeline import run_slam
 from slam_engine.products.map_bundle import ARRAYS, BUNDLE_FILE, read_bundle, write_bundle
+from slam_engine.products.multisession import joined_result
 from slam_engine.simulation import SimulatedDrive, simulate
 
 CONFIG = SlamConfig(particles=10, seed=0)
@@ -182,6 +183,25 @@ def test_extending_a_map_closes_loops_across_the_drives(office, halves, first_ma
     # the joint map agrees with both drives' scans (measured: none of its key frames contradicted)
     assert joined.consistency is not None and not joined.consistency.flagged
     assert joined.consistency.judged == len(joined.bundle) and joined.consistency.contradicted_share < 0.02
+
+
+def test_an_extended_maps_closures_end_on_its_key_frames(office, first_map) -> None:
+    """The viewer draws a run's closures between node_xy_m and anchor_xy_m. An extend job listed the new
+    drive's closures where its key frames lay in its own frame (57 of 86 more than 1 m from every final
+    pose); they now end on the joint map's key frames, as on a single drive."""
+    whole = run_slam(office.log, CONFIG)  # the whole loop: closures of its own
+    own = whole.input_summary["loop_closing"]["closures"]
+    assert len(own) > 0
+    joined = join(first_map.bundle, whole.bundle, CONFIG)
+    assert joined.connected
+    closures = joined_result(joined, CONFIG, whole).input_summary["loop_closing"]["closures"]
+    assert [(c["node"], c["anchor"], c["accepted"]) for c in closures] == [(c["node"], c["anchor"], c["accepted"])
+                                                                            for c in own]
+    final = joined.bundle.poses[:, :2]
+    for closure in closures:
+        for end in ("node_xy_m", "anchor_xy_m"):
+            assert np.hypot(*(final - closure[end]).T).min() < 1e-3, (closure, end)
+    assert any(c["node_xy_m"] != o["node_xy_m"] for c, o in zip(closures, own, strict=True))  # not the drive's frame
 
 
 def test_maps_that_do_not_overlap_are_not_merged(first_map) -> None:
