@@ -18,10 +18,12 @@ Fairness: one more lane, the *express lane*, takes only small uploads - at most 
 once inflated (:func:`inflated_size_hint`: the file's size, a gzip's own record of its inflated
 size, a folder's total) - for at most ``express_timeout_s`` each. A small upload that finds every
 regular lane busy (slow bombs being read to their limits) is inspected there instead of waiting up
-to ``timeout_s`` behind them; one that takes longer than its slice (a bomb that lies about its
-size) is stopped and inspected again in a regular lane, so it can hold the express lane for one
-slice at most. A size rule rather than one lane per client: the probe's attacker and victim share
-one address and one key, and a small upload is cheap to read whoever sends it.
+to ``timeout_s`` behind them. A gzip is inflated up to the express size in the API process before it
+is let in (:func:`inflates_beyond`: a lying size record is found in milliseconds, and the bomb waits
+for a regular lane); one that still takes longer than its slice is stopped and inspected again in a
+regular lane, so it can hold the express lane for one slice at most. A size rule rather than one
+lane per client: the probe's attacker and victim share one address and one key, and a small upload is
+cheap to read whoever sends it.
 """
 
 from __future__ import annotations
@@ -86,6 +88,14 @@ def gzip_size_exceeds(path: Path, limit_bytes: int) -> bool:
     except (OSError, EOFError, zlib.error):
         return False  # a broken stream: the loader reports it with its location
     return False
+
+
+def inflates_beyond(path: Path, limit_bytes: int) -> bool:
+    """Whether ``path``, a gzip, inflates past ``limit_bytes`` in fact (its size record can lie: six
+    uploads whose record claimed 1000 bytes each held the express lane for a whole slice, and an honest
+    upload waited 48 s behind them). Reads at most ``limit_bytes`` and a block (milliseconds for the
+    express lane's 4 MB); a plain file or folder: False (its size is what it holds)."""
+    return path.is_file() and _is_gzip(path) and gzip_size_exceeds(path, limit_bytes)
 
 
 def inspect_log(path: str, format_name: str, max_decompressed_bytes: int, hidden_prefix: str = "") -> dict[str, Any]:
@@ -293,7 +303,8 @@ class LogInspector:
             self._free, self._express_free = asyncio.Semaphore(self.limits.lanes), asyncio.Semaphore(1)
         if self._express is not None and self._free.locked():  # every regular lane busy
             size = await asyncio.to_thread(inflated_size_hint, path)
-            if size <= self.limits.express_bytes:
+            if size <= self.limits.express_bytes and not await asyncio.to_thread(
+                    inflates_beyond, path, self.limits.express_bytes):
                 async with self._express_free:
                     result = await asyncio.to_thread(self._express.call, name, args, self.limits.express_timeout_s)
                 if result.get("error") != "timeout":

@@ -98,6 +98,49 @@ def test_slow_bombs_in_every_lane_do_not_hold_up_a_small_upload(tmp_path, sim_lo
         assert {response.status_code for response in answers.values()} == {422}, answers
 
 
+def test_bombs_lying_about_their_size_never_take_the_express_lane(tmp_path, sim_log) -> None:
+    """Issue 64 item 2: gzips whose size record claims 1000 bytes (974 KB inflating to 399 MB) each held
+    the express lane for its whole 10 s slice; behind six of them an honest 277 KB upload waited 47.8 s.
+    With both regular lanes busy and two such liars sent first, the honest upload is answered while the
+    liars still wait for a regular lane (the express slice here is 60 s: before, it waited a slice at least)."""
+    slow = gzip.compress(head(sim_log) + b"SYNC 0 0 0 0\n" * (800 * 1024**2 // 13), 6)
+    liar = bytearray(gzip.compress(head(sim_log) + b"SYNC 0 0 0 0\n" * (200 * 1024**2 // 13), 6))
+    liar[-4:] = (1000).to_bytes(4, "little")  # the gzip trailer's inflated size, forged
+    liar = bytes(liar)
+    from service.storage.inspection import inflated_size_hint, inflates_beyond
+
+    (tmp_path / "liar.gz").write_bytes(liar)
+    assert inflated_size_hint(tmp_path / "liar.gz") == len(liar) < 4 * 1024**2  # what the record says
+    assert inflates_beyond(tmp_path / "liar.gz", 4 * 1024**2)  # what it holds
+    with service_client(tmp_path / "data", inspection_processes=2, inspection_timeout_s=120,
+                        inspection_express_timeout_s=60) as client:
+        sid = new_session(client)
+        answers: dict[str, object] = {}
+        senders = [threading.Thread(target=lambda k=k, c=c: answers.update({k: upload(client, sid, "b.clf.gz", c)}))
+                   for k, c in (("slow1", slow), ("slow2", slow))]
+        for sender in senders:
+            sender.start()
+        deadline = time.monotonic() + 30
+        inspector = client.app.state.inspector
+        while not (inspector._free is not None and inspector._free.locked()) and time.monotonic() < deadline:
+            time.sleep(0.05)  # both regular lanes taken
+        liars = [threading.Thread(target=lambda k=k: answers.update({k: upload(client, sid, "l.clf.gz", liar)}))
+                 for k in ("liar1", "liar2")]
+        for sender in liars:
+            sender.start()
+        time.sleep(1.0)  # the liars are in: before, the first held the express lane for its 60 s slice
+        started = time.monotonic()
+        small = upload(client, sid, "log.clf", sim_log)
+        waited_s = time.monotonic() - started
+        assert small.status_code == 201, small.text
+        assert waited_s < 30, waited_s  # half the slice a liar held before; measured about 1 s
+        assert not answers, answers  # answered before any bomb
+        inspector.shutdown()
+        for sender in senders + liars:
+            sender.join(timeout=60)
+        assert {response.status_code for response in answers.values()} == {422}, answers
+
+
 def test_absurd_numbers_are_refused_at_upload_naming_line_and_value(tmp_path, sim_log) -> None:
     """Issue 41 item 9: ODOM at 1.7e308 was accepted (201) and its job failed "internal error: SystemError:
     CPUDispatcher(<function match_particles at 0x...>)". Now the upload answers 422 naming line and value."""
