@@ -81,6 +81,16 @@ def main(mount: Path) -> None:
         results["nearly full: upload log"] = outcome(client.post(f"/v1/sessions/{sid}/logs", files={
             "file": ("log.clf", b"# carmen\n" * 300_000)}))
         (mount / "filler").unlink()
+        # a session whose log takes room, then a full disk: deleting it frees the room (it answered 507)
+        big = client.post("/v1/sessions", json={"name": "big"}).json()["id"]
+        odometry_log = "".join(f"ODOM {0.001 * i:.3f} 0 0 0 0 0 {0.01 * i:.2f} h {0.01 * i:.2f}\n"
+                               for i in range(60_000))
+        stored = client.post(f"/v1/sessions/{big}/logs", files={"file": ("odometry.clf", odometry_log.encode())})
+        results["big log stored"] = [stored.status_code, None]
+        fill(mount)
+        results["delete on a full disk"] = outcome(client.delete(f"/v1/sessions/{big}"))
+        results["deleted session"] = [client.get(f"/v1/sessions/{big}").status_code, None]
+        (mount / "filler").unlink()
         results["stored afterwards"] = [client.get(f"/v1/sessions/{sid}/logs").json()["count"],
                                         client.get(f"/v1/sessions/{sid}/chunks").json()["received"]]
     print(json.dumps(results))

@@ -42,3 +42,7 @@ def test_every_write_route_answers_507_on_a_full_disk(tmp_path) -> None:
     assert results["nearly full: post chunk"] == [507, "insufficient_storage"]
     assert results["nearly full: upload log"] == [507, "insufficient_storage"]
     assert results["stored afterwards"] == [0, 1]  # no log, only the chunk stored before the disk filled
+    # deleting a session on a full disk frees its files first, and then its rows fit
+    assert results["big log stored"] == [201, None]
+    assert results["delete on a full disk"][0] == 200, results
+    assert results["deleted session"] == [404, None]

@@ -49,6 +49,16 @@ def delete_session(session: SessionDep, store: StoreDep, runner: RunnerDep, data
     cancel grace period), then delete the session with its logs, chunks, jobs and files."""
     active = []
     jobs, _ = store.list_jobs(session.owner, session.id, None, 1_000_000, 0)
+    # the files of what no job still reads go first: on a full disk the database's own writes below
+    # (the cancel, the delete) need room, and deleting a session is how a user makes room (it answered
+    # 507 there and freed nothing)
+    if not any(job.active for job in jobs):
+        for log in store.list_logs(session.id):
+            data.remove(data.upload_dir(log.id))
+        data.remove(data.chunk_dir(session.id))
+    for job in jobs:
+        if not job.active:
+            data.remove(data.job_dir(job.id))
     for job in jobs:
         if job.active:
             store.request_cancel(job.id)
