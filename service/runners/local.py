@@ -214,6 +214,7 @@ class LocalProcessRunner:
             else:
                 self._store.finish(slot.job_id, JobStatus.FAILED, reason)
                 job_event(JobStatus.FAILED.value, slot.job_id, logging.WARNING, error=reason)
+            self._data.remove(self._data.live_dir(slot.job_id))  # its live snapshot is served only while it runs
             self._cancel_asked.pop(slot.job_id, None)
             slot.job_id = None
         if self._stopping.is_set():

@@ -70,6 +70,8 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
             current = store.get_job(job_id)
             return None if current is None else current.status
         recorded = store.finish(job_id, status, error)
+        if recorded and status is not JobStatus.SUCCEEDED:
+            data.remove(data.live_dir(job_id))  # served only while it runs: on a full disk, MBs a job held
         if not recorded:  # failed or cancelled meanwhile: first writer wins
             for path in moved or []:
                 if path.is_dir():

@@ -95,4 +95,7 @@ def disk_full_writer(ctx) -> None:
     import errno
 
     ctx.progress(1, 2, force=True)
+    live = ctx.data.live_dir(ctx.job_id)  # a live snapshot written before the disk filled
+    live.mkdir(parents=True, exist_ok=True)
+    (live / "occupancy.png").write_bytes(b"\x89PNG" + b"\0" * 100_000)
     raise OSError(errno.ENOSPC, "No space left on device", str(ctx.out_dir / "products" / "occupancy.png"))
