@@ -19,7 +19,9 @@ class RunnerHealth:
 
     @property
     def ready(self) -> bool:
-        return self.workers_alive > 0
+        """Every worker the runner keeps is alive (a local runner with a worker missing is not ready: it
+        said ready with 1 of 2 alive while jobs waited); a Celery runner counts those that answer."""
+        return self.workers_alive > 0 and self.workers_alive >= self.workers_total
 
 
 class JobRunner(Protocol):

@@ -20,7 +20,8 @@ def healthz() -> Health:
 
 @router.get("/readyz", response_model=Readiness, responses={503: {"model": Readiness}})
 def readyz(_: OwnerDep, runner: RunnerDep, store: StoreDep, data: DataDep) -> Readiness | JSONResponse:
-    """Readiness: at least one worker alive, the database answers, the data folder is writable."""
+    """Readiness: every worker alive (Celery: at least one answers), the database answers, the data folder
+    is writable."""
     h = runner.health()
     storage = StorageState(data_dir_writable=data.writable(), database_ok=store.ping(), free_bytes=data.free_bytes())
     ready = h.ready and storage.data_dir_writable and storage.database_ok
