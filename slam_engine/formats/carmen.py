@@ -54,7 +54,15 @@ from slam_engine.model.drive_log import (
     ScanStream,
     VehicleModel,
 )
-from slam_engine.model.poses import compose, interpolate, is_planar_4x4, planar_from_4x4, relative, to_matrix_4x4
+from slam_engine.model.poses import (
+    compose,
+    interpolate,
+    is_planar_4x4,
+    planar_from_4x4,
+    relative,
+    to_matrix_4x4,
+    wrap_angle,
+)
 
 DEFAULT_NO_RETURN_M = 80.0
 # A single range value filling this share of all beams, at >= SATURATION_MIN_M, is a no-return code.
@@ -249,27 +257,24 @@ def load(path: Path, no_return_m: float | None = None) -> DriveLog:
     if chosen is not None:
         lidar, scans = _laser_stream(path, chosen, lasers[chosen], params, no_return_m, warnings)
 
-    odometry = None
+    odometry = recorded = None
     if odom_t:
-        poses = np.array(odom_poses)
         order = time_order(np.array(odom_t), path, "ODOM", warnings, _line_label(odom_lines))
-        odometry = OdometryStream(t_s=np.array(odom_t)[order], poses=poses[order])
-        reversed_odometry = _backing_up_forward(odometry, np.array(odom_tv)[order], path, warnings)
+        recorded = OdometryStream(t_s=np.array(odom_t)[order], poses=np.array(odom_poses)[order])
+        repaired = _backing_up_forward(recorded, np.array(odom_tv)[order], path, warnings)
+        odometry = recorded if repaired is None else repaired
     if chosen is not None and _carries_odometry(lasers[chosen]):
         laser = lasers[chosen]
         order = time_order(np.array(laser.t), path, chosen, [], _line_label(laser.lines))
         own = OdometryStream(t_s=np.array(laser.t)[order], poses=np.array(laser.robot_pose)[order])
-        if odometry is None:
+        if odometry is None or recorded is None:
             odometry = own
             warnings.append(f"{path}: no ODOM records; odometry taken from the {chosen} robot poses")
         else:
-            if reversed_odometry is not None:
-                own = _through(own, odometry, reversed_odometry)
-                odometry = reversed_odometry
+            if odometry is not recorded:  # the records' own poses carried along with the repair
+                own = _through(own, recorded, odometry)
             odometry = _with_scans_own_poses(odometry, own, chosen, path, warnings)
-    elif odometry is not None and reversed_odometry is not None:
-        odometry = reversed_odometry
-    if odometry is None:
+    elif odometry is None:
         warnings.append(f"{path}: no odometry (no ODOM records and no robot poses in the laser records)")
     if odometry is None and scans is None:
         raise LogFormatError("no ODOM and no laser records: not a usable CARMEN log", path=str(path))
@@ -321,7 +326,7 @@ def _with_scans_own_poses(odom: OdometryStream, own: OdometryStream, kind: str, 
     ODOM stream as it is; a warning counts the scans more than 0.05 m or 0.05 rad off."""
     at = interpolate(odom.t_s, odom.poses, own.t_s)
     off_m = np.hypot(at[:, 0] - own.poses[:, 0], at[:, 1] - own.poses[:, 1])
-    off_rad = np.abs(np.angle(np.exp(1j * (at[:, 2] - own.poses[:, 2]))))
+    off_rad = np.abs(wrap_angle(at[:, 2] - own.poses[:, 2]))
     differ = (off_m > 1e-3) | (off_rad > 1e-3)
     if not differ.any():
         return odom

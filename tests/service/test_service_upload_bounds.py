@@ -37,6 +37,15 @@ def odom_bomb(log: bytes, inflated_mb: int) -> bytes:
     return gzip.compress(head(log) + ODOM_LINE * (inflated_mb * 1024**2 // len(ODOM_LINE)), 9)
 
 
+def both_lanes_taken(client):
+    """The service's inspector, once every regular inspection lane is taken (at most 30 s)."""
+    deadline = time.monotonic() + 30
+    inspector = client.app.state.inspector
+    while not (inspector._free is not None and inspector._free.locked()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return inspector
+
+
 def upload(client, sid: str, name: str, content: bytes, **params):
     return client.post(f"/v1/sessions/{sid}/logs", files={"file": (name, content)}, params=params)
 
@@ -81,10 +90,7 @@ def test_slow_bombs_in_every_lane_do_not_hold_up_a_small_upload(tmp_path, sim_lo
                    for k in ("bomb1", "bomb2")]
         for bomber in bombers:
             bomber.start()
-        deadline = time.monotonic() + 30
-        inspector = client.app.state.inspector
-        while not (inspector._free is not None and inspector._free.locked()) and time.monotonic() < deadline:
-            time.sleep(0.05)  # both regular lanes taken
+        inspector = both_lanes_taken(client)
         time.sleep(0.5)
         started = time.monotonic()
         small = upload(client, sid, "log.clf", sim_log)
@@ -120,10 +126,7 @@ def test_bombs_lying_about_their_size_never_take_the_express_lane(tmp_path, sim_
                    for k, c in (("slow1", slow), ("slow2", slow))]
         for sender in senders:
             sender.start()
-        deadline = time.monotonic() + 30
-        inspector = client.app.state.inspector
-        while not (inspector._free is not None and inspector._free.locked()) and time.monotonic() < deadline:
-            time.sleep(0.05)  # both regular lanes taken
+        inspector = both_lanes_taken(client)
         liars = [threading.Thread(target=lambda k=k: answers.update({k: upload(client, sid, "l.clf.gz", liar)}))
                  for k in ("liar1", "liar2")]
         for sender in liars:

@@ -11,6 +11,7 @@ from api_schemas.error_body import ErrorResponse
 from api_schemas.sessions import SessionCreate, SessionDeleted, SessionPublic, SessionsPublic
 from service.api.convert import session_public
 from service.api.deps import MAX_OFFSET, DataDep, OwnerDep, RunnerDep, SessionDep, SettingsDep, StoreDep
+from service.storage.data_dir import DataDir
 
 STOP_MARGIN_S = 3.0  # after the cancel grace, the runner's time to stop the worker and record it
 
@@ -47,33 +48,30 @@ def delete_session(session: SessionDep, store: StoreDep, runner: RunnerDep, data
                    settings: SettingsDep) -> SessionDeleted:
     """Cancel the session's active jobs and wait until they stopped (their worker is stopped after the
     cancel grace period), then delete the session with its logs, chunks, jobs and files."""
-    active = []
     jobs, _ = store.list_jobs(session.owner, session.id, None, 1_000_000, 0)
+    active = [job.id for job in jobs if job.active]
     # the files of what no job still reads go first: on a full disk the database's own writes below
     # (the cancel, the delete) need room, and deleting a session is how a user makes room (it answered
     # 507 there and freed nothing)
-    if not any(job.active for job in jobs):
-        for log in store.list_logs(session.id):
-            data.remove(data.upload_dir(log.id))
-        data.remove(data.chunk_dir(session.id))
-    for job in jobs:
-        if not job.active:
-            data.remove(data.job_dir(job.id))
-    for job in jobs:
-        if job.active:
-            store.request_cancel(job.id)
-            runner.cancel(job.id)
-            active.append(job.id)
+    _remove_files(data, session.id, [] if active else [log.id for log in store.list_logs(session.id)],
+                  [job.id for job in jobs if not job.active], chunks=not active)
+    for job_id in active:
+        store.request_cancel(job_id)
+        runner.cancel(job_id)
     wait_until_stopped(store, active, settings.cancel_grace_s + STOP_MARGIN_S)
-    cancelled = len(active)
-    logs = store.list_logs(session.id)
-    job_ids = store.delete_session(session.id)
-    for log in logs:
-        data.remove(data.upload_dir(log.id))
+    log_ids = [log.id for log in store.list_logs(session.id)]
+    _remove_files(data, session.id, log_ids, store.delete_session(session.id), chunks=True)
+    return SessionDeleted(id=session.id, jobs_cancelled=len(active))
+
+
+def _remove_files(data: DataDir, session_id: str, log_ids: list[str], job_ids: list[str], chunks: bool) -> None:
+    """Remove the uploads of ``log_ids``, the folders of ``job_ids`` and, with ``chunks``, the session's chunks."""
+    for log_id in log_ids:
+        data.remove(data.upload_dir(log_id))
     for job_id in job_ids:
         data.remove(data.job_dir(job_id))
-    data.remove(data.chunk_dir(session.id))
-    return SessionDeleted(id=session.id, jobs_cancelled=cancelled)
+    if chunks:
+        data.remove(data.chunk_dir(session_id))
 
 
 def wait_until_stopped(store: StoreDep, job_ids: list[str], timeout_s: float) -> None:
