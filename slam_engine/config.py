@@ -416,6 +416,19 @@ class TextureConfig(_Section):
         return value
 
 
+class PlaceIndexConfig(_Section):
+    """The place index (:mod:`slam_engine.backend.place_index`): polar descriptors of a map around places,
+    which say which of several saved maps a drive is most like before any search in them."""
+
+    radius_m: float = Field(12.0, ge=2.0, le=100.0, description="A place describes the map's end points within "
+                            "this distance [m].")
+    spacing_m: float = Field(2.0, ge=0.2, le=50.0, description="Places lie this far apart: along the path that "
+                             "made the map and on a lattice over the free space it observed [m].")
+    stretch_m: float = Field(8.0, gt=0.0, le=100.0, description="A drive is described by stretches of this much "
+                             "travel [m] ...")
+    stretches: int = Field(6, ge=1, le=100, description="... this many of them, spread over the drive.")
+
+
 class SlamConfig(_Section):
     """Everything a run needs besides the log and the random generator."""
 
@@ -440,6 +453,7 @@ class SlamConfig(_Section):
     scheduling: SchedulingConfig = SchedulingConfig()
     loop_closing: LoopClosingConfig = LoopClosingConfig()
     localization: LocalizationConfig = LocalizationConfig()
+    place_index: PlaceIndexConfig = PlaceIndexConfig()
     lidar_filter: LidarFilterConfig = LidarFilterConfig()
     texture: TextureConfig = TextureConfig()
     snapshot_every_scans: int = Field(0, ge=0, le=100000, description="Keep a map snapshot every n "

@@ -30,12 +30,39 @@ def parse_pose(text: str | None) -> tuple[float, float, float] | None:
     return values[0], values[1], values[2]
 
 
+def saved_maps(paths: list[Path]) -> list[Path]:
+    """The saved maps that ``--map`` names, in order: each a run's folder or bundle file, or a folder whose
+    sub-folders hold them (each taken in name order). A folder that holds none is an error."""
+    from slam_engine.errors import ConfigError
+    from slam_engine.products.map_bundle import BUNDLE_FILE
+
+    found: list[Path] = []
+    for path in paths:
+        if path.is_dir() and not (path / BUNDLE_FILE).exists():
+            inside = sorted(p for p in path.iterdir() if (p / BUNDLE_FILE).is_file())
+            if not inside:
+                raise ConfigError(f"--map {path}: no saved map here ({BUNDLE_FILE}, or folders holding one)")
+            found.extend(inside)
+        else:
+            found.append(path)
+    return found
+
+
+def _refused(which):
+    """The refusal of a drive localised in none of several maps, as one map's result: the best score seen."""
+    from slam_engine.multisession.localization import LocalizationResult
+
+    best = max((t.best_score or 0.0 for t in which.tries), default=0.0)
+    return LocalizationResult(False, best, wall_time_s=which.wall_time_s)
+
+
 def register(app: typer.Typer) -> None:
     @app.command()
     def localize(
         log: Path = typer.Argument(..., metavar="LOG", help="Drive log to localise: a file or a folder."),
-        map_dir: Path = typer.Option(..., "--map", "-m", help="A saved map: a mapping run's --out folder or "
-                                     "its map_bundle.npz."),
+        map_dirs: list[Path] = typer.Option(..., "--map", "-m", help="A saved map: a mapping run's --out folder "
+                                            "or its map_bundle.npz; repeat it, or name a folder of such folders, "
+                                            "and the drive is localised in the map it is in."),
         out: Path = typer.Option(..., "--out", "-o", help="Folder for the products (created)."),
         format: str = typer.Option("auto", "--format", "-f", help="Log format, or auto to detect it."),
         start: str | None = typer.Option(None, help="Where the drive starts in the map, if known: X,Y,THETA "
@@ -48,38 +75,63 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Localise a drive in a saved map, without being told where it starts: its trajectory in the
         map's frame with a confidence per pose, when it was lost and found, and its scans drawn over the
-        map. A drive that is not in the map is refused (exit 1, run.json says localised: false)."""
+        map. A drive that is not in the map is refused (exit 1, run.json says localised: false). Given
+        several maps, the drive is localised in the one it is in (tried in the order the place index
+        ranks them), or refused with every map's best score."""
         import numpy as np
 
+        from slam_engine.errors import ConfigError
         from slam_engine.evaluation.metrics import files_beside_log
         from slam_engine.formats import load_log
         from slam_engine.frontend.particle_filter import engine_threads
         from slam_engine.multisession.localization import localize_log, refusal_reason
+        from slam_engine.multisession.which_map import localize_in_maps
         from slam_engine.products.map_bundle import read_bundle
         from slam_engine.products.multisession import localization_image, saved_map_grid, write_localization
 
+        which = None
         with bad_input_exits(verbose):
             prepare_out_dir(out, force)
             hint = parse_pose(start)
             relations = relations or files_beside_log(log)[0]
             config = load_config(config_file)
-            bundle = read_bundle(map_dir)
-            drive, result = localize_log(bundle, load_log(log, format), config,
-                                         hint=None if hint is None else np.array(hint), threads=engine_threads())
+            maps = saved_maps(map_dirs)
+            if len(maps) == 1:
+                map_dir, bundle = maps[0], read_bundle(maps[0])
+                drive, result = localize_log(bundle, load_log(log, format), config,
+                                             hint=None if hint is None else np.array(hint), threads=engine_threads())
+            else:
+                if hint is not None:
+                    raise ConfigError("--start is a pose in one map: give one --map with it")
+                bundles = [(str(path), read_bundle(path)) for path in maps]
+                which = localize_in_maps(bundles, load_log(log, format), config, threads=engine_threads())
+                drive = which.drive
+                picked = which.tries[which.chosen].name if which.chosen is not None else None
+                map_dir = Path(picked) if picked is not None else Path(", ".join(name for name, _ in bundles))
+                bundle = dict(bundles)[picked] if picked is not None else bundles[0][1]
+                result = which.result if which.result is not None else _refused(which)
             image = None
             if result.localised:
                 assert result.trajectory is not None
                 image = localization_image(saved_map_grid(bundle, config), result.trajectory, drive.hits,
                                            result.tracked)
-            write_localization(out, result.summary(), result.trajectory, result.confidence, image,
-                               relations=relations)
-        summary = result.summary()
+            summary = result.summary()
+            if which is not None:
+                summary["which_map"] = which.summary()
+            write_localization(out, summary, result.trajectory, result.confidence, image, relations=relations)
         if not result.localised:
-            typer.echo(f"refused: {log} has no place in the map {map_dir}: "
-                       f"{refusal_reason(result, config.localization.min_score)}", err=True)
+            if which is not None:
+                scores = ", ".join(f"{t.name}: {t.best_score:.3f}" for t in which.tries if t.best_score is not None)
+                typer.echo(f"refused: {log} is in none of the {len(which.tries)} maps (best scores {scores}; "
+                           f"{config.localization.min_score:g} needed, unambiguous and confirmed)", err=True)
+            else:
+                typer.echo(f"refused: {log} has no place in the map {map_dir}: "
+                           f"{refusal_reason(result, config.localization.min_score)}", err=True)
             raise typer.Exit(REFUSED_EXIT_CODE)
-        typer.echo(f"localised {summary['scans']} scans in {summary['wall_time_s']:.1f} s: {summary['scans_tracked']} "
-                   f"matched the map (mean confidence {summary['mean_confidence']}); products in {out}")
+        where = f" in {map_dir}" if which is not None else ""
+        typer.echo(f"localised {summary['scans']} scans{where} in {summary['wall_time_s']:.1f} s: "
+                   f"{summary['scans_tracked']} matched the map (mean confidence {summary['mean_confidence']}); "
+                   f"products in {out}")
 
     @app.command()
     def merge(

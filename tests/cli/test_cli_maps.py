@@ -81,3 +81,27 @@ def test_localize_extend_and_merge_from_the_command_line(tmp_path, logs) -> None
 
     bad_start = invoke("localize", logs["b"], "--map", tmp_path / "a", "--out", tmp_path / "x", "--start", "1,2")
     assert bad_start.exit_code == 2 and "--start" in bad_start.stderr
+
+    # which map: a folder of saved maps (the office's first half, the other building), and the maps named
+    # one by one in the other order: the office's second half is localised in the office's map each time
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    for name in ("a", "c"):
+        (maps / name).symlink_to(tmp_path / name, target_is_directory=True)
+    for given in (["--map", maps], ["--map", tmp_path / "c", "--map", tmp_path / "a"]):
+        picked = invoke("localize", logs["b"], *given, "--out", tmp_path / "which", "--force")
+        assert picked.exit_code == 0, picked.output
+        which = json.loads((tmp_path / "which" / "run.json").read_text())["localization"]
+        assert which["localised"] is True and Path(which["which_map"]["chosen"]).name == "a"
+        assert [Path(m["map"]).name for m in which["which_map"]["maps"]][0] == "a"  # ranked first by the index
+    lost = invoke("localize", logs["elsewhere"], "--map", tmp_path / "a", "--map", tmp_path / "ab",
+                  "--out", tmp_path / "lost")
+    assert lost.exit_code == 1 and lost.stderr.startswith("refused: ") and "none of the 2 maps" in lost.stderr
+    tried = json.loads((tmp_path / "lost" / "run.json").read_text())["localization"]["which_map"]["maps"]
+    assert [m["localised"] for m in tried] == [False, False] and all(m["best_score"] is not None for m in tried)
+    empty = tmp_path / "no_maps"
+    empty.mkdir()
+    nothing = invoke("localize", logs["b"], "--map", empty, "--out", tmp_path / "y")
+    assert nothing.exit_code == 2 and "no saved map here" in nothing.stderr
+    hinted = invoke("localize", logs["b"], "--map", maps, "--out", tmp_path / "z", "--start", "1,2,0")
+    assert hinted.exit_code == 2 and "--start" in hinted.stderr

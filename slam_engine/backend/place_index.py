@@ -1,0 +1,197 @@
+"""A place index: which places of a map a cloud of end points may be at, and its heading there, without
+searching the whole map.
+
+A *place* is a point of the map where the vehicle was (world frame) and the map's end points within
+``radius_m`` of it, binned on a polar grid of ``RINGS`` rings of equal width by ``SECTORS`` sectors,
+world-aligned (sector 0 starts at +x), each bin occupied or not: a descriptor in the style of Scan Context
+(Kim and Kim, IROS 2018), built from the map's points rather than one scan, so that a 180-degree
+scanner's map still describes a full circle. A query (a stretch of a drive, in its last scan's vehicle
+frame) is binned the same way and compared with every place at every sector shift (circular
+cross-correlation along the sectors, one FFT per ring), scored by cosine similarity over the sectors the
+query saw anything in; the best shift is the query's heading in the world frame. Retrieval is
+rotation-invariant and brute force: places x rings x sectors, milliseconds for thousands of places.
+
+The index proposes; it never accepts: a placement is still the correlative search's, confirmed as
+before. Measured on the benchmark logs (``python -m bench.place_recall``), the right place is among the
+top five at 40-75 % of true revisits, not enough to stand in for a search over the whole map, which
+would then miss, or (where a look-alike is proposed and the true place is not) judge unique, what the
+whole-map search finds; it orders several saved maps by how much a drive looks like each
+(:mod:`slam_engine.multisession.which_map`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from slam_engine.model.poses import wrap_angle
+
+RINGS, SECTORS = 20, 72  # polar bins: rings of radius_m / RINGS, sectors of 5 degrees
+SECTOR_RAD = 2.0 * math.pi / SECTORS
+# a bin's neighbours (one ring and one sector either side) count this much when it is empty: a query a
+# little off the place's centre, or turned between two sectors, still overlaps it
+NEIGHBOUR_WEIGHT = 0.5
+MIN_BINS = 12  # a place or a query with fewer occupied bins describes nothing
+DEDUPE_CELL_M = 0.1  # points are kept once per cell of this size before binning (density does not count)
+# candidates closer than this [m] (and turned less than SUPPRESS_RAD) to a better one are the same place
+SUPPRESS_M, SUPPRESS_RAD = 3.0, 0.5
+
+
+def describe(points_m: np.ndarray, centre_m: np.ndarray, radius_m: float, heading_rad: float = 0.0) -> np.ndarray:
+    """(RINGS, SECTORS) float32 descriptor of the points (N, 2) [m] around ``centre_m`` (2,), with
+    sectors measured from ``heading_rad`` (0: world-aligned): 1 where a bin holds a point, the neighbour
+    weight where only a neighbouring bin does, else 0."""
+    rel = np.asarray(points_m, np.float64) - np.asarray(centre_m, np.float64)[:2]
+    rng = np.hypot(rel[:, 0], rel[:, 1])
+    keep = (rng < radius_m) & (rng > 1e-6)
+    ring = np.minimum((rng[keep] / radius_m * RINGS).astype(np.int64), RINGS - 1)
+    bearing = np.mod(np.arctan2(rel[keep, 1], rel[keep, 0]) - heading_rad, 2.0 * np.pi)
+    sector = np.minimum((bearing / SECTOR_RAD).astype(np.int64), SECTORS - 1)
+    hit = np.zeros((RINGS, SECTORS), np.float32)
+    hit[ring, sector] = 1.0
+    return _with_neighbours(hit)
+
+
+def _with_neighbours(hit: np.ndarray) -> np.ndarray:
+    """Binary bins (..., RINGS, SECTORS) with each empty bin next to an occupied one at NEIGHBOUR_WEIGHT
+    (sectors wrap around; rings do not)."""
+    near = np.maximum(np.roll(hit, 1, axis=-1), np.roll(hit, -1, axis=-1))
+    near[..., 1:, :] = np.maximum(near[..., 1:, :], hit[..., :-1, :])
+    near[..., :-1, :] = np.maximum(near[..., :-1, :], hit[..., 1:, :])
+    return np.maximum(hit, NEIGHBOUR_WEIGHT * near).astype(np.float32)
+
+
+def _deduped(points_m: np.ndarray) -> np.ndarray:
+    """One point per DEDUPE_CELL_M cell (the cell's first), so that dense walls near the vehicle do not
+    cost more than far ones."""
+    if len(points_m) == 0:
+        return np.zeros((0, 2))
+    cells = np.floor(np.asarray(points_m) / DEDUPE_CELL_M).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    return np.asarray(points_m, np.float64)[np.sort(first)]
+
+
+@dataclass(frozen=True)
+class PlaceCandidate:
+    """A place a query may be at: its index, centre (2,) [m, world], the query's heading there [rad,
+    world] and the descriptors' similarity (0-1)."""
+
+    place: int
+    centre_m: np.ndarray
+    heading_rad: float
+    similarity: float
+
+
+@dataclass(frozen=True)
+class PlaceIndex:
+    """Places of a map: ``centres`` (P, 2) [m, world frame], their ``descriptors`` (P, RINGS, SECTORS)
+    and the radius they describe [m]."""
+
+    centres: np.ndarray
+    descriptors: np.ndarray
+    radius_m: float
+
+    def __len__(self) -> int:
+        return len(self.centres)
+
+    @classmethod
+    def build(cls, points_m: np.ndarray, centres_m: np.ndarray, radius_m: float) -> PlaceIndex:
+        """The places at ``centres_m`` (P, 2) of the map whose end points are ``points_m`` (N, 2) [m,
+        world]; places that describe too little (fewer than MIN_BINS occupied bins) are left out."""
+        points = _deduped(points_m)
+        centres = np.asarray(centres_m, np.float64).reshape(-1, 2)
+        if len(points) == 0 or len(centres) == 0:
+            return cls(np.zeros((0, 2)), np.zeros((0, RINGS, SECTORS), np.float32), radius_m)
+        tree = cKDTree(points)
+        near = tree.query_ball_point(centres, radius_m, return_sorted=False)
+        descriptors = np.stack([describe(points[np.asarray(i, np.int64)], c, radius_m)
+                                for c, i in zip(centres, near, strict=True)])
+        keep = (descriptors == 1.0).sum(axis=(1, 2)) >= MIN_BINS
+        return cls(centres[keep], descriptors[keep], radius_m)
+
+    @classmethod
+    def along(cls, points_m: np.ndarray, positions_m: np.ndarray, spacing_m: float, radius_m: float) -> PlaceIndex:
+        """:meth:`build` with a place every ``spacing_m`` of travel along ``positions_m`` (K, 2) [m] (the
+        vehicle's path: where a query's vehicle may be)."""
+        positions = np.asarray(positions_m, np.float64).reshape(-1, 2)
+        return cls.build(points_m, positions[spaced(positions, spacing_m)], radius_m)
+
+    def query(self, points_v: np.ndarray, k: int) -> list[PlaceCandidate]:
+        """The ``k`` places most like the end points ``points_v`` (N, 2) [m, vehicle frame], best first, at
+        most one per SUPPRESS_M / SUPPRESS_RAD; empty when the points describe too little or the index
+        holds no place."""
+        if len(self) == 0 or k <= 0:
+            return []
+        q = describe(_deduped(points_v), np.zeros(2), self.radius_m)
+        if int((q == 1.0).sum()) < MIN_BINS:
+            return []
+        seen = (q == 1.0).any(axis=0).astype(np.float32)  # sectors the query saw anything in
+        q_energy = float((q * q).sum())
+        Q = np.fft.rfft(q, axis=-1)
+        C = np.fft.rfft(self.descriptors, axis=-1)
+        # numerator[p, s] = sum over rings and query sectors j of q[r, j] * c[p, r, (j + s) % SECTORS]
+        numerator = np.fft.irfft((np.conj(Q)[None] * C).sum(axis=1), n=SECTORS, axis=-1)
+        column_energy = (self.descriptors ** 2).sum(axis=1)  # (P, SECTORS)
+        masked = np.fft.irfft(np.conj(np.fft.rfft(seen))[None] * np.fft.rfft(column_energy, axis=-1), n=SECTORS,
+                              axis=-1)
+        similarity = numerator / np.sqrt(q_energy * np.maximum(masked, 1e-9))
+        # every heading that is a local peak of its place's profile is a candidate: corridors and
+        # rectilinear rooms look alike turned by a half or a quarter turn, and only the search can tell
+        left, right = np.roll(similarity, 1, axis=1), np.roll(similarity, -1, axis=1)
+        peaks = (similarity >= left) & (similarity > right)
+        places, shifts = np.nonzero(peaks)
+        scores = similarity[places, shifts]
+        # the heading: the peak's shift refined by a parabola through its neighbours (sub-sector)
+        lo, hi = left[places, shifts], right[places, shifts]
+        curvature = lo - 2.0 * scores + hi
+        safe = np.where(curvature < -1e-9, curvature, -1.0)
+        offset = np.where(curvature < -1e-9, 0.5 * (lo - hi) / safe, 0.0)
+        heading = np.asarray(wrap_angle((shifts + np.clip(offset, -0.5, 0.5)) * SECTOR_RAD))
+        out: list[PlaceCandidate] = []
+        for i in np.argsort(-scores, kind="stable").tolist():
+            centre, theta = self.centres[places[i]], float(heading[i])
+            if any(math.hypot(*(centre - c.centre_m)) < SUPPRESS_M
+                   and abs(float(wrap_angle(theta - c.heading_rad))) < SUPPRESS_RAD for c in out):
+                continue
+            out.append(PlaceCandidate(int(places[i]), centre.copy(), theta, float(min(1.0, scores[i]))))
+            if len(out) == k:
+                break
+        return out
+
+
+def free_lattice(points_m: np.ndarray, spacing_m: float, covers: Callable[[np.ndarray], np.ndarray],
+                 clearance_m: float = 0.3) -> np.ndarray:
+    """(P, 2) [m] points of a square lattice of ``spacing_m`` over the bounding box of ``points_m``
+    (N, 2) where a vehicle may stand: on cells the map observed (``covers``: (P, 2) -> (P,) bool) and
+    at least ``clearance_m`` from every end point. A saved map's places: a drive localised in it
+    need not follow the path that made it."""
+    points = np.asarray(points_m, np.float64)
+    if len(points) == 0:
+        return np.zeros((0, 2))
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    xs = np.arange(lo[0] + spacing_m / 2, hi[0], spacing_m)
+    ys = np.arange(lo[1] + spacing_m / 2, hi[1], spacing_m)
+    lattice = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+    if len(lattice) == 0:
+        return lattice
+    lattice = lattice[covers(lattice)]
+    clear = cKDTree(_deduped(points)).query(lattice, distance_upper_bound=clearance_m)[0] > clearance_m
+    return lattice[clear]
+
+
+def spaced(positions_m: np.ndarray, spacing_m: float) -> np.ndarray:
+    """Indices of ``positions_m`` (K, 2) [m] one every ``spacing_m`` of travel along them (the first
+    always)."""
+    if len(positions_m) == 0:
+        return np.zeros(0, np.int64)
+    travel = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(positions_m, axis=0).T))])
+    picks, next_m = [], 0.0
+    for i, t in enumerate(travel.tolist()):
+        if t >= next_m:
+            picks.append(i)
+            next_m = t + spacing_m
+    return np.asarray(picks, np.int64)

@@ -1,0 +1,103 @@
+"""The place index (:mod:`slam_engine.backend.place_index`) on the simulated office, with exact ground truth:
+a place found again from a turned copy of its surroundings with the heading it was turned by, the revisit
+at the end of the office loop retrieved from the map of its start, look-alike places both proposed; and
+which of several saved maps a drive is in (:mod:`slam_engine.multisession.which_map`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from slam_engine.backend.place_index import PlaceIndex
+from slam_engine.config import SlamConfig
+from slam_engine.model.poses import inverse, place_each, place_points, wrap_angle
+from slam_engine.multisession.localization import DriveScans, localize
+from slam_engine.multisession.which_map import localize_in_maps
+from slam_engine.pipeline import run_slam
+from slam_engine.simulation import SimulatedDrive, simulate
+
+CONFIG = SlamConfig(particles=10, seed=0)
+RADIUS_M, SPACING_M = CONFIG.place_index.radius_m, CONFIG.place_index.spacing_m
+
+
+@pytest.fixture(scope="module")
+def office() -> SimulatedDrive:
+    return simulate("office", seed=0, cameras=False)
+
+
+@pytest.fixture(scope="module")
+def scans(office: SimulatedDrive) -> DriveScans:
+    return DriveScans.from_log(office.log, CONFIG)
+
+
+def world_points(office: SimulatedDrive, scans: DriveScans, last: int | None = None) -> np.ndarray:
+    """The end points of scans ``0..last`` at their true poses (world frame) [m]."""
+    last = len(scans) - 1 if last is None else last
+    hits = scans.hits[: last + 1]
+    return place_each(office.ground_truth.poses[: last + 1], np.concatenate(hits),
+                      np.repeat(np.arange(len(hits)), [len(h) for h in hits]))
+
+
+def test_a_turned_copy_of_a_place_is_found_with_the_heading_it_was_turned_by(office, scans) -> None:
+    world = world_points(office, scans)
+    index = PlaceIndex.along(world, office.ground_truth.poses[:, :2], SPACING_M, RADIUS_M)
+    assert len(index) > 10
+    for place, heading in ((3, 1.0), (len(index) // 2, -2.5), (len(index) - 4, 3.0)):
+        pose = np.array([*index.centres[place], heading])
+        copy_v = place_points(inverse(pose), world)  # the map as a vehicle there, turned, sees it
+        best = index.query(copy_v, 5)[0]
+        assert best.place == place
+        # measured: within 0.01 rad (5-degree sectors, refined by a parabola through the peak)
+        assert abs(float(wrap_angle(best.heading_rad - heading))) < 0.05
+
+
+def test_the_revisit_at_the_end_of_the_office_loop_is_retrieved_from_the_map_of_its_start(office, scans) -> None:
+    truth = office.ground_truth.poses
+    travel = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(truth[:, :2], axis=0).T))])
+    last = len(truth) - 1
+    behind = int(np.searchsorted(travel, travel[last] - 30.0))  # the map: the drive until 30 m before
+    index = PlaceIndex.along(world_points(office, scans, behind), truth[:behind, :2], SPACING_M, RADIUS_M)
+    first = int(np.searchsorted(scans.travel_m, scans.travel_m[last] - 8.0))
+    found = index.query(scans.cloud(first, last, 3000), 5)  # 8 m of the drive, in its own frame
+    best = found[0]
+    assert math.hypot(*(best.centre_m - truth[last, :2])) < SPACING_M
+    assert abs(float(wrap_angle(best.heading_rad - truth[last, 2]))) < 0.1
+
+
+def test_look_alike_places_are_both_proposed(office, scans) -> None:
+    room = world_points(office, scans)
+    room = room[np.hypot(*(room - office.ground_truth.poses[0, :2]).T) < 8.0]
+    twin = room + np.array([60.0, 0.0])  # the same room again, 60 m east
+    centres = np.array([office.ground_truth.poses[0, :2], office.ground_truth.poses[0, :2] + [60.0, 0.0]])
+    index = PlaceIndex.build(np.concatenate([room, twin]), centres, RADIUS_M)
+    found = index.query(place_points(inverse(np.array([*centres[1], 0.4])), twin), 2)
+    assert sorted(c.place for c in found) == [0, 1]  # the search that follows must tell them apart, or refuse
+    assert abs(found[0].similarity - found[1].similarity) < 0.05
+
+
+def test_a_query_that_describes_too_little_proposes_nothing(office, scans) -> None:
+    index = PlaceIndex.along(world_points(office, scans), office.ground_truth.poses[:, :2], SPACING_M, RADIUS_M)
+    assert index.query(np.array([[1.0, 0.0], [1.0, 0.1]]), 5) == []
+    assert PlaceIndex.along(np.zeros((0, 2)), np.zeros((0, 2)), SPACING_M, RADIUS_M).query(scans.hits[0], 5) == []
+
+
+def test_a_drive_is_localised_in_the_map_it_is_in_and_refused_where_it_is_in_none(office) -> None:
+    start, end = office.log.time_span_s() or (0.0, 0.0)
+    middle = (start + end) / 2
+    office_map = run_slam(office.log.between(start, middle), CONFIG).bundle
+    elsewhere = simulate("campus", seed=1, rig="robot", cameras=False, max_duration_s=40.0).log
+    other_map = run_slam(elsewhere, CONFIG).bundle
+    second = office.log.between(middle, end + 1.0)
+    which = localize_in_maps([("other", other_map), ("office", office_map)], second, CONFIG)
+    assert [t.name for t in which.tries] == ["office", "other"]  # the index ranks the office first ...
+    assert which.tries[0].likeness > which.tries[1].likeness
+    assert which.chosen == 0 and which.result is not None and which.result.localised
+    assert which.tries[1].localised is None  # ... and the other map is never searched
+    alone = localize(office_map, which.drive, CONFIG)  # the same answer as the office map alone
+    assert alone.trajectory is not None and which.result.trajectory is not None
+    assert np.array_equal(alone.trajectory.poses, which.result.trajectory.poses)
+    assert which.summary()["chosen"] == "office"
+    refused = localize_in_maps([("office", office_map)], elsewhere, CONFIG)
+    assert refused.chosen is None and refused.result is None and refused.tries[0].localised is False
