@@ -52,6 +52,10 @@ def accuracy(
                                 "particles, seeds 0-9; not with --quick or --no-datasets)."),
     live: bool = typer.Option(True, help="Then the live table (the simulated car streamed at real time into a "
                               "live job beside one busy process, about 2 minutes; not with --quick)."),
+    places: bool = typer.Option(True, help="Then the place index's retrieval at the benchmark logs' true revisits "
+                                "(recall@5, precision@1; not with --quick or --no-datasets)."),
+    peers: bool = typer.Option(True, help="Then lidarmap and Karto side by side (whole processes, interleaved, "
+                               "median of 3; needs ../shared/peers built; not with --quick)."),
     out: Path | None = typer.Option(None, help="Output folder (default bench/results/<date-time>)."),
     record: bool = typer.Option(False, help="Write this run's relation errors (median and worst seed per scored "
                                 "log) into bench/recorded.json, the record later runs are compared with."),
@@ -118,6 +122,24 @@ def accuracy(
         from bench.live import run_live_table
 
         run_live_table(out, console)
+    if places and datasets and not quick:
+        from bench import place_recall
+
+        console.print("\n[bold]Place index[/bold]: retrieval at the true revisits (python -m bench.place_recall)")
+        console.print(place_recall.table([place_recall.measure(name) for name in place_recall.DEFAULT_LOGS], 5),
+                      highlight=False)
+    if peers and not quick:
+        from bench import peers as side_by_side
+
+        karto = side_by_side.karto_binary()
+        console.print("\n[bold]Side by side with Karto[/bold] (python -m bench.peers)")
+        if karto is None:
+            console.print("Karto is not built: ../shared/peers/build_karto.sh (../shared/peers/README.md)",
+                          highlight=False)
+        else:
+            rows = [side_by_side.side_by_side(datasets_root() / "benchmark" / f"{name}.clf", karto, 3)
+                    for name in side_by_side.DEFAULT_LOGS]
+            console.print(side_by_side.table(rows, 3), highlight=False)
 
 
 def report_regressions(results: dict, console, record: bool) -> None:
