@@ -256,7 +256,8 @@ def _close_loops_and_align(front_end_path: np.ndarray, points_v: list[np.ndarray
     their end points ``points_v`` [m, vehicle frame], the steps the front end left ``unverified``).
     ``progress`` hears the loop closing's share done, ``aligning`` when the alignment starts."""
     checked = close_loops_checked(front_end_path, points_v, loop_config, config.grid, unverified=unverified,
-                                  threads=engine_threads(), progress=progress)
+                                  threads=engine_threads(), progress=progress,
+                                  places=config.place_index.for_far_searches())
     if aligning is not None:
         aligning()
     aligned, alignment = checked.backend.poses, {"applied": False, "reason": "loop closing is disabled"}

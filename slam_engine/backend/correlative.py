@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from slam_engine.model.poses import wrap_angle
+
 MAX_VALUE = 255
 NO_ORIGINS = np.zeros((0, 0, 0), np.uint8)  # branch_and_bound's origins: every translation
 
@@ -424,6 +426,49 @@ def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, wind
             line = u
     return CorrelativeMatch(pose=pose, score=float(score), runner_up_score=float(total2 / (MAX_VALUE * n)),
                             runner_up_pose=runner_up_pose, line_direction=line)
+
+
+def lattice_pose(points_v: np.ndarray, resolution_m: float, initial_pose: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """``pose`` moved to the nearest pose that :func:`search` from ``initial_pose`` tries on a grid of
+    ``resolution_m`` with ``points_v`` (its translations: whole cells from the initial pose; its headings:
+    whole angular steps from it). A search in a small window around that pose scores every pose as the
+    search over a wide window around ``initial_pose`` would."""
+    step = angular_step_rad(np.ascontiguousarray(points_v, np.float64), resolution_m)
+    x0, y0, th0 = (float(v) for v in initial_pose)
+    return np.array([x0 + round((float(pose[0]) - x0) / resolution_m) * resolution_m,
+                     y0 + round((float(pose[1]) - y0) / resolution_m) * resolution_m,
+                     th0 + round(float(wrap_angle(float(pose[2]) - th0)) / step) * step])
+
+
+def runner_up_score(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, window_m: float,
+                    window_rad: float, best_pose: np.ndarray, min_score: float, ambiguity_m: float,
+                    ambiguity_rad: float, threads: int = 1, origins: np.ndarray | None = None) -> float:
+    """The runner-up search of :func:`search` (``any_runner_up``) alone: the score of a pose of
+    ``points_v`` within ``window_m`` / ``window_rad`` of ``initial_pose``, farther than ``ambiguity_m`` /
+    ``ambiguity_rad`` from ``best_pose`` (on this search's lattice: :func:`lattice_pose`), that scores at
+    least ``min_score`` (the first one found, not the best), or 0 when none does."""
+    points_v = np.ascontiguousarray(points_v, np.float64)
+    n = len(points_v)
+    if n == 0:
+        return 0.0
+    res = grid.resolution_m
+    step = angular_step_rad(points_v, res)
+    n_half = max(0, int(math.ceil(window_rad / step)))
+    x0, y0, th0 = (float(v) for v in initial_pose)
+    cells = _rotated_cells(points_v, x0, y0, th0, step, n_half, float(grid.origin_m[0]), float(grid.origin_m[1]),
+                           1.0 / res)
+    if origins is None:
+        origins, origin_x, origin_y = NO_ORIGINS, 0, 0
+    else:
+        origin_x = int(math.floor((x0 - float(grid.origin_m[0])) / res))
+        origin_y = int(math.floor((y0 - float(grid.origin_m[1])) / res))
+    ex_a = int(round(float(wrap_angle(float(best_pose[2]) - th0)) / step)) + n_half
+    ex_x, ex_y = int(round((float(best_pose[0]) - x0) / res)), int(round((float(best_pose[1]) - y0) / res))
+    a2, _, _, total = branch_and_bound(grid.pyramid, cells, max(0, int(math.ceil(window_m / res))),
+                                       int(min_score * MAX_VALUE * n), ex_a, ex_x, ex_y,
+                                       int(math.ceil(ambiguity_rad / step)), int(math.ceil(ambiguity_m / res)),
+                                       0.0, 0.0, max(1, int(threads)), origins, origin_x, origin_y, True)
+    return 0.0 if a2 < 0 else float(total / (MAX_VALUE * n))
 
 
 @nb.njit(cache=True, nogil=True)

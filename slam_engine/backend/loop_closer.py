@@ -49,10 +49,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from slam_engine.backend.correlative import CorrelativeMatch, MatchGrid, angular_step_rad, refine_pose, search
+from slam_engine.backend.place_index import PlaceIndex, search_at_places
 from slam_engine.backend.pose_graph import Edge, PoseGraph
 from slam_engine.backend.submaps import Submap, SubmapGrids, match_grid_from_points, split_into_submaps
 from slam_engine.backend.travel_graph import adjacency, shortest_distances
-from slam_engine.config import LoopClosingConfig
+from slam_engine.config import LoopClosingConfig, PlaceIndexConfig
 from slam_engine.model.poses import compose, place_each, place_points, relative, wrap_angle
 
 # how much drift an accepted closure leaves between the key frames it joins, in metres of travel
@@ -71,6 +72,7 @@ HEADING_CLOSURE_SD_M = 30.0
 FAR_MIN_KEY_FRAMES, FAR_OUT_OF_REACH_SHARE = 20, 0.8
 FAR_LEVELS = 10  # ... search a grid with a pyramid up to 512 cells (102 m at 0.2 m) ...
 FAR_STRETCH_POINTS, FAR_MIN_POINTS = 400, 50  # ... with a stretch's end points, at most / at least ...
+PLACE_QUERY_POINTS = 3000  # ... and at most this many describe it to the place index
 # ... and a placement is confirmed when the stretch before it lands within this many grid cells and this
 # turn [rad] of where the front end's motion puts it
 FAR_AGREE_CELLS, FAR_AGREE_RAD = 2.0, 0.1
@@ -175,7 +177,7 @@ class _Found:
 class _FarIndex:
     """The map far behind, as far searches take it: the blurred hit grid of key frames ``nodes`` at their
     estimates then (world frame), its centre pose and the half width that covers it [m], the travel it
-    reaches up to [m] and the estimate's version it was built from."""
+    reaches up to [m], the estimate's version it was built from and its places (along ``nodes``)."""
 
     grid: MatchGrid
     nodes: np.ndarray
@@ -183,6 +185,7 @@ class _FarIndex:
     reach_m: float
     until_m: float
     moved: int
+    places: PlaceIndex | None = None
 
 
 @dataclass(frozen=True)
@@ -286,8 +289,10 @@ class LoopCloser:
     and end points ``points_v`` (K lists of (B, 2) [m], vehicle frame)."""
 
     def __init__(self, path: np.ndarray, points_v: list[np.ndarray], config: LoopClosingConfig, resolution_m: float,
-                 unverified: np.ndarray | None = None, threads: int = 1, guide: np.ndarray | None = None):
+                 unverified: np.ndarray | None = None, threads: int = 1, guide: np.ndarray | None = None,
+                 places: PlaceIndexConfig | None = None):
         self.config = config
+        self.places = places  # far searches look only around the places its index proposes (None: everywhere)
         self.threads = max(1, int(threads))
         self.path = np.asarray(path, np.float64)
         # the poses the walk predicts each key frame from (a second pass: the first's corrected poses); the
@@ -332,6 +337,8 @@ class LoopCloser:
         # a far placement awaiting confirmation: (key frame, its world pose, the estimate's version then)
         self._far_pending: tuple[int, np.ndarray, int] | None = None
         self.far_stats = {"searches": 0, "placed": 0, "confirmed": 0, "accepted": 0}
+        if places is not None:
+            self.far_stats["whole_map"] = 0  # far placements searched for over the whole map: none proposed
 
     def motion_graph(self) -> PoseGraph:
         """The key frames tied by the front end's motions (loose where a step is unverified)."""
@@ -523,19 +530,30 @@ class LoopCloser:
         return np.ascontiguousarray(self._frames_cloud(np.arange(first, last + 1), last, FAR_STRETCH_POINTS)[0])
 
     def _far_place(self, index: _FarIndex, first: int, last: int, near: np.ndarray | None = None) -> np.ndarray | None:
-        """Key frame ``last``'s world pose from its stretch searched for over the whole far index: None
-        unless it scores ``far_min_score`` and nothing farther than the ambiguity distance scores nearly
-        as well."""
+        """Key frame ``last``'s world pose from its stretch searched for over the whole far index (its best
+        pose only around the places the index proposes, when it has places): None unless it scores
+        ``far_min_score`` and nothing farther than the ambiguity distance scores nearly as well."""
         c = self.config
         cloud = self._stretch_cloud(first, last)
         if len(cloud) < FAR_MIN_POINTS:
             return None
         initial, window_m, window_rad = (index.centre, index.reach_m, math.pi) if near is None else \
             (near, FAR_NEAR_WINDOW_M, FAR_NEAR_WINDOW_RAD)
-        match = search(index.grid, cloud, initial, window_m, window_rad, c.far_min_score,
-                       ambiguity_m=c.ambiguity_m, ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio,
-                       runner_up_min_score=c.runner_up_ratio * c.far_min_score, threads=self.threads,
-                       any_runner_up=True)
+        proposed = []
+        if near is None and index.places is not None and self.places is not None:
+            described = self._frames_cloud(np.arange(first, last + 1), last, PLACE_QUERY_POINTS)[0]
+            proposed = index.places.query(described, self.places.candidates)
+            self.far_stats["whole_map"] += not proposed
+        if proposed:
+            assert self.places is not None
+            match = search_at_places(index.grid, cloud, initial, window_m, window_rad, proposed, self.places.window_m,
+                                     self.places.window_rad, c.far_min_score, c.ambiguity_m, c.ambiguity_rad,
+                                     c.runner_up_ratio, c.runner_up_ratio * c.far_min_score, threads=self.threads)
+        else:
+            match = search(index.grid, cloud, initial, window_m, window_rad, c.far_min_score,
+                           ambiguity_m=c.ambiguity_m, ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio,
+                           runner_up_min_score=c.runner_up_ratio * c.far_min_score, threads=self.threads,
+                           any_runner_up=True)
         if match is None or match.runner_up_score >= c.runner_up_ratio * match.score:
             return None
         return match.pose
@@ -558,7 +576,9 @@ class LoopCloser:
         world = place_each(est[nodes], np.concatenate([self.points_v[n] for n in nodes.tolist()]),
                            np.repeat(np.arange(len(nodes)), counts))
         grid = match_grid_from_points(world, c.far_resolution_m, 1.0, n_levels=FAR_LEVELS)
-        self._far_index = _FarIndex(grid, nodes, *grid.centre_and_reach(), until_m, self._moved)
+        places = None if self.places is None else \
+            PlaceIndex.along(world, est[nodes, :2], self.places.spacing_m, self.places.radius_m)
+        self._far_index = _FarIndex(grid, nodes, *grid.centre_and_reach(), until_m, self._moved, places)
         return self._far_index
 
     def _candidates(self, k: int, est: np.ndarray, window_m: float) -> list[tuple[int, float]]:
@@ -768,7 +788,8 @@ class LoopCloser:
 
 def close_loops(path: np.ndarray, points_v: list[np.ndarray], config: LoopClosingConfig, resolution_m: float,
                 unverified: np.ndarray | None = None, threads: int = 1,
-                progress: Callable[[float], None] | None = None) -> LoopClosingResult:
+                progress: Callable[[float], None] | None = None,
+                places: PlaceIndexConfig | None = None) -> LoopClosingResult:
     """Optimised key-frame poses for the front end's ``path`` (K, 3) and key-frame end points;
     ``unverified`` (K,) bool marks the steps whose motion the front end did not verify by a scan match.
     Each global search runs in ``threads`` threads (same result for any: :func:`correlative.branch_and_bound`).
@@ -778,13 +799,15 @@ def close_loops(path: np.ndarray, points_v: list[np.ndarray], config: LoopClosin
     When a far closure moved its key frame farther than ``far_second_pass_m``, the windowed searches
     before it ran from estimates too far off to reach the map they overlap: the key frames are searched
     once more, each predicted from the one before by the corrected poses' motion, while the graph and the
-    submaps keep the front end's motions (``progress`` then hears 1.0)."""
+    submaps keep the front end's motions (``progress`` then hears 1.0). ``places``: the place index's
+    settings, when far searches use it (:func:`~slam_engine.backend.place_index.search_at_places`)."""
     if not config.enabled or len(path) < 3:
         return LoopClosingResult(poses=np.asarray(path, np.float64).copy())
-    first = LoopCloser(path, points_v, config, resolution_m, unverified, threads).run(progress)
+    first = LoopCloser(path, points_v, config, resolution_m, unverified, threads, places=places).run(progress)
     if not any(c.reason == FAR_ACCEPTED and c.correction_m > config.far_second_pass_m for c in first.closures):
         return first
-    second = LoopCloser(path, points_v, config, resolution_m, unverified, threads, guide=first.poses).run(
+    second = LoopCloser(path, points_v, config, resolution_m, unverified, threads, guide=first.poses,
+                        places=places).run(
         None if progress is None else lambda _done: progress(1.0))
     second.far_search = {**(first.far_search or {}), "second_pass": second.far_search}
     return second

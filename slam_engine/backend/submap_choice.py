@@ -24,7 +24,7 @@ import numpy as np
 from slam_engine.backend.loop_closer import LoopClosingResult, close_loops
 from slam_engine.backend.map_builder import render_occupancy
 from slam_engine.backend.step_rematch import StepRematch, rematch_steps
-from slam_engine.config import GridConfig, LoopClosingConfig
+from slam_engine.config import GridConfig, LoopClosingConfig, PlaceIndexConfig
 from slam_engine.evaluation.consistency import map_consistency
 from slam_engine.frontend.lidar_points import ProjectedScan
 
@@ -67,10 +67,12 @@ def key_frames_contradicted(poses: np.ndarray, points_v: Sequence[np.ndarray], g
 
 def close_loops_checked(path: np.ndarray, points_v: list[np.ndarray], config: LoopClosingConfig,
                         grid: GridConfig, unverified: np.ndarray | None = None, threads: int = 1,
-                        progress: Callable[[float], None] | None = None) -> CheckedLoopClosing:
+                        progress: Callable[[float], None] | None = None,
+                        places: PlaceIndexConfig | None = None) -> CheckedLoopClosing:
     """:func:`rematch_steps` on the front end's key-frame ``path`` (K, 3), then :func:`close_loops`
     with each of :func:`submap_lengths`; with more than one, the result whose key frames contradict
-    its map least is kept (the first of equal ones). ``progress`` hears the share of the work done."""
+    its map least is kept (the first of equal ones). ``progress`` hears the share of the work done;
+    ``places`` as in :func:`close_loops`."""
     rematched = rematch_steps(path, points_v, config, grid.resolution_m, threads=threads, unverified=unverified)
     lengths = submap_lengths(config)
 
@@ -80,7 +82,7 @@ def close_loops_checked(path: np.ndarray, points_v: list[np.ndarray], config: Lo
                 progress((i + done) / len(lengths))
 
         return close_loops(rematched.path, points_v, config.model_copy(update={"submap_length_m": lengths[i]}),
-                           grid.resolution_m, unverified=unverified, threads=threads, progress=report)
+                           grid.resolution_m, unverified=unverified, threads=threads, progress=report, places=places)
 
     results = [closed_with(i) for i in range(len(lengths))]
     if len(lengths) == 1:

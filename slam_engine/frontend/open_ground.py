@@ -46,8 +46,9 @@ def open_ground_config(config: SlamConfig, log: DriveLog) -> tuple[SlamConfig, d
     """``config`` for mapping ``log``: with ``grid.no_return_clear_m`` 0, closures from
     ``loop_closing.open_ground_min_score``, the submap lengths
     ``loop_closing.open_ground_alternative_submap_lengths_m`` tried (where no alternatives are set) and
-    unverified steps searched only where they fit poorly (``rematch_unverified`` off) when the drive
-    is on open ground, else as given; and what was decided, for run.json."""
+    unverified steps searched only where they fit poorly (``rematch_unverified`` off) and far searches
+    over the whole map (``place_index.far_searches`` off) when the drive is on open ground, else as given;
+    and what was decided, for run.json."""
     share = no_return_share(log)
     bar = config.grid.no_return_open_share
     summary = {"no_return_share": None if share is None else round(share, 4), "open_ground_above": bar,
@@ -61,4 +62,6 @@ def open_ground_config(config: SlamConfig, log: DriveLog) -> tuple[SlamConfig, d
         update={"min_score": min(closing.min_score, closing.open_ground_min_score), "rematch_unverified": False,
                 "alternative_submap_lengths_m": (closing.alternative_submap_lengths_m
                                                  or closing.open_ground_alternative_submap_lengths_m)})
-    return config.model_copy(update={"grid": grid, "loop_closing": loop_closing}), {**summary, "open_ground": True}
+    places = config.place_index.model_copy(update={"far_searches": False})
+    return (config.model_copy(update={"grid": grid, "loop_closing": loop_closing, "place_index": places}),
+            {**summary, "open_ground": True})

@@ -210,7 +210,8 @@ def _optimised(bundle: MapBundle, config: SlamConfig, threads: int) -> MapBundle
     one pose graph, the fit to the joint map; every scan's pose re-anchored to its key frame's new pose."""
     hits = bundle.all_hits()
     c = config.loop_closing
-    backend = close_loops(bundle.poses, hits, c, bundle.resolution_m, unverified=bundle.unverified, threads=threads)
+    backend = close_loops(bundle.poses, hits, c, bundle.resolution_m, unverified=bundle.unverified, threads=threads,
+                          places=config.place_index.for_far_searches())
     poses = backend.poses
     if c.enabled:
         poses, _ = align_to_map(poses, hits, bundle.resolution_m, c.map_alignment_passes, c.match_range_m)

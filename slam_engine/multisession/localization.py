@@ -43,14 +43,16 @@ from slam_engine.backend.correlative import (
     search,
 )
 from slam_engine.backend.loop_closer import thin
+from slam_engine.backend.place_index import PlaceCandidate, PlaceIndex, map_places, search_at_places
 from slam_engine.backend.submaps import match_grid_from_points
-from slam_engine.config import LocalizationConfig, SlamConfig
+from slam_engine.config import LocalizationConfig, PlaceIndexConfig, SlamConfig
 from slam_engine.errors import ConfigError
 from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.map_bundle import MapBundle
 from slam_engine.model.poses import compose, inverse, place_each, place_points, relative, wrap_angle
 from slam_engine.model.result import Trajectory
 
+PLACE_QUERY_POINTS = 3000  # a stretch's end points that describe it to the place index, at most
 MATCH_RANGE_M = 20.0  # end points farther than this are left out of matching (as the loop closer does)
 TRACK_POINTS = 250  # a tracked scan is matched with at most this many end points
 COARSE_LEVELS = 10  # the global grid's pyramid: blocks up to 512 cells (51 m at 0.1 m)
@@ -147,9 +149,14 @@ class MapIndex:
     fine: MatchGrid
     coverage: Coverage
     origins: np.ndarray
+    places: PlaceIndex | None = None  # proposes where a stretch may be (None: searched over the whole map)
+    place_config: PlaceIndexConfig | None = None
 
     @classmethod
-    def of_bundle(cls, bundle: MapBundle, config: LocalizationConfig) -> MapIndex:
+    def of_bundle(cls, bundle: MapBundle, config: LocalizationConfig,
+                  place_config: PlaceIndexConfig | None = None) -> MapIndex:
+        """The bundle's index; with ``place_config``, its places too
+        (:func:`~slam_engine.backend.place_index.map_places`)."""
         hits = bundle.all_hits()
         owner = np.repeat(np.arange(len(bundle)), [len(h) for h in hits])
         points = np.concatenate(hits) if hits else np.zeros((0, 2))
@@ -161,7 +168,10 @@ class MapIndex:
         fine = match_grid_from_points(points_m, bundle.resolution_m, 1.0, n_levels=FINE_LEVELS)
         coverage = Coverage.of_bundle(bundle)
         origins = max_pyramid(coverage.near_cells_of(coarse, ORIGIN_REACH_M).astype(np.uint8), coarse.n_levels)
-        return cls(coarse, fine, coverage, origins)
+        places = None
+        if place_config is not None:
+            places = map_places(points_m, bundle.poses[:, :2], coverage.covers, place_config)
+        return cls(coarse, fine, coverage, origins, places, place_config)
 
 
 @dataclass
@@ -298,6 +308,7 @@ class LocalizationResult:
     T_map_from_drive: np.ndarray | None = None
     outside_map: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     global_searches: int = 0
+    whole_map_searches: int = 0  # of global_searches, over the whole map (the place index proposed nothing)
     failed_tries: dict[str, int] = field(default_factory=dict)  # why tries at a first placement failed: count
     wall_time_s: float = 0.0
     search_s: float = 0.0  # of wall_time_s: placing and tracking the drive (the rest: its scans, the map's index)
@@ -309,7 +320,8 @@ class LocalizationResult:
             "scans": int(len(self.confidence)), "scans_tracked": int(tracked.sum()),
             "scans_outside_map": int(self.outside_map.sum()),
             "mean_confidence": round(float(self.confidence.mean()), 4) if len(self.confidence) else None,
-            "events": self.events, "global_searches": self.global_searches, "failed_tries": dict(self.failed_tries),
+            "events": self.events, "global_searches": self.global_searches,
+            "whole_map_searches": self.whole_map_searches, "failed_tries": dict(self.failed_tries),
             "T_map_from_drive": None if self.T_map_from_drive is None else [round(float(v), 5)
                                                                           for v in self.T_map_from_drive],
             "wall_time_s": round(self.wall_time_s, 3),
@@ -326,6 +338,7 @@ class Localizer:
         self.threads = max(1, int(threads))
         self.best_score = 0.0
         self.global_searches = 0
+        self.whole_map_searches = 0  # of them, over the whole map: the place index proposed nothing
         self.uncovered = np.zeros(len(drive), bool)  # scans too far out of the map to be judged by it
         self.failed_tries: dict[str, int] = {}  # why each first try failed (LOW_SCORE, ...): how many
         self._why = ""  # why the last placed_stretch or confirmed_placement found nothing
@@ -339,17 +352,26 @@ class Localizer:
         cloud = self.drive.cloud(first, last, c.max_points)
         if len(cloud) < 20:
             return None, False
+        self.global_searches += 1
+        floor = c.min_score * REPORT_SHARE
         if near is None:
             initial, window_m = self.index.coarse.centre_and_reach()
             window_rad = math.pi
         else:
             initial, window_m, window_rad = near
-        self.global_searches += 1
-        floor = c.min_score * REPORT_SHARE
-        match = search(self.index.coarse, cloud, initial, window_m, window_rad, floor, ambiguity_m=c.ambiguity_m,
-                       ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio, runner_up_min_score=floor,
-                       threads=self.threads, runner_up_from=c.min_score, origins=self.index.origins,
-                       any_runner_up=True)
+        proposed = self._proposed(first, last) if near is None else []
+        if proposed:
+            assert self.index.place_config is not None
+            match = search_at_places(self.index.coarse, cloud, initial, window_m, window_rad, proposed,
+                                     self.index.place_config.window_m, self.index.place_config.window_rad, floor,
+                                     c.ambiguity_m, c.ambiguity_rad, c.runner_up_ratio, floor, c.min_score,
+                                     self.threads, self.index.origins)
+        else:
+            self.whole_map_searches += near is None
+            match = search(self.index.coarse, cloud, initial, window_m, window_rad, floor, ambiguity_m=c.ambiguity_m,
+                           ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio,
+                           runner_up_min_score=floor, threads=self.threads, runner_up_from=c.min_score,
+                           origins=self.index.origins, any_runner_up=True)
         if match is None:
             return None, False
         self.best_score = max(self.best_score, match.score)
@@ -358,6 +380,15 @@ class Localizer:
         if match.runner_up_score >= c.runner_up_ratio * match.score:
             return None, True
         return self.refined_placement(cloud, match.pose), False
+
+    def _proposed(self, first: int, last: int) -> list[PlaceCandidate]:
+        """The places the index proposes for the stretch ``first..last`` (none without an index in use, or
+        when the stretch describes too little)."""
+        places = self.index.place_config
+        if self.index.places is None or places is None or not places.enabled:
+            return []
+        return self.index.places.query(self.drive.cloud(first, last, PLACE_QUERY_POINTS),
+                                       places.candidates)
 
     def refined_placement(self, cloud: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """A global match on the coarse grid's lattice (``pose``) fitted on the map's own cells: kept
@@ -500,6 +531,7 @@ class Localizer:
                 break
         if placement is None:
             return LocalizationResult(False, self.best_score, events=events, global_searches=self.global_searches,
+                                      whole_map_searches=self.whole_map_searches,
                                       failed_tries=dict(self.failed_tries), wall_time_s=time.perf_counter() - started)
         _, last, pose = placement
         poses[last] = pose
@@ -515,6 +547,7 @@ class Localizer:
         T_map_from_drive = _rigid_placement(poses[tracked], drive.poses[tracked])
         return LocalizationResult(True, self.best_score, Trajectory(drive.t_s.copy(), poses), confidence, tracked,
                                   events, T_map_from_drive, self.uncovered.copy(), self.global_searches,
+                                  self.whole_map_searches,
                                   dict(self.failed_tries), time.perf_counter() - started)
 
     def _track_forward(self, poses: np.ndarray, confidence: np.ndarray, tracked: np.ndarray, start: int,
@@ -642,6 +675,11 @@ def _at_window_edge(pose: np.ndarray, centre: np.ndarray, resolution_m: float) -
                 or max(abs(moved[0]), abs(moved[1])) >= JOIN_WINDOW_M - resolution_m)
 
 
+def _in_use(config: SlamConfig) -> PlaceIndexConfig | None:
+    """The place index's settings when searches use it (None: they search the whole map)."""
+    return config.place_index if config.place_index.enabled else None
+
+
 def localize_log(bundle: MapBundle, log: DriveLog, config: SlamConfig | None = None, hint: np.ndarray | None = None,
                  threads: int = 1) -> tuple[DriveScans, LocalizationResult]:
     """:func:`localize` of a drive log: its scans (:meth:`DriveScans.from_log`, returned too) and the
@@ -655,7 +693,7 @@ def localize_log(bundle: MapBundle, log: DriveLog, config: SlamConfig | None = N
     started = time.perf_counter()
     if threads <= 1:
         drive = DriveScans.from_log(log, config)
-        index = MapIndex.of_bundle(bundle, config.localization)
+        index = MapIndex.of_bundle(bundle, config.localization, _in_use(config))
         return drive, _placed(index, drive, config, hint, threads, started)
     start_ready = threading.Event()
     start: list[DriveScans] = []
@@ -668,7 +706,7 @@ def localize_log(bundle: MapBundle, log: DriveLog, config: SlamConfig | None = N
         matching = pool.submit(DriveScans.from_log, log, config, on_start,
                                START_STRETCHES * config.localization.stretch_m)
         matching.add_done_callback(lambda _: start_ready.set())  # also when it fails before its start
-        index = MapIndex.of_bundle(bundle, config.localization)
+        index = MapIndex.of_bundle(bundle, config.localization, _in_use(config))
         start_ready.wait()
         tried: dict[int, tuple[int, int, np.ndarray] | None] = {}
         early = None
@@ -689,7 +727,8 @@ def localize(bundle: MapBundle, drive: DriveScans, config: SlamConfig | None = N
     the drive's first scan, if known."""
     config = SlamConfig() if config is None else config
     started = time.perf_counter()
-    return _placed(MapIndex.of_bundle(bundle, config.localization), drive, config, hint, threads, started)
+    index = MapIndex.of_bundle(bundle, config.localization, _in_use(config))
+    return _placed(index, drive, config, hint, threads, started)
 
 
 def _placed(index: MapIndex, drive: DriveScans, config: SlamConfig, hint: np.ndarray | None, threads: int,
@@ -700,6 +739,7 @@ def _placed(index: MapIndex, drive: DriveScans, config: SlamConfig, hint: np.nda
     localizer = Localizer(index, drive, config.localization, threads)
     if early is not None:
         localizer.best_score, localizer.global_searches = early.best_score, early.global_searches
+        localizer.whole_map_searches = early.whole_map_searches
         localizer.failed_tries = dict(early.failed_tries)
     result = localizer.run(hint, tried)
     result.search_s, result.wall_time_s = result.wall_time_s, time.perf_counter() - started

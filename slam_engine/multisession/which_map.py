@@ -4,8 +4,8 @@ in them in that order.
 Each map's place index (:mod:`slam_engine.backend.place_index`: places along the path that made the map and
 on a lattice over the free space it observed) is asked how much the drive looks like it: ``stretches``
 stretches of ``stretch_m`` of travel spread over the drive, each one's best place similarity, their median
-(0-1). The drive is then localised (:func:`~slam_engine.multisession.localization.localize`: the whole-map
-search, confirmed by a second stretch, as for one map) in the maps in that order; the first map it is
+(0-1). The drive is then localised (:class:`~slam_engine.multisession.localization.Localizer`, confirmed
+by a second stretch, as for one map) in the maps in that order; the first map it is
 localised in is the answer and the maps after it are not searched. A drive localised in none is refused,
 with every map's best score. The order only decides how soon the answer comes: every map that is tried is
 judged by the same search as one map alone.
@@ -21,13 +21,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam_engine.backend.place_index import PlaceIndex, free_lattice, spaced
+from slam_engine.backend.place_index import PlaceIndex
 from slam_engine.config import SlamConfig
 from slam_engine.errors import ConfigError
 from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.map_bundle import MapBundle
-from slam_engine.model.poses import place_each
-from slam_engine.multisession.localization import Coverage, DriveScans, LocalizationResult, localize
+from slam_engine.multisession.localization import DriveScans, LocalizationResult, Localizer, MapIndex
 
 DESCRIBE_POINTS = 3000  # a stretch's end points that describe it to the index, at most
 
@@ -67,20 +66,6 @@ class WhichMap:
                 "maps": [t.as_dict() for t in self.tries], "wall_time_s": round(self.wall_time_s, 3)}
 
 
-def map_places(bundle: MapBundle, config: SlamConfig) -> PlaceIndex:
-    """The place index of a saved map: places every ``spacing_m`` along its key frames and on a lattice
-    over the free space it observed (map frame)."""
-    hits = bundle.all_hits()
-    counts = [len(h) for h in hits]
-    if sum(counts) == 0:
-        return PlaceIndex.build(np.zeros((0, 2)), np.zeros((0, 2)), config.place_index.radius_m)
-    points = place_each(bundle.poses, np.concatenate(hits), np.repeat(np.arange(len(hits)), counts))
-    spacing = config.place_index.spacing_m
-    path = bundle.poses[spaced(bundle.poses[:, :2], spacing), :2]
-    lattice = free_lattice(points, spacing, Coverage.of_bundle(bundle).covers)
-    return PlaceIndex.build(points, np.concatenate([path, lattice]), config.place_index.radius_m)
-
-
 def likeness(index: PlaceIndex, drive: DriveScans, config: SlamConfig) -> float:
     """How much the drive looks like the map of ``index`` (0-1): the median over ``stretches`` stretches
     spread over the drive of the best place's similarity."""
@@ -103,16 +88,18 @@ def localize_in_maps(maps: Sequence[tuple[str, MapBundle]], log: DriveLog, confi
     config = SlamConfig() if config is None else config
     started = time.perf_counter()
     drive = DriveScans.from_log(log, config)
-    tries = []
+    tries, indexes = [], []
     for name, bundle in maps:
         t0 = time.perf_counter()
-        tries.append(MapTry(name, likeness(map_places(bundle, config), drive, config),
-                            seconds=time.perf_counter() - t0))
+        index = MapIndex.of_bundle(bundle, config.localization, config.place_index)
+        assert index.places is not None
+        indexes.append(index)
+        tries.append(MapTry(name, likeness(index.places, drive, config), seconds=time.perf_counter() - t0))
     order = sorted(range(len(maps)), key=lambda i: -tries[i].likeness)
     chosen, result = None, None
     for i in order:
         t0 = time.perf_counter()
-        placed = localize(maps[i][1], drive, config, threads=threads)
+        placed = Localizer(indexes[i], drive, config.localization, threads).run()
         tries[i].localised, tries[i].best_score = placed.localised, placed.best_score
         tries[i].seconds += time.perf_counter() - t0
         if placed.localised:

@@ -46,7 +46,12 @@ def test_only_a_level_long_range_lidar_on_open_ground_stops_clearing_and_lowers_
     assert mapped.grid.no_return_clear_m == 0.0 and config.grid.no_return_clear_m == 30.0
     # loops close from open_ground_min_score (0.5) there, the lower of it and min_score
     assert mapped.loop_closing.min_score == 0.5 and config.loop_closing.min_score == 0.6
-    assert mapped.model_dump(exclude={"grid", "loop_closing"}) == config.model_dump(exclude={"grid", "loop_closing"})
+    kept = {"grid", "loop_closing", "place_index"}
+    assert mapped.model_dump(exclude=kept) == config.model_dump(exclude=kept)
+    # far searches over the whole map: the place index proposes no place beside the path outdoors
+    assert mapped.place_index.for_far_searches() is None and config.place_index.for_far_searches() is not None
+    assert mapped.place_index.model_dump(exclude={"far_searches"}) == config.place_index.model_dump(
+        exclude={"far_searches"})
     # and try 16 m submaps beside the 8 m ones (backend/submap_choice.py)
     assert mapped.loop_closing.alternative_submap_lengths_m == [16.0]
     assert config.loop_closing.alternative_submap_lengths_m == []
