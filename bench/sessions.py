@@ -11,6 +11,9 @@ time), then:
   localisation's wall time (reading the drive's scans and matching them to each other while the saved
   map's index is built, then placing and tracking) is set against the time it took to map ``NAME-b``;
 - **refuse**: every ``b`` half in the other buildings' ``a`` maps, which must be refused;
+- **which map**: every ``b`` half given all the ``a`` maps (``localize_in_maps``, what ``lidarmap localize
+  --map A --map B`` runs): it must be placed in its own building's, in at most twice the time of that map
+  alone;
 - **extend**: ``NAME-a``'s bundle joined with ``NAME-b``'s (what ``lidarmap run NAME-b --map
   NAME-a-out`` does), the joint trajectory scored against both relation files;
 - **merge**: both bundles written and read back as saved maps, then merged (what ``lidarmap merge``
@@ -45,6 +48,7 @@ LOCALISE_TARGETS_M = {"intel": 0.04, "aces-rough": 0.06}  # NAME-ab.relations (c
 EXTEND_TARGETS_M = {"intel": 0.025, "aces-rough": 0.05}  # NAME-all.relations
 MERGE_TARGETS_M = {"intel": 0.03}  # NAME-all.relations
 TIME_RATIO_TARGET = 0.2  # localising a half may take at most a fifth of mapping it
+WHICH_MAP_TIME_RATIO = 2.0  # finding the map among several may take at most twice localising in it alone
 RESULTS_FILE = "sessions.json"
 LATEST_FILE = "latest-sessions.json"
 
@@ -131,6 +135,7 @@ def run_seed(drives: list[SessionDrive], seed: int, overrides: dict | None = Non
     from slam_engine.frontend.particle_filter import engine_threads
     from slam_engine.multisession.joining import join, merge
     from slam_engine.multisession.localization import localize_log
+    from slam_engine.multisession.which_map import localize_in_maps
     from slam_engine.pipeline import run_slam
     from slam_engine.products.map_bundle import read_bundle, write_bundle
 
@@ -179,6 +184,19 @@ def run_seed(drives: list[SessionDrive], seed: int, overrides: dict | None = Non
             say(f"  seed {seed}: {drive_name} in {map_name}'s map: {outcome} (best score {placed.best_score:.3f}), "
                 f"{wall_s:.1f} s ({scans_s:.1f} s its scans)")
 
+    which: dict[str, dict[str, Any]] = {}
+    saved_maps = [(f"{d.name}-a", bundles[f"{d.name}-a"]) for d in drives]
+    for drive in drives:  # which map: each b half among every a map
+        name = f"{drive.name}-b"
+        found = localize_in_maps(saved_maps, logs[name], config, threads=threads)
+        chosen = None if found.chosen is None else found.tries[found.chosen].name
+        one_map_s = localisations[f"{name} in {drive.name}-a"]["wall_s"]
+        which[name] = {"chosen": chosen, "right": chosen == f"{drive.name}-a", "wall_s": found.wall_time_s,
+                       "one_map_s": one_map_s, "time_ratio": found.wall_time_s / one_map_s,
+                       "maps": found.summary()["maps"]}
+        say(f"  seed {seed}: which map for {name} among {len(saved_maps)}: {chosen or 'none'} in "
+            f"{found.wall_time_s:.1f} s ({one_map_s:.1f} s in its own map alone)")
+
     for drive in drives:
         joined = join(bundles[f"{drive.name}-a"], bundles[f"{drive.name}-b"], config, threads=threads)
         extensions[drive.name] = {"connected": joined.connected, "wall_s": joined.wall_time_s,
@@ -208,7 +226,8 @@ def run_seed(drives: list[SessionDrive], seed: int, overrides: dict | None = Non
     from bench.worker import finite_or_none
 
     return finite_or_none({"seed": seed, "threads": threads, "config": config.model_dump(mode="json"),
-                           "mapping": mapping, "localise": localisations, "extend": extensions, "merge": merges})
+                           "mapping": mapping, "localise": localisations, "which_map": which, "extend": extensions,
+                           "merge": merges})
 
 
 # ------------------------------------------------------------------------------------------- checks
@@ -218,7 +237,7 @@ def run_seed(drives: list[SessionDrive], seed: int, overrides: dict | None = Non
 class Check:
     """One row of the table: a number at ``path`` in each seed's record and what it must be.
     ``kind`` "at_most": the number is at most ``target`` (None: not measured, a miss); "refused":
-    the value (whether the drive was localised) is False."""
+    the value (whether the drive was localised) is False; "right": it is True."""
 
     id: str
     label: str
@@ -244,6 +263,10 @@ def checks_for(drives: list[SessionDrive], targets: Targets = DEFAULT_TARGETS) -
              for n in names]
     rows += [Check(f"time:{n}", f"localise {n}-b / map {n}-b, wall time", ("localise", f"{n}-b in {n}-a",
                    "time_ratio"), "at_most", targets.time_ratio, unit="") for n in names]
+    rows += [Check(f"which:{n}", f"which map: {n}-b among the {len(names)} a maps", ("which_map", f"{n}-b", "right"),
+                   "right", unit="") for n in names]
+    rows += [Check(f"which-time:{n}", f"which map: {n}-b among them / in {n}-a alone, wall time",
+                   ("which_map", f"{n}-b", "time_ratio"), "at_most", WHICH_MAP_TIME_RATIO, unit="") for n in names]
     return rows
 
 
@@ -264,6 +287,13 @@ def evaluate(check: Check, runs: list[dict]) -> dict:
     whether it passed (None: no target)."""
     values = [_get(run, check.path) for run in runs]
     row: dict = {**asdict(check), "values": values}
+    if check.kind == "right":
+        right = [v is True for v in values]
+        chosen = [_get(run, check.path[:-1] + ("chosen",)) for run in runs]
+        row.update(median=None, worst=None, passed=all(right), target_text="its own building's map",
+                   measured=f"right {sum(right)}/{len(right)}" + ("" if all(right) else
+                                                                  f" (chose {', '.join(map(str, chosen))})"))
+        return row
     if check.kind == "refused":
         refused = [v is False for v in values]
         scores = [_get(run, check.path[:-1] + ("best_score",)) for run in runs]

@@ -96,7 +96,8 @@ def test_checks_json_and_tables(sessions_run):
     rows = {row["id"]: row for row in results["checks"]}
     assert list(rows) == ["localise:campus", "localise:office", "extend:campus", "extend:office",
                           "refuse:campus:office", "refuse:office:campus", "merge:campus", "merge:office",
-                          "time:campus", "time:office"]
+                          "time:campus", "time:office", "which:campus", "which:office", "which-time:campus",
+                          "which-time:office"]
     assert rows["refuse:campus:office"]["passed"] is True and rows["refuse:office:campus"]["passed"] is True
     assert rows["localise:office"]["passed"] is None  # no target for a simulated drive
     run = results["runs"][0]
@@ -106,8 +107,14 @@ def test_checks_json_and_tables(sessions_run):
     assert results["drives"] == ["campus", "office"]
     assert "localise office-b in office-a's map, cross-session relations (office-ab)" in text
     assert f"{rows['extend:office']['values'][0]:.4f} m" in text and "refused (best score" in text
-    judged = [row["passed"] for row in rows.values() if row["passed"] is not None]  # refusals, time ratios
-    assert len(judged) == 4 and f"{sum(judged)} of 4 checks pass" in text and "Per seed" in text
+    # which map: each b half among both a maps lands in its own building's, the office's first
+    which = run["which_map"]["office-b"]
+    assert which["chosen"] == "office-a" and which["right"] and rows["which:office"]["passed"] is True
+    assert which["maps"][0]["map"] == "office-a" and which["maps"][0]["localised"] is True
+    assert which["time_ratio"] == pytest.approx(which["wall_s"] / which["one_map_s"])
+    assert rows["which-time:office"]["values"] == [which["time_ratio"]]
+    judged = [row["passed"] for row in rows.values() if row["passed"] is not None]  # refusals, time, which map
+    assert len(judged) == 8 and f"{sum(judged)} of 8 checks pass" in text and "Per seed" in text
 
 
 def test_checks_take_the_worst_seed_and_count_a_missing_number_as_a_miss():
@@ -141,11 +148,18 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
     import bench.cases
     import bench.harness
     import bench.live
+    import bench.peers
+    import bench.place_recall
     import bench.sessions
 
     calls: list = []
     live_calls: list = []
+    recall_calls: list = []
+    peer_calls: list = []
     monkeypatch.setattr(bench.live, "run_live_table", lambda out, console: live_calls.append(out))
+    monkeypatch.setattr(bench.place_recall, "measure", lambda name: recall_calls.append(name))
+    monkeypatch.setattr(bench.place_recall, "table", lambda rows, k: "recall table")
+    monkeypatch.setattr(bench.peers, "karto_binary", lambda: peer_calls.append("karto") and None)
     monkeypatch.setattr(bench.cases, "default_cases", lambda root=None, map_only=True: [])
     monkeypatch.setattr(bench.harness, "run_benchmark",
                         lambda cases, options, on_run=None: {"summaries": [], "out_dir": str(options.out_dir)})
@@ -163,8 +177,14 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
                                             (["--seeds", "1-2", "--no-live"], True, False)):
         calls.clear()
         live_calls.clear()
+        recall_calls.clear()
+        peer_calls.clear()
         with pytest.raises(SystemExit) as exit_info:
             main([*flags, "--no-simulated", "--out", str(out), str(log)])
         assert exit_info.value.code == 0
         assert calls == ([([drive], [1, 2], out)] if runs_sessions else []), flags
         assert live_calls == ([out] if runs_live else []), flags
+        # the place index's recall on the benchmark logs (with the datasets), then Karto side by side
+        places = runs_sessions or flags == ["--no-sessions"]
+        assert recall_calls == (list(bench.place_recall.DEFAULT_LOGS) if places else []), flags
+        assert peer_calls == (["karto"] if "--quick" not in flags else []), flags
