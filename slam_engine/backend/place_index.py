@@ -26,7 +26,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from slam_engine.backend.correlative import CorrelativeMatch, MatchGrid, lattice_pose, runner_up_score, search
 from slam_engine.config import PlaceIndexConfig
@@ -112,6 +111,8 @@ class PlaceIndex:
         centres = np.asarray(centres_m, np.float64).reshape(-1, 2)
         if len(points) == 0 or len(centres) == 0:
             return cls(np.zeros((0, 2)), np.zeros((0, RINGS, SECTORS), np.float32), radius_m)
+        from scipy.spatial import cKDTree  # here: scipy.spatial costs 0.3 s to import, every run would pay it
+
         tree = cKDTree(points)
         near = tree.query_ball_point(centres, radius_m, return_sorted=False)
         descriptors = np.stack([describe(points[np.asarray(i, np.int64)], c, radius_m)
@@ -215,6 +216,8 @@ def free_lattice(points_m: np.ndarray, spacing_m: float, covers: Callable[[np.nd
     if len(lattice) == 0:
         return lattice
     lattice = lattice[covers(lattice)]
+    from scipy.spatial import cKDTree
+
     clear = cKDTree(_deduped(points)).query(lattice, distance_upper_bound=clearance_m)[0] > clearance_m
     return lattice[clear]
 
