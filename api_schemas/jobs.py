@@ -71,7 +71,9 @@ class JobCreate(BaseModel):
                           "localization.png, run.json.")
     map_job_id: str | None = Field(None, max_length=64, description="The finished job (a mapping or "
                                    "extension job, or an uploaded map) whose map_bundle.npz the job starts from: "
-                                   "required for 'localize' and 'extend'.")
+                                   "required for 'extend'; a 'localize' job without it searches every saved map "
+                                   "of the key (the newest 50) and localises the drive in the one it is in "
+                                   "(run.json: localization.which_map).")
     idle_timeout_s: float = Field(600.0, strict=True,
                                   ge=1.0, le=86_400.0, description="Live jobs: with no new chunk to map "
                                   "for this long [s], the job ends and writes the products of what it mapped "
@@ -85,9 +87,11 @@ class JobCreate(BaseModel):
         if self.live and (self.source is JobSource.LOG or self.log_id is not None):
             raise ValueError("a live job follows the session's stream: leave 'source' out (or 'stream') "
                              "and give no 'log_id'")
-        if (self.mode is JobMode.MAP) != (self.map_job_id is None):
+        if self.mode is JobMode.MAP and self.map_job_id is not None:
             raise ValueError("'map_job_id' names the saved map that 'localize' and 'extend' start from: give it "
                              "with those modes, and only with them")
+        if self.mode is JobMode.EXTEND and self.map_job_id is None:
+            raise ValueError("'extend' grows the saved map of 'map_job_id': name it")
         if self.live and self.mode is not JobMode.MAP:
             raise ValueError("a live job maps its stream ('mode': 'map'); localise or extend with the finished "
                              "stream instead")

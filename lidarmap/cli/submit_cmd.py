@@ -28,7 +28,8 @@ def register(app: typer.Typer) -> None:
         format: str = typer.Option("auto", "--format", "-f", help="Log format, or auto to detect it."),
         api_key: str | None = typer.Option(None, envvar="LIDARMAP_API_KEY", help="API key, when the service "
                                            "needs one."),
-        mode: str = typer.Option("map", help="map, localize (in the saved map of --map-job) or extend (that map)."),
+        mode: str = typer.Option("map", help="map, localize (in the saved map of --map-job; without it, in "
+                                 "whichever saved map of the key the drive is in) or extend (that map)."),
         map_job: str | None = typer.Option(None, "--map-job", help="The finished job whose saved map a "
                                            "localize or extend job starts from."),
         timeout: float | None = typer.Option(None, min=1.0, help="Give up waiting after this long [s]."),

@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from api_schemas.jobs import JobSource
+from api_schemas.jobs import JobMode, JobSource
 from service.http_errors import Conflict, InvalidInput, NotFound
 from service.jobs.estimate import (
     check_drive_memory,
@@ -16,7 +16,7 @@ from service.jobs.estimate import (
     stored_figures,
 )
 from service.jobs.events import job_event
-from service.jobs.saved_maps import saved_map_path
+from service.jobs.saved_maps import saved_map_path, saved_map_paths
 from service.jobs.settings import JobSettings, resolve, stored_config
 from service.storage.data_dir import DataDir
 from service.storage.rows import JobRow, SessionRow
@@ -43,6 +43,8 @@ def create_job(body: JobSettings, session: SessionRow, store: JobStore, data: Da
     refuse_costly_drive(slam, summary, scans, limit_mb)
     if body.map_job_id is not None:
         saved_map_path(store, data, session.owner, body.map_job_id)  # 404 / 409 now, not when the job runs
+    elif body.mode is JobMode.LOCALIZE:
+        saved_map_paths(store, data, session.owner)  # 409 now when the key has no saved map at all
     if body.live:
         row = _live_job(config, session, store)
     else:

@@ -1,7 +1,8 @@
 """Jobs that start from a saved map ('localize' and 'extend'): which map, and what they write.
 
 The saved map is the ``map_bundle.npz`` product of a finished job of the same owner (a mapping or
-extension job, or an uploaded map); the work is the engine's (:mod:`slam_engine.multisession`)."""
+extension job, or an uploaded map); a 'localize' job that names none searches the owner's saved maps
+(:mod:`slam_engine.multisession.which_map`). The work is the engine's (:mod:`slam_engine.multisession`)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from slam_engine.model.drive_log import DriveLog
 from slam_engine.progress import WRITING_PRODUCTS, run_fraction
 
 BUNDLE = "map_bundle.npz"
+MAX_SEARCHED_MAPS = 50  # a localisation without a named map searches the owner's newest saved maps, at most
 
 
 def saved_map_path(store: JobStore, data: DataDir, owner: str, map_job_id: str) -> Path:
@@ -33,6 +35,24 @@ def saved_map_path(store: JobStore, data: DataDir, owner: str, map_job_id: str) 
     return data.resolve(str(Path("jobs") / job.id / job.products[BUNDLE]))
 
 
+def saved_map_paths(store: JobStore, data: DataDir, owner: str) -> list[tuple[str, Path]]:
+    """(job id, map bundle) of ``owner``'s newest MAX_SEARCHED_MAPS finished jobs with a saved map;
+    Conflict (409) when there is none."""
+    found: list[tuple[str, Path]] = []
+    offset = 0
+    while len(found) < MAX_SEARCHED_MAPS:
+        rows, total = store.list_jobs(owner, None, JobStatus.SUCCEEDED, 200, offset)
+        found += [(job.id, data.resolve(str(Path("jobs") / job.id / job.products[BUNDLE])))
+                  for job in rows if BUNDLE in job.products]
+        offset += len(rows)
+        if not rows or offset >= total:
+            break
+    if not found:
+        raise Conflict("no saved map to localise in: map a drive first, or upload a map, and name it as "
+                       "'map_job_id'", {"field": "map_job_id"})
+    return found[:MAX_SEARCHED_MAPS]
+
+
 def job_mode(config: dict[str, Any]) -> JobMode:
     return JobMode(config.get("mode", JobMode.MAP))
 
@@ -44,6 +64,13 @@ def run_from_saved_map(ctx: JobContext, log: DriveLog, progress: Any) -> None:
     from slam_engine.products.map_bundle import read_bundle
 
     config = engine_config(ctx.job.config)
+    if ctx.job.config.get("map_job_id") is None:  # a localisation in whichever saved map the drive is in
+        try:
+            paths = saved_map_paths(ctx.store, ctx.data, ctx.job.owner)
+        except Conflict as error:  # every saved map was deleted after this job was queued
+            raise MapBundleError(str(error)) from None
+        _localize_in_any(ctx, [(job_id, read_bundle(path)) for job_id, path in paths], log, config)
+        return
     try:
         path = saved_map_path(ctx.store, ctx.data, ctx.job.owner, str(ctx.job.config["map_job_id"]))
     except (NotFound, Conflict) as error:  # the saved map's job was deleted after this job was queued
@@ -71,6 +98,29 @@ def _localize(ctx: JobContext, bundle: Any, log: DriveLog, config: Any) -> None:
                              f"{refusal_reason(result, config.localization.min_score)}")
     assert result.trajectory is not None
     image = localization_image(saved_map_grid(bundle, config), result.trajectory, drive.hits, result.tracked)
+    files = write_localization(ctx.out_dir / "products", summary, result.trajectory, result.confidence, image)
+    ctx.store.set_products(ctx.job_id, product_names(files, ctx.out_dir))
+
+
+def _localize_in_any(ctx: JobContext, maps: list[tuple[str, Any]], log: DriveLog, config: Any) -> None:
+    """The drive localised in the saved map it is in, among ``maps`` ((job id, bundle), newest first)."""
+    from service.jobs.outputs import product_names
+    from slam_engine.frontend.particle_filter import engine_threads
+    from slam_engine.multisession.which_map import localize_in_maps
+    from slam_engine.products.multisession import localization_image, saved_map_grid, write_localization
+
+    which = localize_in_maps(maps, log, config, threads=engine_threads())
+    total = len(which.drive)
+    ctx.progress(total, total, force=True, stage=WRITING_PRODUCTS, fraction=run_fraction(WRITING_PRODUCTS, 0.0))
+    if which.chosen is None or which.result is None:
+        scores = ", ".join(f"job {t.name}: {t.best_score:.3f}" for t in which.tries if t.best_score is not None)
+        raise MapBundleError(f"refused: the drive is in none of the {len(maps)} saved maps (best scores {scores}; "
+                             f"{config.localization.min_score:g} needed, unambiguous and confirmed)")
+    result = which.result
+    assert result.trajectory is not None
+    bundle = dict(maps)[which.tries[which.chosen].name]
+    image = localization_image(saved_map_grid(bundle, config), result.trajectory, which.drive.hits, result.tracked)
+    summary = {**result.summary(), "which_map": which.summary()}
     files = write_localization(ctx.out_dir / "products", summary, result.trajectory, result.confidence, image)
     ctx.store.set_products(ctx.job_id, product_names(files, ctx.out_dir))
 

@@ -37,12 +37,15 @@ def test_localize_and_extend_jobs_start_from_a_finished_job(tmp_path) -> None:
     with service_client(tmp_path / "data", workers=2) as client:
         sid = new_session(client)
         log_a = _upload(client, sid, first, tmp_path / "a")
+        # a localisation that names no map searches the key's saved maps: 409 while it has none
+        none_yet = client.post(f"/v1/sessions/{sid}/jobs", json={"log_id": log_a, "mode": "localize"})
+        assert "no saved map to localise in" in assert_error(none_yet, 409)["message"]
         mapped = client.post(f"/v1/sessions/{sid}/jobs", json={"log_id": log_a, "particles": 10}).json()
         log_b = _upload(client, sid, second, tmp_path / "b")
         log_c = _upload(client, sid, elsewhere, tmp_path / "c")
 
-        # a saved map must exist and be finished: 422 without one, 404 unknown, 409 not finished
-        assert_error(client.post(f"/v1/sessions/{sid}/jobs", json={"mode": "localize"}), 422)
+        # a saved map must exist and be finished: 422 extending none, 404 unknown, 409 not finished
+        assert_error(client.post(f"/v1/sessions/{sid}/jobs", json={"mode": "extend"}), 422)
         assert_error(client.post(f"/v1/sessions/{sid}/jobs", json={"map_job_id": mapped["id"]}), 422)
         assert_error(client.post(f"/v1/sessions/{sid}/jobs", json={"mode": "localize", "map_job_id": "nope"}), 404)
         if client.get(f"/v1/jobs/{mapped['id']}").json()["status"] != "succeeded":
@@ -71,6 +74,18 @@ def test_localize_and_extend_jobs_start_from_a_finished_job(tmp_path) -> None:
         assert overlay.mode == "RGB" and overlay.size[0] > 50
         run = client.get(f"/v1/jobs/{localized['id']}/run.json").json()
         assert run["localization"]["localised"] is True
+
+        # no map named: the drive is localised in whichever of the key's saved maps it is in
+        anywhere = client.post(f"/v1/sessions/{sid}/jobs", json={"log_id": log_b, "mode": "localize"})
+        assert anywhere.status_code == 202, anywhere.text
+        found = wait_for(client, anywhere.json()["id"], timeout_s=300)
+        assert found["status"] == "succeeded", found
+        which = client.get(f"/v1/jobs/{found['id']}/run.json").json()["localization"]["which_map"]
+        # the office's map, or its extension when that finished first (both hold the office)
+        assert which["chosen"] in (mapped["id"], extended["id"]) and which["maps"][0]["localised"] is True
+        nowhere = client.post(f"/v1/sessions/{sid}/jobs", json={"log_id": log_c, "mode": "localize"}).json()
+        lost = wait_for(client, nowhere["id"], timeout_s=300)
+        assert lost["status"] == "failed" and "refused: the drive is in none of the" in lost["error"], lost
 
         bad = wait_for(client, refused["id"], timeout_s=300)
         assert bad["status"] == "failed", bad
