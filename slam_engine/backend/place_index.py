@@ -73,11 +73,14 @@ def _with_neighbours(hit: np.ndarray) -> np.ndarray:
 def _deduped(points_m: np.ndarray) -> np.ndarray:
     """One point per DEDUPE_CELL_M cell (the cell's first), so that dense walls near the vehicle do not
     cost more than far ones."""
-    if len(points_m) == 0:
+    points = np.asarray(points_m, np.float64)
+    if len(points) == 0:
         return np.zeros((0, 2))
-    cells = np.floor(np.asarray(points_m) / DEDUPE_CELL_M).astype(np.int64)
-    _, first = np.unique(cells, axis=0, return_index=True)
-    return np.asarray(points_m, np.float64)[np.sort(first)]
+    cells = np.floor(points / DEDUPE_CELL_M).astype(np.int64)
+    cells -= cells.min(axis=0)
+    keys = cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1]  # one integer per cell: a 1-D unique
+    _, first = np.unique(keys, return_index=True)
+    return points[np.sort(first)]
 
 
 @dataclass(frozen=True)
