@@ -465,6 +465,12 @@ def test_a_localisation_and_an_extension_are_shown_on_their_saved_map(tmp_path) 
             picture = np.asarray(Image.open(io.BytesIO(image.screenshot())).convert("RGB")).astype(int)
             red = (picture[..., 0] > 180) & (picture[..., 1] < 90) & (picture[..., 2] < 90)
             assert red.sum() > 50  # the drive's matched end points over the saved map
+            # the summary says how much of the drive matched the map, and how long it took
+            page.wait_for_selector("#job-summary:not([hidden])")
+            placed = page.locator("#job-summary [data-figure='localisation'] .summary-text").inner_text()
+            run = api.get(f"/v1/jobs/{localised['id']}/run.json").json()["localization"]
+            assert re.fullmatch(rf"{run['scans_tracked']} of {run['scans']} scans matched the map "
+                                r"\(mean confidence [\d.]+\) in [\d.]+ s", placed), placed
 
         with _browser_page("viewer-extension") as page:
             page.goto(f"{url}/viewer/#job={extended['id']}")
@@ -473,6 +479,12 @@ def test_a_localisation_and_an_extension_are_shown_on_their_saved_map(tmp_path) 
             saved = page.evaluate("window.lidarmap.jobMap.layers.savedDrives.getLatLngs().length")
             new = page.evaluate("window.lidarmap.jobMap.layers.trajectory.getLatLngs().length")
             assert saved == len(halves[0].scans) and new == len(halves[1].scans)
+            # the saved map's drives have their own line in the key and their own box in the layer control
+            assert page.locator(".map-key .key-saved-drives").inner_text() == "Saved map's drives"
+            assert page.get_by_label("Saved map's drives").is_checked()
+            page.get_by_label("Saved map's drives").uncheck()
+            assert page.locator(".leaflet-overlay-pane svg path.trajectory-saved").count() == 0
+            page.get_by_label("Saved map's drives").check()
             assert page.locator("#job-downloads a[data-product='drives.png']").count() == 1
             assert page.locator("#job-downloads a[data-product='map_bundle.npz']").count() == 1
             ARTIFACTS.mkdir(exist_ok=True)

@@ -93,6 +93,19 @@ export function runSummary(run) {
     const rate = Number.isFinite(timings.scans_per_s) ? `, ${timings.scans_per_s.toFixed(1)} scans/s` : "";
     rows.push(["Time", `${formatDuration(timings.wall_time_s)} for ${timings.scans ?? "?"} scans${rate}`]);
   }
+  const placed = run.localization;
+  if (placed) {  // a localisation's record: where the drive was found in the saved map, and how fast
+    const seconds = placed.wall_time_s;
+    const time = !Number.isFinite(seconds) ? ""
+      : ` in ${seconds < 60 ? `${seconds.toFixed(1)} s` : formatDuration(seconds)}`;
+    const confidence = Number.isFinite(placed.mean_confidence)
+      ? ` (mean confidence ${placed.mean_confidence.toFixed(2)})` : "";
+    rows.push(["Localisation", placed.localised
+      ? `${placed.scans_tracked} of ${placed.scans} scans matched the map${confidence}${time}`
+      : `refused${time}: best score ${Number(placed.best_score).toFixed(3)}`]);
+    const which = placed.which_map;
+    if (which && which.chosen) rows.push(["Map", `job ${which.chosen}, among ${which.maps.length} saved maps`]);
+  }
   const closing = run.loop_closing || {};
   if (Number.isFinite(closing.closures_accepted)) {
     rows.push(["Loop closures", `${closing.closures_accepted} accepted of ${closing.candidates_matched ?? "?"} `

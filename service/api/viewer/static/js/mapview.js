@@ -26,6 +26,7 @@ const LAYER_NAMES = Object.freeze({
   texture: "Ground texture",
   trajectory: "Trajectory (SLAM)",
   deadReckoning: "Dead reckoning",
+  savedDrives: "Saved map's drives",
   closures: "Loop closures",
 });
 // thin and half transparent: the corridors and walls under the path stay visible
@@ -123,14 +124,20 @@ const CursorPosition = L.Control.extend({
   },
 });
 
-/** Colour key: what the map's greys and the lines mean (the dead-reckoning line only when it is shown). */
+/** Colour key: what the map's greys and the lines mean (the dead-reckoning and saved-drive lines only when
+ * they are shown). */
 const ColourKey = L.Control.extend({
   options: { position: "bottomright" },
   onAdd() {
     this.div = L.DomUtil.create("div", "map-key");
     this.closures = 0;
+    this.savedDrivesShown = false;
     this.setDeadReckoning(false);
     return this.div;
+  },
+  setSavedDrives(shown) {
+    this.savedDrivesShown = shown;
+    this._render();
   },
   setDeadReckoning(shown) {
     this.deadReckoningShown = shown;
@@ -150,6 +157,7 @@ const ColourKey = L.Control.extend({
     this.div.replaceChildren(...[
       swatch("#000", "occupied"), swatch("#fff", "free"), swatch("rgb(205, 205, 205)", "unknown"),
       line(TRAJECTORY_STYLE, LAYER_NAMES.trajectory, "key-trajectory"),
+      this.savedDrivesShown ? line(SAVED_DRIVES_STYLE, LAYER_NAMES.savedDrives, "key-saved-drives") : null,
       shown ? line(DEAD_RECKONING_STYLE, LAYER_NAMES.deadReckoning, "key-dead-reckoning") : null,
       this.closures ? line(CLOSURE_STYLE, `${LAYER_NAMES.closures} (${this.closures})`, "key-closures") : null].filter(Boolean));
   },
@@ -314,7 +322,7 @@ export class JobMap {
       savedDrives: L.polyline([], SAVED_DRIVES_STYLE),
       closures: L.layerGroup(),
     };
-    const trajectoryGroup = L.layerGroup([this.layers.savedDrives, this.layers.trajectory]);
+    const trajectoryGroup = L.layerGroup([this.layers.trajectory]);
     this.layers.trajectoryGroup = trajectoryGroup;
     // dead reckoning is offered once it has poses (a running job has none yet): see _setPaths
     const overlays = {
@@ -327,6 +335,7 @@ export class JobMap {
     }
     this.layerControl = L.control.layers(null, overlays, { collapsed: false, position: "topright" }).addTo(map);
     this.deadReckoningOffered = false;
+    this.savedDrivesOffered = false;
     this.closuresOffered = false;
     L.control.scale({ imperial: false, metric: true, maxWidth: 160, position: "bottomleft" }).addTo(map);
     new CursorPosition().addTo(map);
@@ -357,6 +366,13 @@ export class JobMap {
       this.layerControl.addOverlay(this.layers.deadReckoning, LAYER_NAMES.deadReckoning);
       if (!this.hidden.has(LAYER_NAMES.deadReckoning)) this.layers.deadReckoning.addTo(this.map);
       this.colourKey.setDeadReckoning(true);
+    }
+    // an extension's saved-map drives: their own layer and key line, under the new drive's trajectory
+    if (savedDrives && savedDrives.length && !this.savedDrivesOffered) {
+      this.savedDrivesOffered = true;
+      this.layerControl.addOverlay(this.layers.savedDrives, LAYER_NAMES.savedDrives);
+      if (!this.hidden.has(LAYER_NAMES.savedDrives)) this.layers.savedDrives.addTo(this.map).bringToBack();
+      this.colourKey.setSavedDrives(true);
     }
     const group = this.layers.trajectoryGroup;
     if (trajectory && trajectory.length) {
