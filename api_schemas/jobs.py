@@ -27,6 +27,7 @@ class JobMode(StrEnum):
     MAP = "map"  # build a map of the input
     LOCALIZE = "localize"  # place the input in the map of map_job_id (the map does not change)
     EXTEND = "extend"  # map the input, place it in the map of map_job_id and make one map of both
+    MERGE = "merge"  # make one map of the saved maps of map_job_id and merge_job_id (no input to map)
 
 
 class JobCreate(BaseModel):
@@ -74,6 +75,10 @@ class JobCreate(BaseModel):
                                    "required for 'extend'; a 'localize' job without it searches every saved map "
                                    "of the key (the newest 50) and localises the drive in the one it is in "
                                    "(run.json: localization.which_map).")
+    merge_job_id: str | None = Field(None, max_length=64, description="'merge': the second saved map (a "
+                                     "finished job, as map_job_id), merged into the map of map_job_id, whose "
+                                     "frame the merged map keeps. Refused (the job failing) when they do not "
+                                     "overlap.")
     idle_timeout_s: float = Field(600.0, strict=True,
                                   ge=1.0, le=86_400.0, description="Live jobs: with no new chunk to map "
                                   "for this long [s], the job ends and writes the products of what it mapped "
@@ -81,7 +86,7 @@ class JobCreate(BaseModel):
 
     @model_validator(mode="after")
     def _live_follows_a_stream(self) -> JobCreate:
-        if self.source is JobSource.MAP:
+        if self.source is JobSource.MAP and self.mode is not JobMode.MERGE:
             raise ValueError("a job maps a 'log' or a 'stream'; an uploaded map is POSTed to "
                              "/v1/sessions/{id}/maps and named as 'map_job_id'")
         if self.live and (self.source is JobSource.LOG or self.log_id is not None):
@@ -92,6 +97,13 @@ class JobCreate(BaseModel):
                              "with those modes, and only with them")
         if self.mode is JobMode.EXTEND and self.map_job_id is None:
             raise ValueError("'extend' grows the saved map of 'map_job_id': name it")
+        if (self.mode is JobMode.MERGE) != (self.merge_job_id is not None):
+            raise ValueError("'merge_job_id' names the second map of a 'merge': give it with that mode, and only "
+                             "with it")
+        if self.mode is JobMode.MERGE and (self.map_job_id is None or self.source not in (None, JobSource.MAP)
+                                           or self.log_id is not None or self.live):
+            raise ValueError("a 'merge' joins two saved maps, 'map_job_id' and 'merge_job_id': it maps no log "
+                             "or stream")
         if self.live and self.mode is not JobMode.MAP:
             raise ValueError("a live job maps its stream ('mode': 'map'); localise or extend with the finished "
                              "stream instead")
@@ -106,6 +118,7 @@ class JobPublic(BaseModel):
     status: JobStatus
     mode: JobMode = Field(JobMode.MAP, description="'map', 'localize' or 'extend' (the job's setting).")
     map_job_id: str | None = Field(None, description="The saved map's job for 'localize' and 'extend'.")
+    merge_job_id: str | None = Field(None, description="The second saved map's job of a 'merge'.")
     live: bool = Field(False, description="A live job: it follows the session's stream.")
     particles: int | None = Field(None, description="The engine's particle count (= config.slam.particles).")
     stage: str | None = Field(None, description="While running: what the job does now - 'mapping scans', "

@@ -44,6 +44,7 @@ def job_public(row: JobRow, live_products: list[str] | None = None, compiling: b
     slam = row.config.get("slam") or {}
     return JobPublic(id=row.id, session_id=row.session_id, source=row.source, log_id=row.log_id, status=row.status,
                      mode=row.config.get("mode") or JobMode.MAP, map_job_id=row.config.get("map_job_id"),
+                     merge_job_id=row.config.get("merge_job_id"),
                      live=row.live, particles=slam.get("particles", row.config.get("particles")),
                      stage=stage if row.status is JobStatus.RUNNING else None,
                      progress=None if following else row.progress, scans_done=row.scans_done,

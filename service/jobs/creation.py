@@ -34,6 +34,14 @@ def create_job(body: JobSettings, session: SessionRow, store: JobStore, data: Da
     a stream), a saved map not finished yet, or a second live job in the session."""
     slam = resolve(body)  # the engine's bounds: 422 naming the setting
     config = stored_config(body, slam)
+    if body.mode is JobMode.MERGE:  # two saved maps in, no drive: 404 / 409 now, not when the job runs
+        assert body.map_job_id is not None and body.merge_job_id is not None  # JobCreate checked both
+        saved_map_path(store, data, session.owner, body.map_job_id)
+        saved_map_path(store, data, session.owner, body.merge_job_id, field="merge_job_id")
+        row = store.create_job(session.id, session.owner, JobSource.MAP, None, config)
+        job_event("created", row.id, session=session.id, source=row.source.value, mode=config.get("mode"))
+        submit(row.id)
+        return row
     source = input_source(body, session)
     log_id = None if source is JobSource.STREAM else input_log(body, session, store)
     # an upload's scan count and extent are known up front; every job checks again once its input is read

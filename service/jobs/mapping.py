@@ -21,7 +21,7 @@ from service.jobs.estimate import ExtentGuard, check_drive_memory, check_job_mem
 from service.jobs.live import run_live_job
 from service.jobs.outputs import LiveMap, job_session, write_job_products
 from service.jobs.products import COMPILING_FILE
-from service.jobs.saved_maps import job_mode, run_from_saved_map
+from service.jobs.saved_maps import job_mode, run_from_saved_map, run_merge_job
 from service.jobs.settings import engine_config
 from service.storage.chunks import read_chunk_messages, stream_state
 from service.storage.stream_log import drive_log_from_messages
@@ -111,6 +111,9 @@ def run_mapping_job(ctx: JobContext) -> None:
 def _run_mapping_job(ctx: JobContext) -> None:
     if ctx.job.live:
         run_live_job(ctx)
+        return
+    if job_mode(ctx.job.config) is JobMode.MERGE:  # two saved maps, no drive to read
+        run_merge_job(ctx)
         return
     from slam_engine.pipeline import run_slam
 

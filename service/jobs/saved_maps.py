@@ -23,15 +23,15 @@ BUNDLE = "map_bundle.npz"
 MAX_SEARCHED_MAPS = 50  # a localisation without a named map searches the owner's newest saved maps, at most
 
 
-def saved_map_path(store: JobStore, data: DataDir, owner: str, map_job_id: str) -> Path:
-    """The map bundle of job ``map_job_id``: NotFound (404) when there is no such job for ``owner``,
-    Conflict (409) when it has not succeeded or made no map bundle."""
+def saved_map_path(store: JobStore, data: DataDir, owner: str, map_job_id: str, field: str = "map_job_id") -> Path:
+    """The map bundle of job ``map_job_id`` (named by the request's ``field``): NotFound (404) when there is
+    no such job for ``owner``, Conflict (409) when it has not succeeded or made no map bundle."""
     job = store.get_job(map_job_id, owner)
     if job is None:
-        raise NotFound(f"no job {map_job_id!r} to start from", {"field": "map_job_id"})
+        raise NotFound(f"no job {map_job_id!r} to start from", {"field": field})
     if job.status is not JobStatus.SUCCEEDED or BUNDLE not in job.products:
         raise Conflict(f"job {map_job_id!r} has no saved map to start from (status {job.status}; a succeeded mapping "
-                       "or extension job has one)", {"field": "map_job_id", "status": job.status})
+                       "or extension job has one)", {"field": field, "status": job.status})
     return data.resolve(str(Path("jobs") / job.id / job.products[BUNDLE]))
 
 
@@ -143,3 +143,36 @@ def _extend(ctx: JobContext, bundle: Any, log: DriveLog, config: Any, progress: 
                      ctx.out_dir / "products" / "drives.png")
     write_job_products(ctx, joined_result(joined, config, own), log,
                        extra={"drives.png": drawn})
+
+
+def run_merge_job(ctx: JobContext) -> None:
+    """A 'merge' job: the saved maps of ``map_job_id`` and ``merge_job_id`` made one map (the first's frame
+    kept), written as a mapping job's products with ``drives.png``; refused (MapBundleError) when they do
+    not overlap."""
+    from service.jobs.outputs import product_names
+    from service.jobs.products import GRID_FILE, save_grid
+    from service.jobs.settings import engine_config
+    from slam_engine.frontend.particle_filter import engine_threads
+    from slam_engine.multisession.joining import join
+    from slam_engine.multisession.localization import refusal_reason
+    from slam_engine.products.map_bundle import read_bundle
+    from slam_engine.products.multisession import write_joined_products
+
+    config = engine_config(ctx.job.config)
+    bundles = []
+    for field in ("map_job_id", "merge_job_id"):
+        try:
+            bundles.append(read_bundle(saved_map_path(ctx.store, ctx.data, ctx.job.owner, str(ctx.job.config[field]),
+                                                      field)))
+        except (NotFound, Conflict) as error:  # the saved map's job was deleted after this job was queued
+            raise MapBundleError(str(error)) from None
+    ctx.store.set_input(ctx.job_id, {"source": "map", "map_job_id": ctx.job.config["map_job_id"],
+                                     "merge_job_id": ctx.job.config["merge_job_id"]})
+    joined = join(bundles[0], bundles[1], config, threads=engine_threads())
+    if not joined.connected:
+        raise MapBundleError("refused: the maps do not overlap: the second could not be placed in the first: "
+                             f"{refusal_reason(joined.placement, config.localization.min_score)}")
+    ctx.stage(WRITING_PRODUCTS)
+    files = write_joined_products(joined, config, ctx.out_dir / "products")
+    save_grid(joined.grid, ctx.out_dir / GRID_FILE)
+    ctx.store.set_products(ctx.job_id, product_names(files, ctx.out_dir))

@@ -43,7 +43,8 @@ def resolve(settings: JobSettings) -> SlamConfig:
 def stored_config(settings: JobSettings, config: SlamConfig) -> dict[str, Any]:
     """What the store keeps as the job's config."""
     return {**shortcut_values(config), "live": settings.live, "idle_timeout_s": settings.idle_timeout_s,
-            "mode": settings.mode.value, "map_job_id": settings.map_job_id, "slam": config.model_dump(mode="json")}
+            "mode": settings.mode.value, "map_job_id": settings.map_job_id, "merge_job_id": settings.merge_job_id,
+            "slam": config.model_dump(mode="json")}
 
 
 def engine_config(job_config: dict[str, Any]) -> SlamConfig:

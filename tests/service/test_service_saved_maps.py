@@ -176,3 +176,55 @@ def test_an_uploaded_map_is_checked_and_a_job_can_start_from_it(tmp_path) -> Non
             assert not body["message"].startswith(":"), body
         listed = client.get(f"/v1/jobs?session={sid}").json()
         assert sum(j["source"] == "map" for j in listed["data"]) == 1  # nothing half-stored
+
+
+def test_a_merge_job_makes_one_map_of_two_saved_maps_or_refuses_them(tmp_path) -> None:
+    """``{"mode": "merge", "map_job_id": A, "merge_job_id": B}``: the office's two halves, mapped apart and
+    uploaded as saved maps, become one map in A's frame (what ``lidarmap merge`` writes); a map of another
+    building is refused; a merge names two saved maps and nothing to map (422), each one known (404)."""
+    from slam_engine.config import SlamConfig
+    from slam_engine.pipeline import run_slam
+    from slam_engine.products.map_bundle import read_bundle, write_bundle
+
+    office = simulate("office", seed=0, cameras=False)
+    start, end = office.log.time_span_s()
+    middle = (start + end) / 2
+    drives = {"a": office.log.between(start, middle), "b": office.log.between(middle, end + 1.0),
+              "c": simulate("campus", seed=1, rig="robot", cameras=False, max_duration_s=40.0).log}
+    config = SlamConfig(particles=10)
+    with service_client(tmp_path / "data") as client:
+        sid = new_session(client)
+        saved = {}
+        for name, log in drives.items():
+            path = write_bundle(run_slam(log, config).bundle, tmp_path / f"{name}.npz")
+            with path.open("rb") as f:
+                saved[name] = client.post(f"/v1/sessions/{sid}/maps", files={"file": (path.name, f)}).json()["id"]
+
+        def merge(first: str, second: str) -> dict:
+            job = client.post(f"/v1/sessions/{sid}/jobs", json={"mode": "merge", "map_job_id": saved[first],
+                                                               "merge_job_id": saved[second]})
+            assert job.status_code == 202, job.text
+            assert job.json()["merge_job_id"] == saved[second] and job.json()["source"] == "map"
+            return wait_for(client, job.json()["id"], timeout_s=300)
+
+        merged = merge("a", "b")
+        assert merged["status"] == "succeeded", merged
+        assert {"map_bundle.npz", "drives.png", "occupancy.png", "run.json"} <= set(merged["products"])
+        trajectory = client.get(f"/v1/jobs/{merged['id']}/trajectory").json()
+        assert trajectory["count"] == len(drives["a"].scans) + len(drives["b"].scans)
+        bundle = tmp_path / "merged.npz"
+        bundle.write_bytes(client.get(f"/v1/jobs/{merged['id']}/map_bundle.npz").content)
+        assert read_bundle(bundle).drives == 2
+        assert client.get(f"/v1/jobs/{merged['id']}/tiles/occupancy/0/0/0.png").status_code == 200
+
+        refused = merge("a", "c")
+        assert refused["status"] == "failed" and "refused: the maps do not overlap" in refused["error"], refused
+
+        for body in ({"mode": "merge", "map_job_id": saved["a"]},  # no second map
+                     {"merge_job_id": saved["b"]},  # not a merge
+                     {"mode": "merge", "map_job_id": saved["a"], "merge_job_id": saved["b"], "source": "log"},
+                     {"mode": "merge", "map_job_id": saved["a"], "merge_job_id": saved["b"], "live": True}):
+            assert_error(client.post(f"/v1/sessions/{sid}/jobs", json=body), 422)
+        unknown = client.post(f"/v1/sessions/{sid}/jobs", json={"mode": "merge", "map_job_id": saved["a"],
+                                                                 "merge_job_id": "nope"})
+        assert assert_error(unknown, 404)["detail"] == {"field": "merge_job_id"}
