@@ -14,7 +14,13 @@ leaves the map is carried by its own motion, not judged against cells the map ne
 there: back in the map, it is tracked in a window grown with the travel since its last match); with no
 scan matched over ``lost_after_m`` of travel where the map could judge it, the drive is lost, searched
 for near where its motion carried it and then over the whole map, and a match in the widened window must
-score as a placement does. The drive's own scans are matched to each other on cells of
+score as a placement does. A search over the whole map first asks the place index
+(:mod:`slam_engine.backend.place_index`) where to look: a unique placement found around the places it
+proposes (on the whole-map search's lattice, the runner-up still searched over the whole map) is the
+whole-map search's own; anything else (no place proposed, the index missed: a low score or an
+ambiguous one) is searched for over the whole map, so the index changes no verdict and saves the
+search for the best where it holds the place (aces-rough seed 1: placing only from the index lost the
+drive). The drive's own scans are matched to each other on cells of
 ``local_map_resolution_m``, coarser than the map's (intel: as accurate, in less than half the time). A
 drive that is never placed is refused (``localised`` False, with the best score found), not forced in.
 
@@ -360,13 +366,17 @@ class Localizer:
         else:
             initial, window_m, window_rad = near
         proposed = self._proposed(first, last) if near is None else []
+        match = None
         if proposed:
             assert self.index.place_config is not None
             match = search_at_places(self.index.coarse, cloud, initial, window_m, window_rad, proposed,
                                      self.index.place_config.window_m, self.index.place_config.window_rad, floor,
                                      c.ambiguity_m, c.ambiguity_rad, c.runner_up_ratio, floor, c.min_score,
                                      self.threads, self.index.origins)
-        else:
+            if match is not None and not (match.score >= c.min_score
+                                          and match.runner_up_score < c.runner_up_ratio * match.score):
+                match = None  # only a unique placement is taken from the index (see the module docstring)
+        if match is None:
             self.whole_map_searches += near is None
             match = search(self.index.coarse, cloud, initial, window_m, window_rad, floor, ambiguity_m=c.ambiguity_m,
                            ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio,
