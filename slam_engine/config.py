@@ -418,17 +418,16 @@ class TextureConfig(_Section):
 
 class PlaceIndexConfig(_Section):
     """The place index (:mod:`slam_engine.backend.place_index`): polar descriptors of a map around places,
-    which propose where a stretch of a drive may be before any search over the whole map, and say which of
-    several saved maps a drive is most like."""
+    which propose where a far loop search looks for its best pose, and say which of several saved maps a
+    drive is most like."""
 
-    enabled: bool = Field(True, description="Whole-map searches (localisation's placements, far loop "
-                          "closures) find their best pose only around the places the index proposes, then "
-                          "search the whole map for a runner-up; off: the best is searched over the whole map.")
-    far_searches: bool = Field(True, description="Far loop closures use the index too (set off on open ground: "
+    far_searches: bool = Field(True, description="Far loop closures find their best pose only around the places "
+                               "the index proposes, then search the whole map for a runner-up (off: the best is "
+                               "searched over the whole map; set off on open ground: "
                                "outdoors a revisit often passes metres beside the path that made the map, where "
                                "no place lies; on the campus it proposed none of the whole-map search's three "
                                "placements).")
-    candidates: int = Field(5, ge=1, le=100, description="Places proposed per search, best first.")
+    candidates: int = Field(5, ge=1, le=100, description="Places proposed per far search, best first.")
     window_m: float = Field(2.5, ge=0.1, le=50.0, description="Each proposed place is searched within this "
                             "distance of where it puts the vehicle [m] ...")
     window_rad: float = Field(0.25, ge=0.01, le=3.2, description="... and this turn of the heading it implies "
@@ -443,7 +442,7 @@ class PlaceIndexConfig(_Section):
 
     def for_far_searches(self) -> PlaceIndexConfig | None:
         """These settings where far loop closures use the index, else None (they search the whole map)."""
-        return self if self.enabled and self.far_searches else None
+        return self if self.far_searches else None
 
 
 class SlamConfig(_Section):

@@ -14,13 +14,7 @@ leaves the map is carried by its own motion, not judged against cells the map ne
 there: back in the map, it is tracked in a window grown with the travel since its last match); with no
 scan matched over ``lost_after_m`` of travel where the map could judge it, the drive is lost, searched
 for near where its motion carried it and then over the whole map, and a match in the widened window must
-score as a placement does. A search over the whole map first asks the place index
-(:mod:`slam_engine.backend.place_index`) where to look: a unique placement found around the places it
-proposes (on the whole-map search's lattice, the runner-up still searched over the whole map) is the
-whole-map search's own; anything else (no place proposed, the index missed: a low score or an
-ambiguous one) is searched for over the whole map, so the index changes no verdict and saves the
-search for the best where it holds the place (aces-rough seed 1: placing only from the index lost the
-drive). The drive's own scans are matched to each other on cells of
+score as a placement does. The drive's own scans are matched to each other on cells of
 ``local_map_resolution_m``, coarser than the map's (intel: as accurate, in less than half the time). A
 drive that is never placed is refused (``localised`` False, with the best score found), not forced in.
 
@@ -49,7 +43,7 @@ from slam_engine.backend.correlative import (
     search,
 )
 from slam_engine.backend.loop_closer import thin
-from slam_engine.backend.place_index import PlaceCandidate, PlaceIndex, map_places, search_at_places
+from slam_engine.backend.place_index import PlaceIndex, map_places
 from slam_engine.backend.submaps import match_grid_from_points
 from slam_engine.config import LocalizationConfig, PlaceIndexConfig, SlamConfig
 from slam_engine.errors import ConfigError
@@ -58,7 +52,6 @@ from slam_engine.model.map_bundle import MapBundle
 from slam_engine.model.poses import compose, inverse, place_each, place_points, relative, wrap_angle
 from slam_engine.model.result import Trajectory
 
-PLACE_QUERY_POINTS = 3000  # a stretch's end points that describe it to the place index, at most
 MATCH_RANGE_M = 20.0  # end points farther than this are left out of matching (as the loop closer does)
 TRACK_POINTS = 250  # a tracked scan is matched with at most this many end points
 COARSE_LEVELS = 10  # the global grid's pyramid: blocks up to 512 cells (51 m at 0.1 m)
@@ -155,7 +148,7 @@ class MapIndex:
     fine: MatchGrid
     coverage: Coverage
     origins: np.ndarray
-    places: PlaceIndex | None = None  # proposes where a stretch may be (None: searched over the whole map)
+    places: PlaceIndex | None = None  # what :mod:`~slam_engine.multisession.which_map` ranks maps by
     place_config: PlaceIndexConfig | None = None
 
     @classmethod
@@ -314,7 +307,6 @@ class LocalizationResult:
     T_map_from_drive: np.ndarray | None = None
     outside_map: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     global_searches: int = 0
-    whole_map_searches: int = 0  # of global_searches, over the whole map (the place index proposed nothing)
     failed_tries: dict[str, int] = field(default_factory=dict)  # why tries at a first placement failed: count
     wall_time_s: float = 0.0
     search_s: float = 0.0  # of wall_time_s: placing and tracking the drive (the rest: its scans, the map's index)
@@ -326,8 +318,7 @@ class LocalizationResult:
             "scans": int(len(self.confidence)), "scans_tracked": int(tracked.sum()),
             "scans_outside_map": int(self.outside_map.sum()),
             "mean_confidence": round(float(self.confidence.mean()), 4) if len(self.confidence) else None,
-            "events": self.events, "global_searches": self.global_searches,
-            "whole_map_searches": self.whole_map_searches, "failed_tries": dict(self.failed_tries),
+            "events": self.events, "global_searches": self.global_searches, "failed_tries": dict(self.failed_tries),
             "T_map_from_drive": None if self.T_map_from_drive is None else [round(float(v), 5)
                                                                           for v in self.T_map_from_drive],
             "wall_time_s": round(self.wall_time_s, 3),
@@ -344,7 +335,6 @@ class Localizer:
         self.threads = max(1, int(threads))
         self.best_score = 0.0
         self.global_searches = 0
-        self.whole_map_searches = 0  # of them, over the whole map: the place index proposed nothing
         self.uncovered = np.zeros(len(drive), bool)  # scans too far out of the map to be judged by it
         self.failed_tries: dict[str, int] = {}  # why each first try failed (LOW_SCORE, ...): how many
         self._why = ""  # why the last placed_stretch or confirmed_placement found nothing
@@ -358,30 +348,17 @@ class Localizer:
         cloud = self.drive.cloud(first, last, c.max_points)
         if len(cloud) < 20:
             return None, False
-        self.global_searches += 1
-        floor = c.min_score * REPORT_SHARE
         if near is None:
             initial, window_m = self.index.coarse.centre_and_reach()
             window_rad = math.pi
         else:
             initial, window_m, window_rad = near
-        proposed = self._proposed(first, last) if near is None else []
-        match = None
-        if proposed:
-            assert self.index.place_config is not None
-            match = search_at_places(self.index.coarse, cloud, initial, window_m, window_rad, proposed,
-                                     self.index.place_config.window_m, self.index.place_config.window_rad, floor,
-                                     c.ambiguity_m, c.ambiguity_rad, c.runner_up_ratio, floor, c.min_score,
-                                     self.threads, self.index.origins)
-            if match is not None and not (match.score >= c.min_score
-                                          and match.runner_up_score < c.runner_up_ratio * match.score):
-                match = None  # only a unique placement is taken from the index (see the module docstring)
-        if match is None:
-            self.whole_map_searches += near is None
-            match = search(self.index.coarse, cloud, initial, window_m, window_rad, floor, ambiguity_m=c.ambiguity_m,
-                           ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio,
-                           runner_up_min_score=floor, threads=self.threads, runner_up_from=c.min_score,
-                           origins=self.index.origins, any_runner_up=True)
+        self.global_searches += 1
+        floor = c.min_score * REPORT_SHARE
+        match = search(self.index.coarse, cloud, initial, window_m, window_rad, floor, ambiguity_m=c.ambiguity_m,
+                       ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio, runner_up_min_score=floor,
+                       threads=self.threads, runner_up_from=c.min_score, origins=self.index.origins,
+                       any_runner_up=True)
         if match is None:
             return None, False
         self.best_score = max(self.best_score, match.score)
@@ -390,15 +367,6 @@ class Localizer:
         if match.runner_up_score >= c.runner_up_ratio * match.score:
             return None, True
         return self.refined_placement(cloud, match.pose), False
-
-    def _proposed(self, first: int, last: int) -> list[PlaceCandidate]:
-        """The places the index proposes for the stretch ``first..last`` (none without an index in use, or
-        when the stretch describes too little)."""
-        places = self.index.place_config
-        if self.index.places is None or places is None or not places.enabled:
-            return []
-        return self.index.places.query(self.drive.cloud(first, last, PLACE_QUERY_POINTS),
-                                       places.candidates)
 
     def refined_placement(self, cloud: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """A global match on the coarse grid's lattice (``pose``) fitted on the map's own cells: kept
@@ -541,7 +509,6 @@ class Localizer:
                 break
         if placement is None:
             return LocalizationResult(False, self.best_score, events=events, global_searches=self.global_searches,
-                                      whole_map_searches=self.whole_map_searches,
                                       failed_tries=dict(self.failed_tries), wall_time_s=time.perf_counter() - started)
         _, last, pose = placement
         poses[last] = pose
@@ -557,7 +524,6 @@ class Localizer:
         T_map_from_drive = _rigid_placement(poses[tracked], drive.poses[tracked])
         return LocalizationResult(True, self.best_score, Trajectory(drive.t_s.copy(), poses), confidence, tracked,
                                   events, T_map_from_drive, self.uncovered.copy(), self.global_searches,
-                                  self.whole_map_searches,
                                   dict(self.failed_tries), time.perf_counter() - started)
 
     def _track_forward(self, poses: np.ndarray, confidence: np.ndarray, tracked: np.ndarray, start: int,
@@ -685,11 +651,6 @@ def _at_window_edge(pose: np.ndarray, centre: np.ndarray, resolution_m: float) -
                 or max(abs(moved[0]), abs(moved[1])) >= JOIN_WINDOW_M - resolution_m)
 
 
-def _in_use(config: SlamConfig) -> PlaceIndexConfig | None:
-    """The place index's settings when searches use it (None: they search the whole map)."""
-    return config.place_index if config.place_index.enabled else None
-
-
 def localize_log(bundle: MapBundle, log: DriveLog, config: SlamConfig | None = None, hint: np.ndarray | None = None,
                  threads: int = 1) -> tuple[DriveScans, LocalizationResult]:
     """:func:`localize` of a drive log: its scans (:meth:`DriveScans.from_log`, returned too) and the
@@ -703,7 +664,7 @@ def localize_log(bundle: MapBundle, log: DriveLog, config: SlamConfig | None = N
     started = time.perf_counter()
     if threads <= 1:
         drive = DriveScans.from_log(log, config)
-        index = MapIndex.of_bundle(bundle, config.localization, _in_use(config))
+        index = MapIndex.of_bundle(bundle, config.localization)
         return drive, _placed(index, drive, config, hint, threads, started)
     start_ready = threading.Event()
     start: list[DriveScans] = []
@@ -716,7 +677,7 @@ def localize_log(bundle: MapBundle, log: DriveLog, config: SlamConfig | None = N
         matching = pool.submit(DriveScans.from_log, log, config, on_start,
                                START_STRETCHES * config.localization.stretch_m)
         matching.add_done_callback(lambda _: start_ready.set())  # also when it fails before its start
-        index = MapIndex.of_bundle(bundle, config.localization, _in_use(config))
+        index = MapIndex.of_bundle(bundle, config.localization)
         start_ready.wait()
         tried: dict[int, tuple[int, int, np.ndarray] | None] = {}
         early = None
@@ -737,8 +698,7 @@ def localize(bundle: MapBundle, drive: DriveScans, config: SlamConfig | None = N
     the drive's first scan, if known."""
     config = SlamConfig() if config is None else config
     started = time.perf_counter()
-    index = MapIndex.of_bundle(bundle, config.localization, _in_use(config))
-    return _placed(index, drive, config, hint, threads, started)
+    return _placed(MapIndex.of_bundle(bundle, config.localization), drive, config, hint, threads, started)
 
 
 def _placed(index: MapIndex, drive: DriveScans, config: SlamConfig, hint: np.ndarray | None, threads: int,
@@ -749,7 +709,6 @@ def _placed(index: MapIndex, drive: DriveScans, config: SlamConfig, hint: np.nda
     localizer = Localizer(index, drive, config.localization, threads)
     if early is not None:
         localizer.best_score, localizer.global_searches = early.best_score, early.global_searches
-        localizer.whole_map_searches = early.whole_map_searches
         localizer.failed_tries = dict(early.failed_tries)
     result = localizer.run(hint, tried)
     result.search_s, result.wall_time_s = result.wall_time_s, time.perf_counter() - started
