@@ -33,6 +33,7 @@ import dataclasses
 import gzip
 import multiprocessing as mp
 import os
+import signal
 import struct
 import threading
 import zlib
@@ -247,11 +248,21 @@ class _Lane:
                 return {"error": "timeout", "message": "", "location": None}
             result = self._conn.recv()
         except Exception:  # the child died mid-answer (EOF, broken pipe, a garbled message)
-            self.stop()
-            return {"error": "crashed", "message": "", "location": None}
+            return {"error": "memory" if self._killed() else "crashed", "message": "", "location": None}
         if result.pop("retire", False) or result.get("error") == "memory":
             self.stop()  # it is ending (or killing itself): the next upload gets a fresh process
         return result
+
+    def _killed(self) -> bool:
+        """Stop the child that died mid-request; whether SIGKILL ended it: its memory guard's own kill (when
+        the answer it sent first did not get through: seen under load with a log that blows up in memory)
+        or the kernel's out-of-memory killer."""
+        process = self._process
+        if process is not None:
+            process.join(timeout=2.0)
+        killed = process is not None and process.exitcode == -signal.SIGKILL
+        self.stop()
+        return killed
 
     def _start(self) -> bool:
         """A fresh child, ready (its libraries imported); False when it failed to start."""
