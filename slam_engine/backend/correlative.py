@@ -344,6 +344,45 @@ def angular_step_rad(points_v: np.ndarray, resolution_m: float, reach_cap_m: flo
     return float(math.acos(max(-1.0, 1.0 - resolution_m**2 / (2.0 * reach**2))))
 
 
+@dataclass(frozen=True)
+class _Lattice:
+    """The poses a search tries: translations in whole cells of ``res`` [m] from (``x0``, ``y0``) out to
+    ``window_cells``, headings in whole ``step`` [rad] from ``th0`` out to ``n_half`` steps; ``cells``: the
+    points rotated to each heading (:func:`_rotated_cells`); ``origins`` and the initial pose's cell on it
+    (``origin_x``, ``origin_y``), as :func:`branch_and_bound` takes them."""
+
+    res: float
+    step: float
+    n_half: int
+    window_cells: int
+    x0: float
+    y0: float
+    th0: float
+    cells: np.ndarray
+    origins: np.ndarray
+    origin_x: int
+    origin_y: int
+
+    @classmethod
+    def of(cls, grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, window_m: float, window_rad: float,
+           origins: np.ndarray | None) -> _Lattice:
+        res = grid.resolution_m
+        step = angular_step_rad(points_v, res)
+        n_half = max(0, int(math.ceil(window_rad / step)))
+        x0, y0, th0 = (float(v) for v in initial_pose)
+        cells = _rotated_cells(points_v, x0, y0, th0, step, n_half, float(grid.origin_m[0]), float(grid.origin_m[1]),
+                               1.0 / res)
+        if origins is None:
+            origins, origin_x, origin_y = NO_ORIGINS, 0, 0
+        else:
+            if origins.shape[1:] != grid.values.shape or origins.shape[0] < grid.n_levels:
+                raise ValueError("search: origins must be a max pyramid on the grid's cells with its levels")
+            origin_x = int(math.floor((x0 - float(grid.origin_m[0])) / res))
+            origin_y = int(math.floor((y0 - float(grid.origin_m[1])) / res))
+        return cls(res, step, n_half, max(0, int(math.ceil(window_m / res))), x0, y0, th0, cells, origins, origin_x,
+                   origin_y)
+
+
 def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, window_m: float, window_rad: float,
            min_score: float, ambiguity_m: float = 0.0, ambiguity_rad: float = 0.0,
            runner_up_share: float = 0.0, line_half_width_m: float = 0.0, line_half_width_rad: float = 0.0,
@@ -379,22 +418,13 @@ def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, wind
     n = len(points_v)
     if n == 0:
         return None
-    res = grid.resolution_m
-    step = angular_step_rad(points_v, res)
-    n_half = max(0, int(math.ceil(window_rad / step)))
-    window_cells = max(0, int(math.ceil(window_m / res)))
-    x0, y0, th0 = (float(v) for v in initial_pose)
-    cells = _rotated_cells(points_v, x0, y0, th0, step, n_half, float(grid.origin_m[0]), float(grid.origin_m[1]),
-                           1.0 / res)
+    lattice = _Lattice.of(grid, points_v, initial_pose, window_m, window_rad, origins)
+    res, step, n_half, window_cells, cells = (lattice.res, lattice.step, lattice.n_half, lattice.window_cells,
+                                              lattice.cells)
+    x0, y0, th0 = lattice.x0, lattice.y0, lattice.th0
+    origins, origin_x, origin_y = lattice.origins, lattice.origin_x, lattice.origin_y
     min_total = int(min_score * MAX_VALUE * n)
     shards = max(1, int(threads))
-    if origins is None:
-        origins, origin_x, origin_y = NO_ORIGINS, 0, 0
-    else:
-        if origins.shape[1:] != grid.values.shape or origins.shape[0] < grid.n_levels:
-            raise ValueError("search: origins must be a max pyramid on the grid's cells with its levels")
-        origin_x = int(math.floor((x0 - float(grid.origin_m[0])) / res))
-        origin_y = int(math.floor((y0 - float(grid.origin_m[1])) / res))
     a, dx, dy, total = branch_and_bound(grid.pyramid, cells, window_cells, min_total, 0, 0, 0, -1, 0, 0.0, 0.0, shards,
                                         origins, origin_x, origin_y)
     if a < 0:
@@ -451,23 +481,14 @@ def runner_up_score(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndar
     n = len(points_v)
     if n == 0:
         return 0.0
-    res = grid.resolution_m
-    step = angular_step_rad(points_v, res)
-    n_half = max(0, int(math.ceil(window_rad / step)))
-    x0, y0, th0 = (float(v) for v in initial_pose)
-    cells = _rotated_cells(points_v, x0, y0, th0, step, n_half, float(grid.origin_m[0]), float(grid.origin_m[1]),
-                           1.0 / res)
-    if origins is None:
-        origins, origin_x, origin_y = NO_ORIGINS, 0, 0
-    else:
-        origin_x = int(math.floor((x0 - float(grid.origin_m[0])) / res))
-        origin_y = int(math.floor((y0 - float(grid.origin_m[1])) / res))
-    ex_a = int(round(float(wrap_angle(float(best_pose[2]) - th0)) / step)) + n_half
-    ex_x, ex_y = int(round((float(best_pose[0]) - x0) / res)), int(round((float(best_pose[1]) - y0) / res))
-    a2, _, _, total = branch_and_bound(grid.pyramid, cells, max(0, int(math.ceil(window_m / res))),
-                                       int(min_score * MAX_VALUE * n), ex_a, ex_x, ex_y,
-                                       int(math.ceil(ambiguity_rad / step)), int(math.ceil(ambiguity_m / res)),
-                                       0.0, 0.0, max(1, int(threads)), origins, origin_x, origin_y, True)
+    lat = _Lattice.of(grid, points_v, initial_pose, window_m, window_rad, origins)
+    ex_a = int(round(float(wrap_angle(float(best_pose[2]) - lat.th0)) / lat.step)) + lat.n_half
+    ex_x = int(round((float(best_pose[0]) - lat.x0) / lat.res))
+    ex_y = int(round((float(best_pose[1]) - lat.y0) / lat.res))
+    a2, _, _, total = branch_and_bound(grid.pyramid, lat.cells, lat.window_cells, int(min_score * MAX_VALUE * n), ex_a,
+                                       ex_x, ex_y, int(math.ceil(ambiguity_rad / lat.step)),
+                                       int(math.ceil(ambiguity_m / lat.res)), 0.0, 0.0, max(1, int(threads)),
+                                       lat.origins, lat.origin_x, lat.origin_y, True)
     return 0.0 if a2 < 0 else float(total / (MAX_VALUE * n))
 
 

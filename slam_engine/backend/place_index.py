@@ -200,9 +200,9 @@ def map_places(points_m: np.ndarray, path_m: np.ndarray, covers: Callable[[np.nd
     ``spacing_m`` along ``path_m`` (K, 2), the key frames that made it, and on a lattice over the free
     space it observed (``covers``: :func:`free_lattice`)."""
     path = np.asarray(path_m, np.float64).reshape(-1, 2)
-    centres = np.concatenate([path[spaced(path, config.spacing_m)],
-                              free_lattice(points_m, config.spacing_m, covers)])
-    return PlaceIndex.build(points_m, centres, config.radius_m)
+    points = _deduped(points_m)
+    centres = np.concatenate([path[spaced(path, config.spacing_m)], free_lattice(points, config.spacing_m, covers)])
+    return PlaceIndex.build(points, centres, config.radius_m)
 
 
 def free_lattice(points_m: np.ndarray, spacing_m: float, covers: Callable[[np.ndarray], np.ndarray],
@@ -223,7 +223,7 @@ def free_lattice(points_m: np.ndarray, spacing_m: float, covers: Callable[[np.nd
     lattice = lattice[covers(lattice)]
     from scipy.spatial import cKDTree
 
-    clear = cKDTree(_deduped(points)).query(lattice, distance_upper_bound=clearance_m)[0] > clearance_m
+    clear = cKDTree(points).query(lattice, distance_upper_bound=clearance_m)[0] > clearance_m
     return lattice[clear]
 
 

@@ -149,7 +149,6 @@ class MapIndex:
     coverage: Coverage
     origins: np.ndarray
     places: PlaceIndex | None = None  # what :mod:`~slam_engine.multisession.which_map` ranks maps by
-    place_config: PlaceIndexConfig | None = None
 
     @classmethod
     def of_bundle(cls, bundle: MapBundle, config: LocalizationConfig,
@@ -170,7 +169,7 @@ class MapIndex:
         places = None
         if place_config is not None:
             places = map_places(points_m, bundle.poses[:, :2], coverage.covers, place_config)
-        return cls(coarse, fine, coverage, origins, places, place_config)
+        return cls(coarse, fine, coverage, origins, places)
 
 
 @dataclass
