@@ -83,44 +83,47 @@ def run_from_saved_map(ctx: JobContext, log: DriveLog, progress: Any) -> None:
 
 
 def _localize(ctx: JobContext, bundle: Any, log: DriveLog, config: Any) -> None:
-    from service.jobs.outputs import product_names
     from slam_engine.frontend.particle_filter import engine_threads
     from slam_engine.multisession.localization import localize_log, refusal_reason
-    from slam_engine.products.multisession import localization_image, saved_map_grid, write_localization
 
     # the worker's engine threads (LIDARMAP_THREADS, 1 unless set), as its mapping jobs use
     drive, result = localize_log(bundle, log, config, threads=engine_threads())
-    total = len(drive)
-    ctx.progress(total, total, force=True, stage=WRITING_PRODUCTS, fraction=run_fraction(WRITING_PRODUCTS, 0.0))
-    summary = result.summary()
+    _writing(ctx, len(drive))
     if not result.localised:
         raise MapBundleError("refused: the drive has no place in the saved map: "
                              f"{refusal_reason(result, config.localization.min_score)}")
-    assert result.trajectory is not None
-    image = localization_image(saved_map_grid(bundle, config), result.trajectory, drive.hits, result.tracked)
-    files = write_localization(ctx.out_dir / "products", summary, result.trajectory, result.confidence, image)
-    ctx.store.set_products(ctx.job_id, product_names(files, ctx.out_dir))
+    _write_localization(ctx, bundle, drive, result, result.summary(), config)
 
 
 def _localize_in_any(ctx: JobContext, maps: list[tuple[str, Any]], log: DriveLog, config: Any) -> None:
     """The drive localised in the saved map it is in, among ``maps`` ((job id, bundle), newest first)."""
-    from service.jobs.outputs import product_names
     from slam_engine.frontend.particle_filter import engine_threads
     from slam_engine.multisession.which_map import localize_in_maps
-    from slam_engine.products.multisession import localization_image, saved_map_grid, write_localization
 
     which = localize_in_maps(maps, log, config, threads=engine_threads())
-    total = len(which.drive)
-    ctx.progress(total, total, force=True, stage=WRITING_PRODUCTS, fraction=run_fraction(WRITING_PRODUCTS, 0.0))
+    _writing(ctx, len(which.drive))
     if which.chosen is None or which.result is None:
         scores = ", ".join(f"job {t.name}: {t.best_score:.3f}" for t in which.tries if t.best_score is not None)
         raise MapBundleError(f"refused: the drive is in none of the {len(maps)} saved maps (best scores {scores}; "
                              f"{config.localization.min_score:g} needed, unambiguous and confirmed)")
-    result = which.result
-    assert result.trajectory is not None
     bundle = dict(maps)[which.tries[which.chosen].name]
-    image = localization_image(saved_map_grid(bundle, config), result.trajectory, which.drive.hits, result.tracked)
-    summary = {**result.summary(), "which_map": which.summary()}
+    _write_localization(ctx, bundle, which.drive, which.result,
+                        {**which.result.summary(), "which_map": which.summary()}, config)
+
+
+def _writing(ctx: JobContext, scans: int) -> None:
+    """The job's progress: every one of its ``scans`` placed, the products being written."""
+    ctx.progress(scans, scans, force=True, stage=WRITING_PRODUCTS, fraction=run_fraction(WRITING_PRODUCTS, 0.0))
+
+
+def _write_localization(ctx: JobContext, bundle: Any, drive: Any, result: Any, summary: dict, config: Any) -> None:
+    """A localisation's products (the drive over ``bundle``'s map, its trajectory, confidence and
+    ``summary``), listed in the store."""
+    from service.jobs.outputs import product_names
+    from slam_engine.products.multisession import localization_image, saved_map_grid, write_localization
+
+    assert result.trajectory is not None
+    image = localization_image(saved_map_grid(bundle, config), result.trajectory, drive.hits, result.tracked)
     files = write_localization(ctx.out_dir / "products", summary, result.trajectory, result.confidence, image)
     ctx.store.set_products(ctx.job_id, product_names(files, ctx.out_dir))
 
