@@ -106,9 +106,8 @@ def register(app: typer.Typer) -> None:
                 bundles = [(str(path), read_bundle(path)) for path in maps]
                 which = localize_in_maps(bundles, load_log(log, format), config, threads=engine_threads())
                 drive = which.drive
-                picked = which.tries[which.chosen].name if which.chosen is not None else None
-                map_dir = Path(picked) if picked is not None else Path(", ".join(name for name, _ in bundles))
-                bundle = dict(bundles)[picked] if picked is not None else bundles[0][1]
+                picked = bundles[0][0] if which.chosen is None else which.tries[which.chosen].name
+                map_dir, bundle = Path(picked), dict(bundles)[picked]  # the chosen map (any, when refused)
                 result = which.result if which.result is not None else _refused(which)
             image = None
             if result.localised:
@@ -121,9 +120,8 @@ def register(app: typer.Typer) -> None:
             write_localization(out, summary, result.trajectory, result.confidence, image, relations=relations)
         if not result.localised:
             if which is not None:
-                scores = ", ".join(f"{t.name}: {t.best_score:.3f}" for t in which.tries if t.best_score is not None)
-                typer.echo(f"refused: {log} is in none of the {len(which.tries)} maps (best scores {scores}; "
-                           f"{config.localization.min_score:g} needed, unambiguous and confirmed)", err=True)
+                typer.echo(f"refused: {log} is in none of the {len(which.tries)} maps "
+                           f"({which.refusal_reason(config.localization.min_score)})", err=True)
             else:
                 typer.echo(f"refused: {log} has no place in the map {map_dir}: "
                            f"{refusal_reason(result, config.localization.min_score)}", err=True)

@@ -103,9 +103,8 @@ def _localize_in_any(ctx: JobContext, maps: list[tuple[str, Any]], log: DriveLog
     which = localize_in_maps(maps, log, config, threads=engine_threads())
     _writing(ctx, len(which.drive))
     if which.chosen is None or which.result is None:
-        scores = ", ".join(f"job {t.name}: {t.best_score:.3f}" for t in which.tries if t.best_score is not None)
-        raise MapBundleError(f"refused: the drive is in none of the {len(maps)} saved maps (best scores {scores}; "
-                             f"{config.localization.min_score:g} needed, unambiguous and confirmed)")
+        raise MapBundleError(f"refused: the drive is in none of the {len(maps)} saved maps "
+                             f"({which.refusal_reason(config.localization.min_score, 'job ')})")
     bundle = dict(maps)[which.tries[which.chosen].name]
     _write_localization(ctx, bundle, which.drive, which.result,
                         {**which.result.summary(), "which_map": which.summary()}, config)

@@ -61,6 +61,12 @@ class WhichMap:
     tries: list[MapTry] = field(default_factory=list)
     wall_time_s: float = 0.0
 
+    def refusal_reason(self, min_score: float, prefix: str = "") -> str:
+        """Why the drive was placed in no map, in one line: each tried map's best score (named with
+        ``prefix``) against ``min_score``."""
+        scores = ", ".join(f"{prefix}{t.name}: {t.best_score:.3f}" for t in self.tries if t.best_score is not None)
+        return f"best scores {scores}; {min_score:g} needed, unambiguous and confirmed"
+
     def summary(self) -> dict:
         return {"chosen": None if self.chosen is None else self.tries[self.chosen].name,
                 "maps": [t.as_dict() for t in self.tries], "wall_time_s": round(self.wall_time_s, 3)}
