@@ -139,6 +139,12 @@ class LidarmapClient:
         return {name: self.download(job_id, name, out_dir / name)
                 for name in job.products if not name.startswith("tiles/")}
 
+    def changes(self, job_id: str) -> dict:
+        """What a localise or extend job's drive saw changed since the saved map: ``changes.geojson`` as a
+        GeoJSON FeatureCollection (each feature's ``properties``: ``kind`` 'added' or 'removed', ``area_m2``);
+        run.json's ``changes`` sums them up."""
+        return self._json("GET", f"/v1/jobs/{job_id}/changes.geojson")
+
     def trajectory(self, job_id: str, kind: Literal["slam", "dead_reckoning"] = "slam") -> TrajectoryPublic:
         path = "trajectory" if kind == "slam" else "dead-reckoning"
         return TrajectoryPublic.model_validate(self._json("GET", f"/v1/jobs/{job_id}/{path}"))

@@ -445,6 +445,28 @@ class PlaceIndexConfig(_Section):
         return self if self.far_searches else None
 
 
+class ChangesConfig(_Section):
+    """The change map of a localised or extending drive against the saved map
+    (:mod:`slam_engine.multisession.changes`)."""
+
+    enabled: bool = Field(True, description="Write the change map (changes.png, changes.geojson, run.json's "
+                          "changes) of every localise and extend run.")
+    resolution_m: float = Field(0.1, ge=0.02, le=1.0, description="Changes are found on cells this large [m] "
+                                "(the saved map pooled to them).")
+    min_scans: int = Field(3, ge=1, le=1000, description="A cell changed only where at least this many of the new "
+                           "drive's scans, from poses key_spacing_m apart, agree: a person walking past is "
+                           "seen by fewer.")
+    key_spacing_m: float = Field(0.3, ge=0.0, le=10.0, description="The new drive's scans that count lie this far "
+                                 "apart [m] (or key_spacing_rad) ...")
+    key_spacing_rad: float = Field(0.2, ge=0.0, le=3.2, description="... or this turn apart [rad].")
+    hit_share: float = Field(0.6, gt=0.0, le=1.0, description="An added cell: at least this share of the scans "
+                             "that observed it hit it.")
+    tolerance_cells: int = Field(1, ge=0, le=10, description="Neither map's obstacles within this many cells of "
+                                 "a change: a localisation a few centimetres off is not a change.")
+    min_region_cells: int = Field(3, ge=1, le=10000, description="Changed regions smaller than this many cells "
+                                  "are left out.")
+
+
 class SlamConfig(_Section):
     """Everything a run needs besides the log and the random generator."""
 
@@ -470,6 +492,7 @@ class SlamConfig(_Section):
     loop_closing: LoopClosingConfig = LoopClosingConfig()
     localization: LocalizationConfig = LocalizationConfig()
     place_index: PlaceIndexConfig = PlaceIndexConfig()
+    changes: ChangesConfig = ChangesConfig()
     lidar_filter: LidarFilterConfig = LidarFilterConfig()
     texture: TextureConfig = TextureConfig()
     snapshot_every_scans: int = Field(0, ge=0, le=100000, description="Keep a map snapshot every n "

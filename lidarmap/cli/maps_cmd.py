@@ -56,6 +56,15 @@ def _refused(which):
     return LocalizationResult(False, best, wall_time_s=which.wall_time_s)
 
 
+def changed(changes) -> str:
+    """``, changed since the map: ...`` for a (change map, grid) pair; '' for None."""
+    if changes is None:
+        return ""
+    figures = changes[0].summary()
+    return (f"; changed since the map: {figures['added_m2']:.2f} m^2 added, {figures['removed_m2']:.2f} m^2 removed "
+            f"({100 * figures['changed_share']:.2f} % of {figures['observed_m2']:.0f} m^2 seen)")
+
+
 def register(app: typer.Typer) -> None:
     @app.command()
     def localize(
@@ -84,6 +93,7 @@ def register(app: typer.Typer) -> None:
         from slam_engine.evaluation.metrics import files_beside_log
         from slam_engine.formats import load_log
         from slam_engine.frontend.particle_filter import engine_threads
+        from slam_engine.multisession.changes import localization_changes
         from slam_engine.multisession.localization import localize_log, refusal_reason
         from slam_engine.multisession.which_map import localize_in_maps
         from slam_engine.products.map_bundle import read_bundle
@@ -109,15 +119,18 @@ def register(app: typer.Typer) -> None:
                 picked = bundles[0][0] if which.chosen is None else which.tries[which.chosen].name
                 map_dir, bundle = Path(picked), dict(bundles)[picked]  # the chosen map (any, when refused)
                 result = which.result if which.result is not None else _refused(which)
-            image = None
+            image = changes = None
             if result.localised:
                 assert result.trajectory is not None
-                image = localization_image(saved_map_grid(bundle, config), result.trajectory, drive.hits,
-                                           result.tracked)
+                grid = saved_map_grid(bundle, config)
+                image = localization_image(grid, result.trajectory, drive.hits, result.tracked)
+                found = localization_changes(grid, drive, result, config.changes)
+                changes = None if found is None else (found, grid)
             summary = result.summary()
             if which is not None:
                 summary["which_map"] = which.summary()
-            write_localization(out, summary, result.trajectory, result.confidence, image, relations=relations)
+            write_localization(out, summary, result.trajectory, result.confidence, image, relations=relations,
+                               changes=changes)
         if not result.localised:
             if which is not None:
                 typer.echo(f"refused: {log} is in none of the {len(which.tries)} maps "
@@ -128,8 +141,8 @@ def register(app: typer.Typer) -> None:
             raise typer.Exit(REFUSED_EXIT_CODE)
         where = f" in {map_dir}" if which is not None else ""
         typer.echo(f"localised {summary['scans']} scans{where} in {summary['wall_time_s']:.1f} s: "
-                   f"{summary['scans_tracked']} matched the map (mean confidence {summary['mean_confidence']}); "
-                   f"products in {out}")
+                   f"{summary['scans_tracked']} matched the map (mean confidence {summary['mean_confidence']})"
+                   f"{changed(changes)}; products in {out}")
 
     @app.command()
     def merge(

@@ -121,6 +121,11 @@ def print_summary(result, written: dict[str, Path], out: Path) -> None:
         console.print(f"relation error: {_fmt(stats['trans_mean_m'], '.3f')} +- {_fmt(stats['trans_std_m'], '.3f')}"
                       f" m, {_fmt(stats['rot_mean_deg'], '.2f')} +- {_fmt(stats['rot_std_deg'], '.2f')} deg "
                       f"({stats['n_relations']} relations, {stats['n_failed']} failed)")
+    changes = run.get("changes")
+    if changes:
+        console.print(f"changed since the saved map: {changes['added_m2']:.2f} m^2 added, "
+                      f"{changes['removed_m2']:.2f} m^2 removed ({100 * changes['changed_share']:.2f} % of "
+                      f"{changes['observed_m2']:.0f} m^2 seen; changes.png, changes.geojson)")
     if accuracy.get("ate_m") is not None:
         console.print(f"absolute trajectory error: {accuracy['ate_m']:.3f} m")
     texture = accuracy.get("texture") or {}

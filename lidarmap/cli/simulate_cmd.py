@@ -13,7 +13,9 @@ def register(app: typer.Typer) -> None:
         format: str = typer.Option(..., "--format", help="Log format to write (see `lidarmap formats`)."),
         out: Path = typer.Option(..., "--out", help="Folder to create (must be new or empty)."),
         seed: int = typer.Option(0, help="Random seed: same seed, same drive."),
-        scenario: str | None = typer.Option(None, help="office or campus (default: the vehicle's own)."),
+        scenario: str | None = typer.Option(None, help="office, office-changed (the office days later, "
+                                             "with changes.json: what changed) or campus (default: the vehicle's "
+                                             "own)."),
         duration: float | None = typer.Option(None, help="Stop the drive after this many seconds."),
         cameras: bool = typer.Option(True, help="Render the vehicle's cameras (the car's stereo pair, "
                                      "THOR's Kinect) from the floor texture; about a second per frame."),

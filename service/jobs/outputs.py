@@ -13,7 +13,7 @@ from service.storage.rows import SessionRow
 from slam_engine.errors import LogFormatError
 from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.result import MapSnapshot, SlamResult
-from slam_engine.products import write_trajectory_json
+from slam_engine.products import GeoOrigin, write_trajectory_json
 from slam_engine.products.rendering import occupancy_image, png_bytes
 
 
@@ -51,7 +51,7 @@ def write_job_products(ctx: JobContext, result: SlamResult, log: DriveLog, extra
                        ) -> None:
     """Write a finished run's products into the job's folder, list them in the store (with ``extra``:
     products the caller wrote there itself), drop the live snapshot."""
-    from slam_engine.products import GeoOrigin, write_products
+    from slam_engine.products import write_products
     from slam_engine.progress import WRITING_PRODUCTS
 
     ctx.stage(WRITING_PRODUCTS)
@@ -61,17 +61,21 @@ def write_job_products(ctx: JobContext, result: SlamResult, log: DriveLog, extra
     if peak:  # this job's own peak (the engine's getrusage figure spans the worker's whole life)
         result.peak_memory_bytes = peak
     out_dir = ctx.out_dir
-    session = job_session(ctx)
-    geo = None if session.geo is None else GeoOrigin(latitude_deg=session.geo["lat_deg"],
-                                                     longitude_deg=session.geo["lon_deg"],
-                                                     heading_deg=session.geo["heading_deg"])
-    files = {**(extra or {}), **write_products(result, out_dir / "products", geo=geo, log=log,
+    files = {**(extra or {}), **write_products(result, out_dir / "products", geo=session_geo(ctx), log=log,
                                                extra_products=sorted(extra or {}))}
     save_grid(result.grid, out_dir / GRID_FILE)
     if result.texture is not None:
         save_texture(result.texture, out_dir / TEXTURE_FILE)
     ctx.store.set_products(ctx.job_id, product_names(files, out_dir))
     shutil.rmtree(ctx.data.live_dir(ctx.job_id), ignore_errors=True)
+
+
+def session_geo(ctx: JobContext) -> GeoOrigin | None:
+    """Where the job's session started on Earth, when its owner said so (None: the local map frame)."""
+    session = job_session(ctx)
+    return None if session.geo is None else GeoOrigin(latitude_deg=session.geo["lat_deg"],
+                                                      longitude_deg=session.geo["lon_deg"],
+                                                      heading_deg=session.geo["heading_deg"])
 
 
 def product_names(files: dict[str, Path], out_dir: Path) -> dict[str, str]:

@@ -119,19 +119,27 @@ def _write_localization(ctx: JobContext, bundle: Any, drive: Any, result: Any, s
     """A localisation's products (the drive over ``bundle``'s map, its trajectory, confidence and
     ``summary``), listed in the store."""
     from service.jobs.outputs import product_names
+    from slam_engine.multisession.changes import localization_changes
     from slam_engine.products.multisession import localization_image, saved_map_grid, write_localization
 
     assert result.trajectory is not None
-    image = localization_image(saved_map_grid(bundle, config), result.trajectory, drive.hits, result.tracked)
-    files = write_localization(ctx.out_dir / "products", summary, result.trajectory, result.confidence, image)
+    grid = saved_map_grid(bundle, config)
+    image = localization_image(grid, result.trajectory, drive.hits, result.tracked)
+    found = localization_changes(grid, drive, result, config.changes)
+    files = write_localization(ctx.out_dir / "products", summary, result.trajectory, result.confidence, image,
+                               changes=None if found is None else (found, grid))
     ctx.store.set_products(ctx.job_id, product_names(files, ctx.out_dir))
 
 
 def _extend(ctx: JobContext, bundle: Any, log: DriveLog, config: Any, progress: Any) -> None:
+    from service.jobs.outputs import session_geo
     from slam_engine.frontend.particle_filter import engine_threads
+    from slam_engine.multisession.changes import extension_changes
     from slam_engine.multisession.joining import join
     from slam_engine.multisession.localization import refusal_reason
     from slam_engine.pipeline import run_slam
+    from slam_engine.products.changes import write_changes
+    from slam_engine.products.export import georeference_for
     from slam_engine.products.multisession import drives_image, joined_result, save_png
 
     own = run_slam(log, config, progress=progress)
@@ -141,10 +149,14 @@ def _extend(ctx: JobContext, bundle: Any, log: DriveLog, config: Any, progress: 
         raise MapBundleError("refused: the drive could not be placed in the saved map: "
                              f"{refusal_reason(joined.placement, config.localization.min_score)}; map it on its "
                              "own, or extend with a drive that overlaps the map")
-    drawn = save_png(drives_image(joined.grid, joined.trajectory, joined.trajectory_drive),
-                     ctx.out_dir / "products" / "drives.png")
-    write_job_products(ctx, joined_result(joined, config, own), log,
-                       extra={"drives.png": drawn})
+    products = ctx.out_dir / "products"
+    extra = {"drives.png": save_png(drives_image(joined.grid, joined.trajectory, joined.trajectory_drive),
+                                    products / "drives.png")}
+    found = extension_changes(joined, config)
+    result = joined_result(joined, config, own, None if found is None else found[0])
+    if found is not None:  # placed as write_job_products places the map's GeoTIFF
+        extra.update(write_changes(products, *found, georeference_for(result, session_geo(ctx))))
+    write_job_products(ctx, result, log, extra=extra)
 
 
 def run_merge_job(ctx: JobContext) -> None:

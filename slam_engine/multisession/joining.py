@@ -44,6 +44,7 @@ class JoinedMap:
     summary: dict = field(default_factory=dict)
     wall_time_s: float = 0.0
     consistency: MapConsistency | None = None  # of ``grid`` with the connected drives' key frames
+    part_drives: list[int] = field(default_factory=list)  # the second part's drives, as numbered in ``bundle``
 
 
 def place_part(base: MapBundle, part: MapBundle, config: SlamConfig, threads: int = 1) -> LocalizationResult:
@@ -80,7 +81,7 @@ def join(base: MapBundle, part: MapBundle, config: SlamConfig, threads: int = 1)
                      {"placement": placement.summary(), "connected_drives": sorted(set(joint.drive.tolist())),
                       "disconnected_drives": disconnected_drives(bundle),
                       "loop_closing": bundle.sensors.get("last_join")},
-                     time.perf_counter() - started, consistency)
+                     time.perf_counter() - started, consistency, sorted(set(part.drive.tolist())))
 
 
 def pruned(bundle: MapBundle, config: SlamConfig) -> MapBundle:

@@ -175,11 +175,13 @@ class MapIndex:
 @dataclass
 class DriveScans:
     """A drive as localisation takes it: ``t_s`` (S,) [s], ``poses`` (S, 3) in the drive's own frame
-    (odometry, or its map's key frames), ``hits`` (S lists of (B, 2) [m], vehicle frame)."""
+    (odometry, or its map's key frames), ``hits`` (S lists of (B, 2) [m], vehicle frame), ``origin_v``
+    (2,): the LiDAR's position in the vehicle frame [m], where its beams start."""
 
     t_s: np.ndarray
     poses: np.ndarray
     hits: list[np.ndarray]
+    origin_v: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
     def __post_init__(self) -> None:
         steps = np.hypot(*np.diff(self.poses[:, :2], axis=0).T) if len(self.poses) > 1 else np.zeros(0)
@@ -205,14 +207,15 @@ class DriveScans:
         offsets = np.zeros(len(log.scans)) if log.scans.angle_offset_rad is None else log.scans.angle_offset_rad
         hits = [projector.project(ranges, angle_offset_rad=float(offset)).hits_v
                 for ranges, offset in zip(log.scans.ranges_m, offsets, strict=True)]
-        drive = cls(np.asarray(odometry.t_s, np.float64), np.asarray(odometry.poses, np.float64), hits)
+        drive = cls(np.asarray(odometry.t_s, np.float64), np.asarray(odometry.poses, np.float64), hits,
+                    np.asarray(projector.origin_v, np.float64))
         return drive.scan_matched(config.localization.local_map_resolution_m, config.localization.local_map_m,
                                   on_start, start_m)
 
     @classmethod
     def from_bundle(cls, bundle: MapBundle) -> DriveScans:
         """Another map's key frames at their poses in that map (for merging two maps)."""
-        return cls(bundle.t_s.copy(), bundle.poses.copy(), bundle.all_hits())
+        return cls(bundle.t_s.copy(), bundle.poses.copy(), bundle.all_hits(), np.asarray(bundle.origin_v, np.float64))
 
     def stretch_end(self, first: int, stretch_m: float) -> int:
         """The last scan of the stretch that starts at ``first`` and spans ``stretch_m`` of travel."""
@@ -262,9 +265,9 @@ class DriveScans:
             poses.append(predicted)
             placed.append(place_points(predicted, in_reach[k]))
             if on_start is not None and travel[-1] >= start_m:
-                on_start(DriveScans(self.t_s[: k + 1], np.array(poses), self.hits[: k + 1]))
+                on_start(DriveScans(self.t_s[: k + 1], np.array(poses), self.hits[: k + 1], self.origin_v))
                 on_start = None
-        matched = DriveScans(self.t_s, np.array(poses), self.hits)
+        matched = DriveScans(self.t_s, np.array(poses), self.hits, self.origin_v)
         if on_start is not None:
             on_start(matched)
         return matched

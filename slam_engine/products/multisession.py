@@ -19,8 +19,11 @@ from slam_engine.evaluation.consistency import WARNING_START
 from slam_engine.model.map_bundle import MapBundle
 from slam_engine.model.poses import compose, place_points
 from slam_engine.model.result import OccupancyGrid, ScanStats, SlamResult, Trajectory
+from slam_engine.multisession.changes import ChangeMap, extension_changes
+from slam_engine.products.changes import write_changes
 from slam_engine.products.export import accuracy_figures, write_products
 from slam_engine.products.files import atomic_path, write_text_atomic
+from slam_engine.products.georeference import Georeference
 from slam_engine.products.rendering import PNG_COMPRESS_LEVEL, map_pixels, occupancy_rasters
 from slam_engine.products.run_report import to_jsonable
 from slam_engine.products.trajectory_files import write_trajectory_json, write_trajectory_tum
@@ -74,11 +77,13 @@ def save_png(image: Image.Image, path: Path) -> Path:
 
 
 def write_localization(out_dir: str | Path, summary: dict, trajectory: Trajectory | None, confidence: np.ndarray,
-                       image: Image.Image | None, relations=None, ground_truth=None) -> dict[str, Path]:
+                       image: Image.Image | None, relations=None, ground_truth=None,
+                       changes: tuple[ChangeMap, OccupancyGrid] | None = None) -> dict[str, Path]:
     """A localisation's products in ``out_dir``: ``trajectory.tum`` / ``trajectory.json`` (map frame),
-    ``confidence.json`` (each pose's match score, 0-1), ``localization.png`` and ``run.json`` (the
-    summary, with accuracy figures when ``relations`` / ``ground_truth`` are given). A refused drive
-    gets ``run.json`` only."""
+    ``confidence.json`` (each pose's match score, 0-1), ``localization.png``, ``run.json`` (the
+    summary, with accuracy figures when ``relations`` / ``ground_truth`` are given) and, given the
+    change map and the saved map's grid (``changes``), ``changes.png`` / ``changes.geojson`` with
+    run.json's ``changes``. A refused drive gets ``run.json`` only."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written: dict[str, Path] = {}
@@ -93,19 +98,26 @@ def write_localization(out_dir: str | Path, summary: dict, trajectory: Trajector
         report["accuracy"] = accuracy_figures(trajectory, relations, ground_truth)
     if image is not None:
         written["localization.png"] = save_png(image, out / "localization.png")
+    if changes is not None:
+        written.update(write_changes(out, *changes))
+        report["changes"] = changes[0].summary()
     report["products"] = sorted([*written, "run.json"])
     written["run.json"] = write_text_atomic(out / "run.json", json.dumps(to_jsonable(report), indent=1) + "\n")
     return written
 
 
-def joined_result(joined: JoinedMap, config: SlamConfig, base_result: SlamResult | None = None) -> SlamResult:
+def joined_result(joined: JoinedMap, config: SlamConfig, base_result: SlamResult | None = None,
+                  changes: ChangeMap | None = None) -> SlamResult:
     """A joint map (an extended or a merged one) as a run's result, for :func:`write_products`: its
     trajectory over every connected drive (in time order), grid and bundle; ``base_result``: the new
     drive's own run, whose statistics and warnings it keeps, and whose dead reckoning is moved to where
-    the drive was placed (kept as the trajectory when it was not)."""
+    the drive was placed (kept as the trajectory when it was not); ``changes``: the new drive's change
+    map against the saved map (run.json's ``changes``)."""
     order = np.argsort(joined.trajectory.t_s, kind="stable")
     trajectory = Trajectory(joined.trajectory.t_s[order], joined.trajectory.poses[order])
     summary = {"multisession": joined.summary, "key_frames": len(joined.bundle), "drives": joined.bundle.drives}
+    if changes is not None:
+        summary["changes"] = changes.summary()
     warnings = [] if base_result is None else [w for w in base_result.warnings if not w.startswith(WARNING_START)]
     if joined.consistency is not None:  # the joint map's, not the new drive's own map's
         summary["map_consistency"] = joined.consistency.as_dict()
@@ -146,12 +158,18 @@ def _closures_on_the_joint_map(loop_summary: dict, joined: JoinedMap, own: SlamR
 
 
 def write_joined_products(joined: JoinedMap, config: SlamConfig, out_dir: str | Path, relations=None,
-                          base_result: SlamResult | None = None) -> dict[str, Path]:
+                          base_result: SlamResult | None = None, georef: Georeference | None = None
+                          ) -> dict[str, Path]:
     """The products of a joint map in ``out_dir``: every product of a mapping run over all its connected
-    drives (:func:`joined_result`), the new ``map_bundle.npz``, and ``drives.png``."""
+    drives (:func:`joined_result`), the new ``map_bundle.npz``, ``drives.png`` and, for an extension
+    (``base_result``: the new drive's own run), its change map against the saved map (``changes.png``,
+    ``changes.geojson``; ``georef`` places the GeoJSON on Earth)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     drawn = {"drives.png": save_png(drives_image(joined.grid, joined.trajectory, joined.trajectory_drive),
                                     out / "drives.png")}
-    result = joined_result(joined, config, base_result)
+    found = extension_changes(joined, config) if base_result is not None else None
+    if found is not None:
+        drawn.update(write_changes(out, *found, georef=georef))
+    result = joined_result(joined, config, base_result, None if found is None else found[0])
     return {**drawn, **write_products(result, out, relations=relations, extra_products=sorted(drawn))}

@@ -78,6 +78,8 @@ def build_run_report(result: SlamResult, input_summary: dict | None = None, geor
         "loop_closing": result.input_summary.get("loop_closing"),
         # a scan stamped t was measured at t + offset on the odometry's clock (slam_engine.frontend.time_offset)
         "time_offset": result.input_summary.get("time_offset"),
+        # an extension: what its drive saw changed since the saved map (slam_engine.multisession.changes)
+        "changes": result.input_summary.get("changes"),
         "filter": {
             "resample_count": int(np.count_nonzero(stats.resampled)),
             "match_rate": float(np.mean(stats.matched)) if processed else None,

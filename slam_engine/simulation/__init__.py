@@ -13,6 +13,7 @@ is what the rig's sensors recorded and whose ``ground_truth`` is the true pose a
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,6 +45,8 @@ LOOP_MIN_DT_S = 20.0
 LOOP_MAX_DISTANCE_M = 1.5
 LOOP_MAX_ANGLE_RAD = np.radians(45.0)
 GROUND_TEXTURE_FILE = "ground_texture.json"
+CHANGED_LATER_S = 3 * 86400.0  # a changed world is driven this long after the world it changed from [s]
+CHANGES_FILE = "changes.json"  # a changed world's walls taken away and put up (the change map's truth)
 
 
 @dataclass(frozen=True)
@@ -96,6 +99,8 @@ def simulate(scenario: str | None = "office", seed: int = 0, rig: str = "robot",
         raise ConfigError(f"max_duration_s must be above 2 s, got {max_duration_s}")
     rng = rng or np.random.default_rng(seed)
     world = SCENARIOS[scenario]()
+    if world.changed_from is not None:  # a later state of a world: driven later, as its clock says
+        the_rig = dataclasses.replace(the_rig, t0_s=the_rig.t0_s + CHANGED_LATER_S)
     speed = min(world.cruise_speed_m_s, 12.0)
     step = 0.01 if speed < 2 else 0.05
     motion = drive_route(world.route, speed, the_rig.turn_radius_m, the_rig.lateral_accel_m_s2,
@@ -173,11 +178,34 @@ def write_simulated(drive: SimulatedDrive, format: str, out_dir: str | Path) -> 
     np.savetxt(out_dir / f"{drive.scenario}.relations",
                np.column_stack([rel[:, 0], rel[:, 1], rel[:, 2], rel[:, 3], zeros, zeros, zeros, rel[:, 4]]),
                fmt="%.6f")
+    if drive.world.changed_from is not None:
+        (out_dir / CHANGES_FILE).write_text(json.dumps({
+            "scenario": drive.scenario, "changed_from": drive.world.changed_from,
+            "frame": "world frame of ground_truth.txt; walls as [x0, y0, x1, y1] m",
+            "removed": drive.world.removed.round(6).tolist(), "added": drive.world.added.round(6).tolist()}) + "\n")
     if drive.log.stereo is not None or drive.log.rgbd is not None:
         (out_dir / GROUND_TEXTURE_FILE).write_text(json.dumps({
             "scenario": drive.scenario,
             "frame": "world frame of ground_truth.txt; the floor colour is World.floor_rgb of the scenario"}) + "\n")
     return path
+
+
+def changes_beside_log(log_path: str | Path) -> dict[str, np.ndarray] | None:
+    """The walls (S, 4) [x0, y0, x1, y1] m, world frame, ``removed`` and ``added`` since the world a
+    simulated log's world changed from, from the ``changes.json`` in its folder; None when there is none.
+    A damaged file raises :class:`LogFormatError`."""
+    log_path = Path(log_path)
+    path = (log_path if log_path.is_dir() else log_path.parent) / CHANGES_FILE
+    if not path.is_file():
+        return None
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        walls = {kind: np.asarray(doc[kind], np.float64).reshape(-1, 4) for kind in ("removed", "added")}
+    except (ValueError, KeyError, TypeError) as error:
+        raise LogFormatError(f"not a changes file ({type(error).__name__}: {error})", path) from None
+    if not all(np.isfinite(w).all() for w in walls.values()):
+        raise LogFormatError("not a changes file (a wall's coordinates are not finite numbers)", path)
+    return walls
 
 
 def floor_beside_log(log_path: str | Path) -> FloorRgb | None:
@@ -197,5 +225,5 @@ def floor_beside_log(log_path: str | Path) -> FloorRgb | None:
     return SCENARIOS[scenario]().floor_rgb
 
 
-__all__ = ["GROUND_TEXTURE_FILE", "SimulatedDrive", "floor_beside_log", "rig_for_format", "relations", "simulate",
-           "write_simulated", "RIGS", "SCENARIOS"]
+__all__ = ["CHANGES_FILE", "GROUND_TEXTURE_FILE", "SimulatedDrive", "changes_beside_log", "floor_beside_log",
+           "rig_for_format", "relations", "simulate", "write_simulated", "RIGS", "SCENARIOS"]

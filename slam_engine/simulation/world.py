@@ -6,7 +6,7 @@ world (ground-truth) frame in metres.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -21,6 +21,11 @@ class World:
     wall_height_m: float
     cruise_speed_m_s: float
     tile_size_m: float = 0.6
+    # what changed since the world this one is a later state of (``changed_from``): walls (S, 4) taken
+    # away and put up; the truth a change map is scored against
+    changed_from: str | None = None
+    removed: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    added: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
 
     def raycast(self, origin_xyz: np.ndarray, directions: np.ndarray, max_range_m: float) -> np.ndarray:
         """Ranges [m] along unit 3-D rays from one origin; ``inf`` where nothing is hit in range.
@@ -102,30 +107,54 @@ def _box(cx: float, cy: float, w: float, h: float, angle_rad: float = 0.0) -> li
     return [[*corners[k], *corners[(k + 1) % 4]] for k in range(4)]
 
 
+DOOR_M = 1.4  # the office's door width [m]
+OFFICE_FURNITURE = ((2.0, 7.2, 2.4, 0.8, 0), (6.3, 3.6, 0.8, 0.8, 0.3), (11.0, 7.5, 1.6, 0.6, 0),
+                    (13.5, 3.4, 1.2, 0.6, 0), (21.8, 7.0, 0.6, 1.8, 0), (18.2, 3.5, 0.5, 0.5, 0),
+                    (1.6, -4.8, 1.2, 1.2, 0.5), (6.5, -1.2, 0.6, 0.6, 0), (10.5, -5.2, 2.0, 0.7, 0),
+                    (14.2, -1.4, 0.8, 0.8, 0.8), (22.0, -4.0, 0.9, 2.2, 0), (18.0, -5.1, 1.0, 0.6, 0),
+                    (11.0, 2.2, 0.3, 0.3, 0), (14.0, 0.2, 0.3, 0.3, 0), (8.0, 0.2, 0.3, 0.3, 0))
+
+
+def _office_segments() -> list:
+    segs: list = []
+    segs += _wall(0, -6, 24, -6) + _wall(0, 8.4, 24, 8.4) + _wall(0, -6, 0, 8.4) + _wall(24, -6, 24, 8.4)
+    segs += _wall(0, 2.4, 24, 2.4, ((4, DOOR_M), (20, DOOR_M)))  # corridor north wall
+    segs += _wall(0, 0, 24, 0, ((4, DOOR_M), (20, DOOR_M)))  # corridor south wall
+    for x in (8.0, 16.0):
+        segs += _wall(x, 2.4, x, 8.4, ((3.0, DOOR_M),))  # between north rooms, door at y = 5.4
+        segs += _wall(x, -6, x, 0, ((3.0, DOOR_M),))  # between south rooms, door at y = -3
+    for box in OFFICE_FURNITURE:
+        segs += _box(*box)
+    return segs
+
+
 def office() -> World:
     """A 24 m x 14.4 m office floor: an east-west corridor with three rooms on each side, doors
     between neighbouring rooms, furniture; the route runs through all six rooms and closes in the
     corridor and re-enters the first room the same way (about 57 m)."""
-    door = 1.4
-    segs: list = []
-    segs += _wall(0, -6, 24, -6) + _wall(0, 8.4, 24, 8.4) + _wall(0, -6, 0, 8.4) + _wall(24, -6, 24, 8.4)
-    segs += _wall(0, 2.4, 24, 2.4, ((4, door), (20, door)))  # corridor north wall
-    segs += _wall(0, 0, 24, 0, ((4, door), (20, door)))  # corridor south wall
-    for x in (8.0, 16.0):
-        segs += _wall(x, 2.4, x, 8.4, ((3.0, door),))  # between north rooms, door at y = 5.4
-        segs += _wall(x, -6, x, 0, ((3.0, door),))  # between south rooms, door at y = -3
-    furniture = [(2.0, 7.2, 2.4, 0.8, 0), (6.3, 3.6, 0.8, 0.8, 0.3), (11.0, 7.5, 1.6, 0.6, 0),
-                 (13.5, 3.4, 1.2, 0.6, 0), (21.8, 7.0, 0.6, 1.8, 0), (18.2, 3.5, 0.5, 0.5, 0),
-                 (1.6, -4.8, 1.2, 1.2, 0.5), (6.5, -1.2, 0.6, 0.6, 0), (10.5, -5.2, 2.0, 0.7, 0),
-                 (14.2, -1.4, 0.8, 0.8, 0.8), (22.0, -4.0, 0.9, 2.2, 0), (18.0, -5.1, 1.0, 0.6, 0),
-                 (11.0, 2.2, 0.3, 0.3, 0), (14.0, 0.2, 0.3, 0.3, 0), (8.0, 0.2, 0.3, 0.3, 0)]
-    for box in furniture:
-        segs += _box(*box)
     route = np.array([(2.0, 1.2), (4.0, 1.2), (4.0, 3.4), (4.0, 5.4), (8.0, 5.4), (12.0, 5.4), (16.0, 5.4),
                       (20.0, 5.4), (20.0, 3.4), (20.0, 1.2), (20.0, -1.0), (20.0, -3.0), (16.0, -3.0),
                       (12.0, -3.0), (8.0, -3.0), (4.0, -3.0), (4.0, -1.0), (4.0, 1.2), (4.0, 3.4), (4.0, 5.4),
                       (7.0, 5.4)])
-    return World("office", np.array(segs, dtype=np.float64), route, wall_height_m=2.6, cruise_speed_m_s=0.6)
+    return World("office", np.array(_office_segments(), dtype=np.float64), route, wall_height_m=2.6,
+                 cruise_speed_m_s=0.6)
+
+
+def office_changed() -> World:
+    """The office some days later: a desk moved 4 m (from the north-middle room's far wall to its
+    corridor side), the pillar in the north-east room taken away, the corridor's south door to the
+    south-east room closed, and a 2.6 m partition put up in the north-east room. The route keeps to
+    the north rooms and the corridor (about 45 m), where every change is in sight."""
+    desk, moved_desk, pillar = OFFICE_FURNITURE[2], (10.5, 3.7, 1.6, 0.6, 0), OFFICE_FURNITURE[5]
+    removed = _box(*desk) + _box(*pillar)
+    added = _box(*moved_desk) + [[20 - DOOR_M / 2, 0.0, 20 + DOOR_M / 2, 0.0], [22.8, 3.0, 22.8, 5.6]]
+    segs = [s for s in _office_segments() if s not in removed] + added
+    route = np.array([(2.0, 1.2), (4.0, 1.2), (4.0, 3.4), (4.0, 5.4), (8.0, 5.4), (12.0, 5.4), (16.0, 5.4),
+                      (20.0, 5.4), (20.0, 3.4), (20.0, 1.2), (16.0, 1.2), (12.0, 1.2), (8.0, 1.2), (4.0, 1.2),
+                      (4.0, 3.4), (4.0, 5.4), (6.0, 5.4)])
+    return World("office-changed", np.array(segs, dtype=np.float64), route, wall_height_m=2.6, cruise_speed_m_s=0.6,
+                 changed_from="office", removed=np.array(removed, dtype=np.float64),
+                 added=np.array(added, dtype=np.float64))
 
 
 def campus() -> World:
@@ -148,4 +177,4 @@ def campus() -> World:
                  tile_size_m=1.0)
 
 
-SCENARIOS = {"office": office, "campus": campus}
+SCENARIOS = {"office": office, "office-changed": office_changed, "campus": campus}

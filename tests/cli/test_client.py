@@ -153,3 +153,33 @@ def test_submit_with_the_real_engine(small_log: Path, tmp_path: Path) -> None:
         assert result.exit_code == 0, result.output
         assert len(read_trajectory(out / "trajectory.json")) == 100  # the simulated log's scans
         assert {"occupancy.png", "occupancy_trajectory.png", "map.pgm", "run.json"} <= {p.name for p in out.iterdir()}
+
+
+@pytest.mark.slow
+def test_the_client_reads_what_changed_since_a_saved_map(tmp_path: Path) -> None:
+    """The simulated office mapped on a real service, a drive there days later (a desk moved, a pillar
+    gone, a door closed, a partition put up) localised in that map: the client reads the change map."""
+    from slam_engine.simulation import simulate, write_simulated
+
+    before = write_simulated(simulate("office", seed=0, cameras=False), "carmen", tmp_path / "before")
+    after = write_simulated(simulate("office-changed", seed=1, cameras=False), "carmen", tmp_path / "after")
+    for url in start_service(tmp_path / "data", None):
+        with LidarmapClient(url) as api:
+            session = api.create_session("changes")
+            api.upload_log(session.id, before)
+            mapped = api.wait(api.start_job(session.id, JobCreate(particles=10)).id, timeout_s=600)
+            assert mapped.status is JobStatus.SUCCEEDED, mapped
+            later = api.upload_log(session.id, after)
+            job = api.start_job(session.id, JobCreate(log_id=later.id, mode="localize", map_job_id=mapped.id))
+            done = api.wait(job.id, timeout_s=600)
+            assert done.status is JobStatus.SUCCEEDED, done
+            assert {"changes.png", "changes.geojson"} <= set(done.products)
+
+            changes = api.changes(job.id)
+            kinds = [f["properties"]["kind"] for f in changes["features"]]
+            assert kinds.count("removed") == 2 and kinds.count("added") >= 3, changes  # desk, pillar; desk, door, wall
+            run = httpx.get(f"{url}/v1/jobs/{job.id}/run.json").json()
+            assert sum(f["properties"]["area_m2"] for f in changes["features"]) == pytest.approx(
+                run["changes"]["added_m2"] + run["changes"]["removed_m2"], abs=0.01)
+            files = api.download_products(job.id, tmp_path / "products")
+            assert Image.open(files["changes.png"]).size == Image.open(files["localization.png"]).size

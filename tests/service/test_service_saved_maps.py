@@ -228,3 +228,33 @@ def test_a_merge_job_makes_one_map_of_two_saved_maps_or_refuses_them(tmp_path) -
         unknown = client.post(f"/v1/sessions/{sid}/jobs", json={"mode": "merge", "map_job_id": saved["a"],
                                                                  "merge_job_id": "nope"})
         assert assert_error(unknown, 404)["detail"] == {"field": "merge_job_id"}
+
+
+def test_an_extend_job_lists_what_changed_placed_on_earth_with_its_session(tmp_path) -> None:
+    """The simulated office mapped, then extended by a drive there days later in a session with a geo
+    origin: changes.png and changes.geojson among its products, the GeoJSON in WGS 84 near that origin."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    with service_client(tmp_path / "data", workers=1) as client:
+        sid = new_session(client, geo={"lat_deg": 47.99, "lon_deg": 7.84, "heading_deg": 0.0})
+        log_a = _upload(client, sid, simulate("office", seed=0, cameras=False).log, tmp_path / "a")
+        mapped = client.post(f"/v1/sessions/{sid}/jobs", json={"log_id": log_a, "particles": 10}).json()
+        assert wait_for(client, mapped["id"], timeout_s=300)["status"] == "succeeded"
+        log_b = _upload(client, sid, simulate("office-changed", seed=1, cameras=False).log, tmp_path / "b")
+        extended = client.post(f"/v1/sessions/{sid}/jobs", json={"log_id": log_b, "mode": "extend",
+                                                                "map_job_id": mapped["id"], "particles": 10}).json()
+        done = wait_for(client, extended["id"], timeout_s=300)
+        assert done["status"] == "succeeded", done
+        assert {"changes.png", "changes.geojson", "drives.png"} <= set(done["products"])
+        geojson = client.get(f"/v1/jobs/{extended['id']}/changes.geojson")
+        assert geojson.status_code == 200 and geojson.headers["content-type"].startswith("application/geo+json")
+        features = geojson.json()["features"]
+        assert {f["properties"]["kind"] for f in features} == {"added", "removed"}
+        for feature in features:
+            lon, lat = np.array(feature["geometry"]["coordinates"][0]).T
+            assert np.all(np.abs(lat - 47.99) < 3e-4) and np.all(np.abs(lon - 7.84) < 4e-4)  # within 30 m
+            assert feature["properties"]["map_frame_geometry"]["type"] == "Polygon"
+        run = client.get(f"/v1/jobs/{extended['id']}/run.json").json()
+        assert run["changes"]["removed_regions"] == 2 and run["changes"]["changed_share"] < 0.02
+        image = Image.open(io.BytesIO(client.get(f"/v1/jobs/{extended['id']}/changes.png").content))
+        assert (np.asarray(image) == (224, 49, 49)).all(axis=2).any()

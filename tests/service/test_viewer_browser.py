@@ -425,15 +425,14 @@ def test_simulated_log_dropped_on_the_page_is_mapped(tmp_path) -> None:
 
 
 def test_a_localisation_and_an_extension_are_shown_on_their_saved_map(tmp_path) -> None:
-    """The simulated office loop in two halves: the first mapped, the second localised in its map (the
-    page shows the drive's scans over the saved map) and used to extend it (the saved map's drive and
-    the new drive in two colours)."""
+    """The simulated office mapped, and a drive there days later (a desk moved, a pillar gone, a door
+    closed, a partition put up) localised in its map (the page shows the drive's scans over the saved map,
+    and what changed) and used to extend it (the saved map's drive and the new drive in two colours, the
+    changes as a layer with its key)."""
     from slam_engine.formats import write_log
     from slam_engine.simulation import simulate
 
-    office = simulate("office", seed=0, cameras=False)
-    start, end = office.log.time_span_s()
-    halves = (office.log.between(start, (start + end) / 2), office.log.between((start + end) / 2, end + 1.0))
+    halves = (simulate("office", seed=0, cameras=False).log, simulate("office-changed", seed=1, cameras=False).log)
     with _serve(tmp_path / "data") as url, httpx.Client(base_url=url, timeout=60) as api:
         sid = api.post("/v1/sessions", json={"name": "office"}).json()["id"]
         logs = []
@@ -459,12 +458,19 @@ def test_a_localisation_and_an_extension_are_shown_on_their_saved_map(tmp_path) 
 
         with _browser_page("viewer-localisation") as page:
             page.goto(f"{url}/viewer/#job={localised['id']}")
-            image = page.wait_for_selector("img.product-image", state="visible", timeout=60_000)
+            image = page.wait_for_selector("img.product-image[data-product='localization.png']", state="visible",
+                                           timeout=60_000)
             assert page.evaluate("(img) => img.naturalWidth", image) > 50
             assert page.locator("#job-downloads a[data-product='localization.png']").count() == 1
             picture = np.asarray(Image.open(io.BytesIO(image.screenshot())).convert("RGB")).astype(int)
             red = (picture[..., 0] > 180) & (picture[..., 1] < 90) & (picture[..., 2] < 90)
             assert red.sum() > 50  # the drive's matched end points over the saved map
+            # below it, what changed: the saved map with the added cells red and the removed blue
+            changes = page.locator("img.product-image[data-product='changes.png']")
+            assert changes.is_visible() and page.evaluate("(img) => img.naturalWidth", changes.element_handle()) > 50
+            picture = np.asarray(Image.open(io.BytesIO(changes.screenshot())).convert("RGB")).astype(int)
+            blue = (picture[..., 2] > 150) & (picture[..., 0] < 80)
+            assert blue.sum() > 5 and ((picture[..., 0] > 180) & (picture[..., 1] < 90)).sum() > 5
             # the summary says how much of the drive matched the map, and how long it took
             page.wait_for_selector("#job-summary:not([hidden])")
             placed = page.locator("#job-summary [data-figure='localisation'] .summary-text").inner_text()
@@ -486,6 +492,17 @@ def test_a_localisation_and_an_extension_are_shown_on_their_saved_map(tmp_path) 
             assert page.locator(".leaflet-overlay-pane svg path.trajectory-saved").count() == 0
             page.get_by_label("Saved map's drives").check()
             assert page.locator("#job-downloads a[data-product='drives.png']").count() == 1
+            # what changed since the saved map: polygons in their layer, counted in the key
+            page.wait_for_selector(".leaflet-overlay-pane svg path.change-removed")
+            features = api.get(f"/v1/jobs/{extended['id']}/changes.geojson").json()["features"]
+            removed = sum(f["properties"]["kind"] == "removed" for f in features)
+            assert page.locator("path.change-removed").count() == removed == 2
+            assert page.locator("path.change-added").count() == len(features) - removed >= 3
+            assert page.locator(".map-key .key-changes-removed").inner_text() == "removed since (2)"
+            page.get_by_label("Changes since the saved map").uncheck()
+            assert page.locator("path.change-added").count() == 0
+            page.get_by_label("Changes since the saved map").check()
+            assert page.locator("#job-downloads a[data-product='changes.geojson']").count() == 1
             assert page.locator("#job-downloads a[data-product='map_bundle.npz']").count() == 1
             ARTIFACTS.mkdir(exist_ok=True)
             page.screenshot(path=str(ARTIFACTS / "viewer-extension.png"))

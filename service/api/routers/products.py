@@ -192,6 +192,10 @@ PRODUCT_SUMMARIES = {
                         "drive's own motion carried them (mode 'localize').",
     "confidence.json": "A localised drive's confidence per pose: its match score against the map, 0-1 "
                        "(mode 'localize').",
+    "changes.png": "What changed since the saved map (modes 'localize' and 'extend'): the saved map with the cells "
+                   "the drive saw added in red and removed in blue.",
+    "changes.geojson": "What changed since the saved map as polygons (kind 'added' or 'removed', area_m2), in the "
+                       "map frame [m], or WGS 84 when the session has a geo origin (modes 'localize' and 'extend').",
 }
 assert set(PRODUCT_SUMMARIES) == set(MEDIA_TYPES), "every product the worker lists has a route"
 for _name, _summary in PRODUCT_SUMMARIES.items():

@@ -24,6 +24,8 @@ export const DOWNLOADS = Object.freeze([
   ["drives.png", "drives.png", "drives.png", "drives.png"],
   ["localization.png", "localization.png", "localization.png", "localization.png"],
   ["confidence (JSON)", "confidence.json", "confidence.json", "confidence.json"],
+  ["changes.png", "changes.png", "changes.png", "changes.png"],
+  ["changes (GeoJSON)", "changes.geojson", "changes.geojson", "changes.geojson"],
 ]);
 
 function progressBar(job) {

@@ -28,6 +28,7 @@ const LAYER_NAMES = Object.freeze({
   deadReckoning: "Dead reckoning",
   savedDrives: "Saved map's drives",
   closures: "Loop closures",
+  changes: "Changes since the saved map",
 });
 // thin and half transparent: the corridors and walls under the path stay visible
 const TRAJECTORY_STYLE = { color: "#e8590c", weight: 1.5, opacity: 0.6, className: "trajectory-slam" };
@@ -37,6 +38,12 @@ const DEAD_RECKONING_STYLE = { color: "#1c7ed6", weight: 1.5, opacity: 0.55, das
 const CLOSURE_STYLE = { color: "#9c36b5", weight: 1.5, opacity: 0.8, className: "loop-closure" };
 // an extension's saved-map drives, under the new drive's trajectory (TRAJECTORY_STYLE)
 const SAVED_DRIVES_STYLE = { color: "#2f9e44", weight: 2.5, opacity: 0.9, className: "trajectory-saved" };
+// what a localised or extending drive saw changed since the saved map (changes.geojson), as changes.png
+// colours it: added red, removed blue
+const CHANGE_STYLES = Object.freeze({
+  added: { color: "#e03131", weight: 1, opacity: 1, fillOpacity: 0.7, className: "change-added" },
+  removed: { color: "#1c7ed6", weight: 1, opacity: 1, fillOpacity: 0.7, className: "change-removed" },
+});
 const POSE_STYLE = { radius: 5, color: "#fff", weight: 2, fillColor: "#e8590c", fillOpacity: 1,
   className: "trajectory-pose" };
 
@@ -131,6 +138,7 @@ const ColourKey = L.Control.extend({
   onAdd() {
     this.div = L.DomUtil.create("div", "map-key");
     this.closures = 0;
+    this.changes = null;
     this.savedDrivesShown = false;
     this.setDeadReckoning(false);
     return this.div;
@@ -147,6 +155,11 @@ const ColourKey = L.Control.extend({
     this.closures = count;
     this._render();
   },
+  /** Regions added and removed since the saved map ({added, removed} counts), or null: no change map. */
+  setChanges(counts) {
+    this.changes = counts;
+    this._render();
+  },
   _render() {
     const shown = this.deadReckoningShown;
     const swatch = (colour, label) => el("div", { class: "map-key-row" },
@@ -159,7 +172,13 @@ const ColourKey = L.Control.extend({
       line(TRAJECTORY_STYLE, LAYER_NAMES.trajectory, "key-trajectory"),
       this.savedDrivesShown ? line(SAVED_DRIVES_STYLE, LAYER_NAMES.savedDrives, "key-saved-drives") : null,
       shown ? line(DEAD_RECKONING_STYLE, LAYER_NAMES.deadReckoning, "key-dead-reckoning") : null,
-      this.closures ? line(CLOSURE_STYLE, `${LAYER_NAMES.closures} (${this.closures})`, "key-closures") : null].filter(Boolean));
+      this.closures ? line(CLOSURE_STYLE, `${LAYER_NAMES.closures} (${this.closures})`, "key-closures") : null,
+      ...(this.changes ? [
+        el("div", { class: "map-key-row key-changes-added" }, el("span", { class: "map-key-swatch",
+          style: `background: ${CHANGE_STYLES.added.color}` }), `added since the saved map (${this.changes.added})`),
+        el("div", { class: "map-key-row key-changes-removed" }, el("span", { class: "map-key-swatch",
+          style: `background: ${CHANGE_STYLES.removed.color}` }), `removed since (${this.changes.removed})`),
+      ] : [])].filter(Boolean));
   },
 });
 
@@ -180,6 +199,17 @@ async function closuresOf(jobId) {
   if (!closures) return null;
   return closures.filter((c) => c.accepted && c.node_xy_m && c.anchor_xy_m)
     .map((c) => [[c.anchor_xy_m[1], c.anchor_xy_m[0]], [c.node_xy_m[1], c.node_xy_m[0]]]);
+}
+
+/** A job's changed regions as {kind, rings: [[[y, x], ...], ...]} in the map frame (null: no change map). */
+async function changesOf(jobId) {
+  const doc = await getJson(`/v1/jobs/${jobId}/changes.geojson`).catch(() => null);
+  if (!doc) return null;
+  return doc.features.map((feature) => {
+    // on Earth the geometry is WGS 84 and the map frame's polygon rides along in the properties
+    const geometry = feature.properties.map_frame_geometry || feature.geometry;
+    return { kind: feature.properties.kind, rings: geometry.coordinates.map((ring) => ring.map(([x, y]) => [y, x])) };
+  });
 }
 
 function hasTexture(job) {
@@ -235,8 +265,12 @@ export class JobMap {
     const version = `${job.status}-${job.scans_done}`;
     if (job.id !== this.jobId || (this.map && version === this.version)) return;
     if (job.status === "succeeded" && job.products.includes("localization.png")) {
-      return this._showImage(job, "localization.png",
-        "The drive (red where its scans matched the saved map, blue where its own motion carried it) over the saved map");
+      return this._showImages(job, [
+        ["localization.png", "The drive (red where its scans matched the saved map, blue where its own motion "
+          + "carried it) over the saved map"],
+        ...(job.products.includes("changes.png") ? [["changes.png", "What changed since the saved map: red "
+          + "where the drive saw something the map held free (added), blue where it saw through something the "
+          + "map held (removed)"]] : [])]);
     }
     const hasTiles = job.status === "succeeded" || job.products.includes("tiles/occupancy");
     if (!this.map) this._setPlaceholder(hasTiles ? "Loading the map…" : this._waitingText(job));
@@ -256,11 +290,12 @@ export class JobMap {
     // An extension: the saved map's drives and the new drive (its log's time span) in two colours.
     const span = job.mode === "extend" && job.input && job.input.summary && job.input.summary.time_span_s;
     const isNew = (t) => !!span && t >= span[0] && t <= span[1];
-    const [trajectory, deadReckoning, savedDrives, closures] = await Promise.all([
+    const [trajectory, deadReckoning, savedDrives, closures, changes] = await Promise.all([
       listed("trajectory.json") ? posesOf(`/v1/jobs/${job.id}/trajectory`, (t) => !span || isNew(t)) : null,
       listed("dead_reckoning.json") ? posesOf(`/v1/jobs/${job.id}/dead-reckoning`) : null,
       span && listed("trajectory.json") ? posesOf(`/v1/jobs/${job.id}/trajectory`, (t) => !isNew(t)) : null,
-      job.status === "succeeded" && job.products.includes("run.json") ? closuresOf(job.id) : null]);
+      job.status === "succeeded" && job.products.includes("run.json") ? closuresOf(job.id) : null,
+      job.status === "succeeded" && job.products.includes("changes.geojson") ? changesOf(job.id) : null]);
     if (job.id !== this.jobId) return; // another job was selected meanwhile
     if (!this.map || !sameGeometry(this.scheme, scheme) || !!textureScheme !== !!this.layers.texture) {
       this._build(job.id, scheme, !!textureScheme, version, trajectory);
@@ -270,19 +305,22 @@ export class JobMap {
     }
     this._setPaths(trajectory, deadReckoning, savedDrives);
     this._setClosures(closures);
+    this._setChanges(changes);
     this.version = version;
   }
 
-  /** A job whose product is a picture, not a map (a localisation): that picture in the map pane. */
-  async _showImage(job, product, caption) {
+  /** A job whose products are pictures, not a map (a localisation): each [product, caption] in the map pane. */
+  async _showImages(job, pictures) {
     if (this.map) this._clear(null);
-    const key = `${job.id}:${product}`;
+    const key = `${job.id}:${pictures.map(([product]) => product).join(",")}`;
     if (this.imageKey === key) return;
-    const blob = await getBlob(`/v1/jobs/${job.id}/${product}`);
+    const blobs = await Promise.all(pictures.map(([product]) => getBlob(`/v1/jobs/${job.id}/${product}`)));
     if (job.id !== this.jobId) return;
     this.imageKey = key;
-    const image = el("img", { src: URL.createObjectURL(blob), alt: caption, class: "product-image" });
-    this.placeholder.replaceChildren(image, el("div", { class: "muted" }, caption));
+    this.placeholder.replaceChildren(...pictures.flatMap(([product, caption], index) => [
+      el("img", { src: URL.createObjectURL(blobs[index]), alt: caption, class: "product-image",
+        "data-product": product }),
+      el("div", { class: "muted" }, caption)]));
     this.placeholder.hidden = false;
   }
 
@@ -321,6 +359,7 @@ export class JobMap {
       deadReckoning: L.polyline([], DEAD_RECKONING_STYLE),
       savedDrives: L.polyline([], SAVED_DRIVES_STYLE),
       closures: L.layerGroup(),
+      changes: L.layerGroup(),
     };
     const trajectoryGroup = L.layerGroup([this.layers.trajectory]);
     this.layers.trajectoryGroup = trajectoryGroup;
@@ -337,6 +376,7 @@ export class JobMap {
     this.deadReckoningOffered = false;
     this.savedDrivesOffered = false;
     this.closuresOffered = false;
+    this.changesOffered = false;
     L.control.scale({ imperial: false, metric: true, maxWidth: 160, position: "bottomleft" }).addTo(map);
     new CursorPosition().addTo(map);
     this.colourKey = new ColourKey().addTo(map);
@@ -391,6 +431,17 @@ export class JobMap {
     this.layerControl.addOverlay(this.layers.closures, LAYER_NAMES.closures);
     if (!this.hidden.has(LAYER_NAMES.closures)) this.layers.closures.addTo(this.map);
     this.colourKey.setClosures(closures.length);
+  }
+
+  /** The changed regions as polygons over the map, offered in the layer control and the key once known. */
+  _setChanges(changes) {
+    if (!changes || this.changesOffered) return;
+    this.changesOffered = true;
+    for (const change of changes) this.layers.changes.addLayer(L.polygon(change.rings, CHANGE_STYLES[change.kind]));
+    this.layerControl.addOverlay(this.layers.changes, LAYER_NAMES.changes);
+    if (!this.hidden.has(LAYER_NAMES.changes)) this.layers.changes.addTo(this.map);
+    const count = (kind) => changes.filter((change) => change.kind === kind).length;
+    this.colourKey.setChanges({ added: count("added"), removed: count("removed") });
   }
 
   _clear(text) {
