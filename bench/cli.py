@@ -56,6 +56,8 @@ def accuracy(
                                 "(recall@5, precision@1; not with --quick or --no-datasets)."),
     peers: bool = typer.Option(True, help="Then lidarmap and Karto side by side (whole processes, interleaved, "
                                "median of 3; needs ../shared/peers built; not with --quick)."),
+    changes: bool = typer.Option(True, help="Then the change map against the simulated office's known changes "
+                                 "(precision, recall, seeds 0-4; not with --quick)."),
     out: Path | None = typer.Option(None, help="Output folder (default bench/results/<date-time>)."),
     record: bool = typer.Option(False, help="Write this run's relation errors (median and worst seed per scored "
                                 "log) into bench/recorded.json, the record later runs are compared with."),
@@ -128,6 +130,11 @@ def accuracy(
         console.print("\n[bold]Place index[/bold]: retrieval at the true revisits (python -m bench.place_recall)")
         console.print(place_recall.table([place_recall.measure(name) for name in place_recall.DEFAULT_LOGS], 5),
                       highlight=False)
+    if changes and not quick:
+        from bench import changes as change_map
+
+        console.print("\n[bold]Change map[/bold]: the simulated office's known changes (python -m bench.changes)")
+        console.print(change_map.table([change_map.measure(seed) for seed in range(5)]), highlight=False)
     if peers and not quick:
         from bench import peers as side_by_side
 

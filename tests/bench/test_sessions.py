@@ -97,7 +97,8 @@ def test_checks_json_and_tables(sessions_run):
     assert list(rows) == ["localise:campus", "localise:office", "extend:campus", "extend:office",
                           "refuse:campus:office", "refuse:office:campus", "merge:campus", "merge:office",
                           "time:campus", "time:office", "which:campus", "which:office", "which-time:campus",
-                          "which-time:office"]
+                          "which-time:office", "changes:campus", "changes:office", "changes-time:campus",
+                          "changes-time:office"]
     assert rows["refuse:campus:office"]["passed"] is True and rows["refuse:office:campus"]["passed"] is True
     assert rows["localise:office"]["passed"] is None  # no target for a simulated drive
     run = results["runs"][0]
@@ -113,8 +114,14 @@ def test_checks_json_and_tables(sessions_run):
     assert which["maps"][0]["map"] == "office-a" and which["maps"][0]["localised"] is True
     assert which["time_ratio"] == pytest.approx(which["wall_s"] / which["one_map_s"])
     assert rows["which-time:office"]["values"] == [which["time_ratio"]]
-    judged = [row["passed"] for row in rows.values() if row["passed"] is not None]  # refusals, time, which map
-    assert len(judged) == 8 and f"{sum(judged)} of 8 checks pass" in text and "Per seed" in text
+    # the change map of the office's second half in the first's map: the same building, nothing changed
+    changes = run["localise"]["office-b in office-a"]["changes"]
+    assert changes["observed_m2"] > 50 and changes["changed_share"] <= 0.002
+    assert rows["changes:office"]["values"] == [changes["changed_share"]] and rows["changes:office"]["passed"] is None
+    assert rows["changes-time:office"]["values"] == [changes["time_ratio"]] and changes["time_ratio"] < 1
+    assert f"{100 * changes['changed_share']:.3f} %" in text
+    judged = [row["passed"] for row in rows.values() if row["passed"] is not None]  # refusals, times, which map
+    assert len(judged) == 10 and f"{sum(judged)} of 10 checks pass" in text and "Per seed" in text
 
 
 def test_checks_take_the_worst_seed_and_count_a_missing_number_as_a_miss():
@@ -139,6 +146,9 @@ def test_the_issue_targets_are_the_default_ones():
     assert rows["merge:intel"].target == 0.03 and rows["merge:aces-rough"].target is None
     assert rows["time:intel"].target == rows["time:aces-rough"].target == 0.2
     assert {"refuse:intel:aces-rough", "refuse:aces-rough:intel"} <= set(rows)
+    # the change map (issue #65): intel-b, the same day, at most 1 % changed; a tenth of localising at most
+    assert rows["changes:intel"].target == 0.01 and rows["changes:aces-rough"].target is None
+    assert rows["changes-time:intel"].target == rows["changes-time:aces-rough"].target == 0.1
 
 
 def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_path):
@@ -146,6 +156,7 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
     --quick, --no-datasets or --no-sessions. The live table (the simulated car, no datasets) comes last, into
     the same folder; not with --quick or --no-live."""
     import bench.cases
+    import bench.changes
     import bench.harness
     import bench.live
     import bench.peers
@@ -156,6 +167,9 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
     live_calls: list = []
     recall_calls: list = []
     peer_calls: list = []
+    change_calls: list = []
+    monkeypatch.setattr(bench.changes, "measure", lambda seed: change_calls.append(seed))
+    monkeypatch.setattr(bench.changes, "table", lambda rows: "changes table")
     monkeypatch.setattr(bench.live, "run_live_table", lambda out, console: live_calls.append(out))
     monkeypatch.setattr(bench.place_recall, "measure", lambda name: recall_calls.append(name))
     monkeypatch.setattr(bench.place_recall, "table", lambda rows, k: "recall table")
@@ -179,6 +193,7 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
         live_calls.clear()
         recall_calls.clear()
         peer_calls.clear()
+        change_calls.clear()
         with pytest.raises(SystemExit) as exit_info:
             main([*flags, "--no-simulated", "--out", str(out), str(log)])
         assert exit_info.value.code == 0
@@ -188,3 +203,4 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
         places = runs_sessions or flags == ["--no-sessions"]
         assert recall_calls == (list(bench.place_recall.DEFAULT_LOGS) if places else []), flags
         assert peer_calls == (["karto"] if "--quick" not in flags else []), flags
+        assert change_calls == ([0, 1, 2, 3, 4] if "--quick" not in flags else []), flags  # the simulated office
