@@ -170,7 +170,7 @@ def run_seed(drives: list[SessionDrive], seed: int, overrides: dict | None = Non
         for other in sorted(drives, key=lambda d: d.name != drive.name):
             map_name, drive_name = f"{other.name}-a", f"{drive.name}-b"
             started = time.perf_counter()
-            scans, placed = localize_log(bundles[map_name], logs[drive_name], config, threads=threads)
+            drive_scans, placed = localize_log(bundles[map_name], logs[drive_name], config, threads=threads)
             wall_s = time.perf_counter() - started
             scans_s = wall_s - placed.search_s
             mapping_s = mapping[drive_name]["wall_s"]
@@ -183,7 +183,7 @@ def run_seed(drives: list[SessionDrive], seed: int, overrides: dict | None = Non
                 a = bundles[map_name]
                 record["relations"] = _scores(_concatenated(a.trajectory_t_s, a.trajectory, placed.trajectory),
                                               relations[drive.name])
-                record["changes"] = _changes(a, scans, placed, config, wall_s)
+                record["changes"] = _changes(a, drive_scans, placed, config, wall_s)
             localisations[f"{drive_name} in {map_name}"] = record
             outcome = (f"{record['relations']['ab']['trans_mean_m']:.3f} m across"
                        if record["relations"] else "localised" if placed.localised else "refused")
