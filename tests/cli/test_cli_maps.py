@@ -105,3 +105,39 @@ def test_localize_extend_and_merge_from_the_command_line(tmp_path, logs) -> None
     assert nothing.exit_code == 2 and "no saved map here" in nothing.stderr
     hinted = invoke("localize", logs["b"], "--map", maps, "--out", tmp_path / "z", "--start", "1,2,0")
     assert hinted.exit_code == 2 and "--start" in hinted.stderr
+
+
+def test_localize_and_extend_say_what_changed_since_the_map(tmp_path) -> None:
+    """The simulated office mapped, then driven days later with a desk moved, a pillar gone, a door closed
+    and a partition put up: both the localisation and the extension write the change map."""
+    from slam_engine.simulation import write_simulated
+
+    before = write_simulated(simulate("office", seed=0, cameras=False), "carmen", tmp_path / "before")
+    after = write_simulated(simulate("office-changed", seed=1, cameras=False), "carmen", tmp_path / "after")
+    assert (tmp_path / "after" / "changes.json").is_file()
+    assert invoke("run", before, "--out", tmp_path / "map", "--particles", "10").exit_code == 0
+
+    found = invoke("localize", after, "--map", tmp_path / "map", "--out", tmp_path / "loc")
+    assert found.exit_code == 0, found.output
+    assert "changed since the map:" in found.stdout and "m^2 removed" in found.stdout
+    run = json.loads((tmp_path / "loc" / "run.json").read_text())
+    assert {"changes.png", "changes.geojson"} <= set(run["products"])
+    assert run["changes"]["removed_regions"] == 2 and run["changes"]["added_regions"] >= 3
+    features = json.loads((tmp_path / "loc" / "changes.geojson").read_text())["features"]
+    assert sorted({f["properties"]["kind"] for f in features}) == ["added", "removed"]
+    assert sum(f["properties"]["area_m2"] for f in features) == pytest.approx(
+        run["changes"]["added_m2"] + run["changes"]["removed_m2"], abs=0.01)
+
+    extended = invoke("run", after, "--map", tmp_path / "map", "--out", tmp_path / "ext", "--particles", "10")
+    assert extended.exit_code == 0, extended.output
+    assert "changed since the saved map:" in extended.stdout
+    run = json.loads((tmp_path / "ext" / "run.json").read_text())
+    assert {"changes.png", "changes.geojson", "drives.png"} <= set(run["products"])
+    assert run["changes"]["removed_regions"] == 2 and 0.002 < run["changes"]["changed_share"] < 0.02
+
+    off = tmp_path / "off.yaml"
+    off.write_text("changes:\n  enabled: false\n")
+    quiet = invoke("localize", after, "--map", tmp_path / "map", "--out", tmp_path / "quiet", "--config", off)
+    assert quiet.exit_code == 0 and "changed since" not in quiet.stdout
+    assert not (tmp_path / "quiet" / "changes.png").exists()
+    assert "changes" not in json.loads((tmp_path / "quiet" / "run.json").read_text())
