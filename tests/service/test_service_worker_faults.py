@@ -209,3 +209,33 @@ def test_a_full_disk_in_the_runner_is_logged_once_and_its_dead_worker_replaced(t
     lines = [r.getMessage() for r in caplog.records if r.name == "lidarmap.runner"]
     assert len([line for line in lines if line.startswith("runner supervisor tick failed")]) == 1, lines
     assert len([line for line in lines if line.startswith("runner supervisor ticks work again")]) == 1, lines
+
+
+def test_a_failing_heartbeat_is_logged_once_per_incident(caplog) -> None:
+    """Issue 64 item 1: on a full disk every beat logged a traceback. Now one line while the beats fail,
+    and again only after one has been written."""
+    import sqlite3
+    import threading
+
+    from service.runners.heartbeat import Heartbeat
+
+    class Store:
+        def __init__(self) -> None:
+            self.calls, self.refuse, self.done = 0, set(range(10)) | set(range(15, 20)), threading.Event()
+
+        def heartbeat(self, job_id: str) -> bool:
+            self.calls += 1
+            if self.calls >= 25:
+                self.done.set()
+            if self.calls - 1 in self.refuse:
+                raise sqlite3.OperationalError("database or disk is full")
+            return False
+
+    caplog.set_level(logging.INFO, logger="lidarmap.heartbeat")
+    store = Store()
+    beat = Heartbeat(store, "job", every_s=0.001, cancel_grace_s=60.0, kill=lambda: None)
+    beat.start()
+    assert store.done.wait(30)
+    beat.stop()
+    failed = [r for r in caplog.records if r.getMessage().startswith("job job: heartbeat failed")]
+    assert len(failed) == 2, [r.getMessage() for r in caplog.records]  # beats 0-9, then 15-19
