@@ -39,12 +39,16 @@ class Heartbeat(threading.Thread):
 
     def run(self) -> None:
         stop_asked_s: float | None = None
+        failing = False
         while not self._stopped.wait(self._every_s):
             try:
                 should_stop = self._store.heartbeat(self._job_id)
-            except Exception:  # a locked or unreachable store: try again at the next beat
-                logger.exception("job %s: heartbeat failed", self._job_id)
+            except Exception:  # a locked or unreachable store, a full disk: try again at the next beat
+                if not failing:  # once until a beat is written again
+                    logger.exception("job %s: heartbeat failed (retried at each beat, logged once)", self._job_id)
+                failing = True
                 continue
+            failing = False
             if not should_stop:
                 continue
             stop_asked_s = stop_asked_s or time.monotonic()

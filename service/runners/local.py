@@ -7,6 +7,9 @@ a job (killed, crashed) and fails that job with the exit reason, replaces the wo
 the grace period. Each running job writes a heartbeat every ``heartbeat_s``; a job whose heartbeat is
 older than ``worker_lost_s`` (its worker was stopped with SIGSTOP, or hangs with the interpreter
 lock held) is failed "worker lost: no heartbeat for ..." and its worker killed and replaced.
+An outcome the store refuses to take (a full disk) is kept and written again at each tick, a failing
+tick logged once until ticks work again; on a full disk the data folder's spare file is given up for
+these writes (:mod:`service.storage.disk_space`), and made again once there is room.
 Workers die with the API process (:mod:`service.process_guard`).
 A worker that has run ``max_jobs_per_worker`` jobs is asked to exit and replaced by a fresh one, so an
 idle worker does not hold the memory its jobs left behind (the heap of a finished run is not given back
@@ -15,6 +18,7 @@ to the system).
 
 from __future__ import annotations
 
+import functools
 import logging
 import multiprocessing as mp
 import queue
@@ -29,6 +33,7 @@ from api_schemas.jobs import JobStatus
 from service.jobs.events import job_event
 from service.runners.base import DEFAULT_JOB_FUNCTION, RunnerHealth
 from service.storage.data_dir import DataDir
+from service.storage.disk_space import keep_spare, write_status
 from service.storage.store import JobStore
 
 logger = logging.getLogger("lidarmap.runner")
@@ -83,6 +88,10 @@ class LocalProcessRunner:
         self._lock = threading.Lock()
         self._pending: deque[str] = deque()
         self._cancel_asked: dict[str, float] = {}
+        self._unwritten: dict[str, tuple[JobStatus, str]] = {}  # outcomes the store refused so far
+        self._failing_since: float | None = None  # the first failed tick of the failures going on
+        self._failed_ticks = 0
+        keep_spare(data)
         self._stopping = threading.Event()
         self._slots = [self._spawn(i) for i in range(workers)]
         self._supervisor = threading.Thread(target=self._supervise, name="lidarmap-runner", daemon=True)
@@ -115,6 +124,10 @@ class LocalProcessRunner:
     def shutdown(self) -> None:
         self._stopping.set()
         self._supervisor.join(timeout=5.0)
+        try:
+            self._write_unwritten()
+        except Exception as exc:  # still refused: the next start fails them as interrupted
+            logger.error("%d job outcomes could not be written at shutdown: %s", len(self._unwritten), exc)
         with self._lock:
             for slot in self._slots:
                 if slot.job_id is None:
@@ -155,19 +168,28 @@ class LocalProcessRunner:
         while not self._stopping.is_set():
             try:
                 self._tick()
-            except Exception:  # the supervisor must survive a bad tick (e.g. a locked database)
-                logger.exception("runner supervisor tick failed")
+            except Exception:  # the supervisor must survive a bad tick (e.g. a locked database, a full disk)
+                self._failed_ticks += 1
+                if self._failing_since is None:  # once per incident, not at every tick (20 a second)
+                    self._failing_since = time.monotonic()
+                    logger.exception("runner supervisor tick failed (retried every %.2f s, logged once)", self._poll_s)
+            else:
+                if self._failing_since is not None:
+                    logger.warning("runner supervisor ticks work again after %d failed in %.1f s", self._failed_ticks,
+                                   time.monotonic() - self._failing_since)
+                    self._failing_since, self._failed_ticks = None, 0
             self._stopping.wait(self._poll_s)
 
     def _tick(self) -> None:
         self._drain_outbox()
-        self._reap_silent()
-        with self._lock:
+        with self._lock:  # no store writes here: a full disk does not keep a dead worker from being replaced
             for slot in list(self._slots):
                 if not slot.process.is_alive():
                     self._replace_dead(slot)
             self._enforce_cancels()
             self._assign_pending()
+        self._reap_silent()
+        self._write_unwritten()
 
     def _reap_silent(self) -> None:
         """Every ``heartbeat_s``: fail the running jobs whose heartbeat is older than ``worker_lost_s``
@@ -176,7 +198,8 @@ class LocalProcessRunner:
         if now < self._next_reap_s:
             return
         self._next_reap_s = now + self._heartbeat_s
-        for job_id in self._store.fail_lost(self._worker_lost_s):
+        keep_spare(self._data)
+        for job_id in write_status(self._data, lambda: self._store.fail_lost(self._worker_lost_s)):
             logger.warning("job %s: no heartbeat for %.0f s: failed, its worker killed", job_id, self._worker_lost_s)
             with self._lock:
                 for slot in self._slots:
@@ -186,9 +209,11 @@ class LocalProcessRunner:
     def _drain_outbox(self) -> None:
         while True:
             try:
-                index, job_id, _status = self._outbox.get_nowait()
+                index, job_id, status, unwritten = self._outbox.get_nowait()
             except queue.Empty:
                 return
+            if unwritten is not None:  # its worker could not write the outcome
+                self._unwritten[job_id] = (status, unwritten)
             with self._lock:
                 slot = self._slots[index] if index < len(self._slots) else None
                 if slot is not None and slot.job_id == job_id:
@@ -208,13 +233,11 @@ class LocalProcessRunner:
         reason = exit_reason(slot.process.exitcode)
         if slot.job_id is not None:
             asked = slot.job_id in self._cancel_asked
+            self._data.remove(self._data.live_dir(slot.job_id))  # served only while it runs; freed before the write
             if asked:
-                self._store.finish(slot.job_id, JobStatus.CANCELLED, "cancelled by request (worker stopped)")
-                job_event(JobStatus.CANCELLED.value, slot.job_id, error="cancelled by request (worker stopped)")
+                self._unwritten[slot.job_id] = (JobStatus.CANCELLED, "cancelled by request (worker stopped)")
             else:
-                self._store.finish(slot.job_id, JobStatus.FAILED, reason)
-                job_event(JobStatus.FAILED.value, slot.job_id, logging.WARNING, error=reason)
-            self._data.remove(self._data.live_dir(slot.job_id))  # its live snapshot is served only while it runs
+                self._unwritten[slot.job_id] = (JobStatus.FAILED, reason)
             self._cancel_asked.pop(slot.job_id, None)
             slot.job_id = None
         if self._stopping.is_set():
@@ -229,6 +252,15 @@ class LocalProcessRunner:
         if now >= slot.respawn_at_s:
             self._slots[slot.index] = self._spawn(slot.index)
 
+    def _write_unwritten(self) -> None:
+        """Write the outcomes the store refused so far (a full disk): each stays until it is written,
+        and the worker slots are replaced meanwhile."""
+        for job_id, (status, error) in list(self._unwritten.items()):
+            if write_status(self._data, functools.partial(self._store.finish, job_id, status, error)):
+                job_event(status.value, job_id, logging.WARNING if status is JobStatus.FAILED else logging.INFO,
+                          error=error)
+            del self._unwritten[job_id]
+
     def _enforce_cancels(self) -> None:
         now = time.monotonic()
         for slot in self._slots:
@@ -241,7 +273,11 @@ class LocalProcessRunner:
         idle = [s for s in self._slots if s.job_id is None and s.process.is_alive() and not s.retiring]
         while idle and self._pending:
             job_id = self._pending.popleft()
-            job = self._store.get_job(job_id)
+            try:
+                job = self._store.get_job(job_id)
+            except Exception:
+                self._pending.appendleft(job_id)  # kept for the next tick
+                raise
             if job is None or job.status is not JobStatus.QUEUED:
                 continue
             slot = idle.pop(0)

@@ -26,6 +26,7 @@ from service.memory_watchdog import MemoryGuard, limit_reason
 from service.process_guard import die_with_parent
 from service.runners.heartbeat import with_heartbeat
 from service.storage.data_dir import DataDir
+from service.storage.disk_space import write_status
 from service.storage.store import JobStore
 from slam_engine.errors import Cancelled, LogFormatError, SlamEngineError
 
@@ -69,9 +70,10 @@ def execute_job(job_id: str, store: JobStore, data: DataDir, function: JobFuncti
             logger.warning("job %s is not this worker's any more: its products were discarded", job_id)
             current = store.get_job(job_id)
             return None if current is None else current.status
-        recorded = store.finish(job_id, status, error)
-        if recorded and status is not JobStatus.SUCCEEDED:
+        if status is not JobStatus.SUCCEEDED:  # what it wrote is freed first: on a full disk, room for the status
+            shutil.rmtree(staging, ignore_errors=True)
             data.remove(data.live_dir(job_id))  # served only while it runs: on a full disk, MBs a job held
+        recorded = write_status(data, lambda: store.finish(job_id, status, error))
         if not recorded:  # failed or cancelled meanwhile: first writer wins
             for path in moved or []:
                 if path.is_dir():
@@ -178,5 +180,15 @@ def worker_main(data_root: str, store: JobStore, job_function: str, slot: int, i
         job_id = inbox.get()
         if job_id is None:
             return
-        status = execute_job(job_id, store, data, function, memory_limit_mb)
-        outbox.put((slot, job_id, status))
+        try:
+            status, unwritten = execute_job(job_id, store, data, function, memory_limit_mb), None
+        except Exception as exc:  # the store refused a write (a full disk, a locked database): the runner
+            status, unwritten = JobStatus.FAILED, unwritten_reason(exc, data)  # writes the outcome instead
+            logger.error("job %s: its status could not be written (%s: %s): left to the runner", job_id,
+                         type(exc).__name__, exc)
+        outbox.put((slot, job_id, status, unwritten))
+
+
+def unwritten_reason(exc: BaseException, data: DataDir) -> str:
+    """The failure a job gets when its worker could not write its outcome for ``exc``."""
+    return DISK_FULL_REASON if is_disk_full(exc, free_bytes=data.free_bytes()) else internal_error(exc)

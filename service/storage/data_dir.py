@@ -7,6 +7,7 @@ names, never from client input (except the members of an uploaded zip, which upl
     <data>/chunks/<session_id>/<seq>.json
     <data>/jobs/<job_id>/            products; live/ holds the snapshot of a running job
     <data>/tmp/                      partial uploads
+    <data>/spare                     1 MB given up when a job's status meets a full disk (disk_space.py)
 """
 
 from __future__ import annotations
@@ -32,6 +33,10 @@ class DataDir:
     @property
     def database(self) -> Path:
         return self.root / "lidarmap.sqlite3"
+
+    @property
+    def spare(self) -> Path:
+        return self.root / "spare"
 
     @property
     def tmp(self) -> Path:

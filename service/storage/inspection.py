@@ -131,12 +131,13 @@ def inspect_log(path: str, format_name: str, max_decompressed_bytes: int, hidden
 
 def inspect_bundle(path: str, max_decompressed_bytes: int, hidden_prefix: str = "") -> dict[str, Any]:
     """Read the map bundle at ``path``; ``{"summary": {...}}`` or ``{"error": "map_bundle", "message", ...}``.
-    Its arrays' declared sizes are checked against ``max_decompressed_bytes`` before any is read."""
+    Its arrays' declared sizes are checked against ``max_decompressed_bytes`` and the bound on uploaded
+    bundles (``MAX_UPLOADED_BUNDLE_BYTES``, 256 MiB) before any is read."""
     from slam_engine.errors import SlamEngineError
-    from slam_engine.products.map_bundle import check_bundle_size, read_bundle
+    from slam_engine.products.map_bundle import MAX_UPLOADED_BUNDLE_BYTES, check_bundle_size, read_bundle
 
     try:
-        check_bundle_size(path, max_decompressed_bytes)
+        check_bundle_size(path, min(max_decompressed_bytes, MAX_UPLOADED_BUNDLE_BYTES))
         bundle = read_bundle(path)
     except SlamEngineError as exc:  # the message without the upload's temporary file name
         return _error("map_bundle", str(exc).removeprefix(f"{path}: "), None, hidden_prefix)

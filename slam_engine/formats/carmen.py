@@ -36,6 +36,8 @@ so at 392 records, each key frame 0.3-0.65 m off while the robot reverses.
 
 from __future__ import annotations
 
+from array import array
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -76,18 +78,41 @@ _KNOWN = {"PARAM", "ODOM", "TRUEPOS", "SYNC", "NMEA-GGA", "NMEA-RMC", "SONAR", "
           "POSITION"}
 
 
+def _doubles() -> array:
+    return array("d")
+
+
+def _integers() -> array:
+    return array("q")
+
+
 @dataclass
 class _Laser:
-    """The records of one laser channel as read."""
+    """The records of one laser channel as read, packed: a record costs its numbers' bytes, not a Python
+    object per value (a million beamless records took 780 MB as lists of arrays and tuples, 90 MB so)."""
 
-    t: list[float] = field(default_factory=list)
-    ranges: list[np.ndarray] = field(default_factory=list)
-    laser_pose: list[tuple[float, float, float]] = field(default_factory=list)
-    robot_pose: list[tuple[float, float, float]] = field(default_factory=list)
-    lines: list[int] = field(default_factory=list)
+    t: array = field(default_factory=_doubles)
+    ranges: array = field(default_factory=_doubles)  # every record's ranges, one record after the other
+    counts: array = field(default_factory=_integers)  # each record's beam count
+    laser_pose: array = field(default_factory=_doubles)  # x, y, theta of each record, one after the other
+    robot_pose: array = field(default_factory=_doubles)  # likewise
+    lines: array = field(default_factory=_integers)
     geometry: tuple[float, float, float] | None = None  # (start angle, resolution, max range) of the first record
-    starts: list[float] = field(default_factory=list)  # each record's start angle [rad] (ROBOTLASER/RAWLASER)
-    increments: list[float] = field(default_factory=list)  # each FLASER record's beam spacing [rad]
+    starts: array = field(default_factory=_doubles)  # each record's start angle [rad] (ROBOTLASER/RAWLASER)
+    increments: array = field(default_factory=_doubles)  # each FLASER record's beam spacing [rad]
+
+    def add(self, ranges: np.ndarray, line_no: int, poses: np.ndarray | None = None) -> None:
+        """One record's ranges and line (and its laser and robot poses, six numbers)."""
+        self.ranges.frombytes(np.ascontiguousarray(ranges, dtype=np.float64).tobytes())
+        self.counts.append(len(ranges))
+        self.lines.append(line_no)
+        if poses is not None:
+            self.laser_pose.frombytes(np.ascontiguousarray(poses[0:3], dtype=np.float64).tobytes())
+            self.robot_pose.frombytes(np.ascontiguousarray(poses[3:6], dtype=np.float64).tobytes())
+
+    def robot_poses(self) -> np.ndarray:
+        """(N, 3) the records' robot poses."""
+        return np.frombuffer(self.robot_pose, dtype=np.float64).reshape(-1, 3)
 
 
 def sniff(path: Path) -> bool:
@@ -150,13 +175,10 @@ def _parse_old_laser(tokens: list[str], laser: _Laser, path: Path, line_no: int)
     _plausible_pose(values[n + 3:n + 6], "robot pose", path, line_no)
     if n and laser.increments and abs(_flaser_increment(n) - laser.increments[0]) > 1e-9:
         raise LogFormatError(f"{tokens[0]} beam spacing changes within the log ({n} beams over 180 deg, "
-                             f"{len(laser.ranges[0])} before)", path=str(path), location=f"line {line_no}")
+                             f"{laser.counts[0]} before)", path=str(path), location=f"line {line_no}")
     laser.increments.append(_flaser_increment(n) if n else 0.0)
-    laser.ranges.append(values[:n])
-    laser.laser_pose.append(tuple(values[n:n + 3]))
-    laser.robot_pose.append(tuple(values[n + 3:n + 6]))
     laser.t.append(float(_finite(_floats([tokens[n + 8]], path, line_no), "timestamp", path, line_no)[0]))
-    laser.lines.append(line_no)
+    laser.add(values[:n], line_no, values[n:n + 6])
 
 
 def _parse_new_laser(tokens: list[str], laser: _Laser, path: Path, line_no: int, with_poses: bool) -> None:
@@ -169,15 +191,13 @@ def _parse_new_laser(tokens: list[str], laser: _Laser, path: Path, line_no: int,
     m = _int_field(tokens[9 + n], path, line_no, "remission count")
     tail = 11 + 3 if with_poses else 3
     _expect_length(tokens, 10 + n + m + tail, path, line_no)
-    laser.ranges.append(_floats(tokens[9:9 + n], path, line_no))
+    ranges = _floats(tokens[9:9 + n], path, line_no)
     rest = _finite(_floats(tokens[10 + n + m:-2], path, line_no), "pose / timestamp", path, line_no)
     if with_poses:
         _plausible_pose(rest[0:3], "laser pose", path, line_no)
         _plausible_pose(rest[3:6], "robot pose", path, line_no)
-        laser.laser_pose.append(tuple(rest[0:3]))
-        laser.robot_pose.append(tuple(rest[3:6]))
+    laser.add(ranges, line_no, rest[0:6] if with_poses else None)
     laser.t.append(float(rest[-1]))
-    laser.lines.append(line_no)
     start, _fov, resolution, max_range = (float(v) for v in header)
     if not abs(start) <= 2 * np.pi:
         raise LogFormatError(f"start angle is {start:g} rad, beyond +-2 pi", path=str(path),
@@ -201,10 +221,7 @@ def load(path: Path, no_return_m: float | None = None) -> DriveLog:
     """Read a CARMEN log into a DriveLog with an odometry stream and one laser's scans."""
     path = Path(path)
     params: dict[str, str] = {}
-    odom_t: list[float] = []
-    odom_tv: list[float] = []
-    odom_poses: list[np.ndarray] = []
-    odom_lines: list[int] = []
+    odom_t, odom_tv, odom_poses, odom_lines = _doubles(), _doubles(), _doubles(), _integers()  # packed, as _Laser
     lasers: dict[str, _Laser] = {}
     skipped: dict[str, int] = {}
     try:
@@ -224,7 +241,7 @@ def load(path: Path, no_return_m: float | None = None) -> DriveLog:
                     values = _finite(_floats(tokens[1:8], path, line_no), "ODOM pose / velocity / time",
                                      path, line_no)
                     _plausible_pose(values[:3], "ODOM pose", path, line_no)
-                    odom_poses.append(values[:3])
+                    odom_poses.frombytes(values[:3].tobytes())
                     odom_tv.append(float(values[3]))
                     odom_t.append(float(values[6]))
                     odom_lines.append(line_no)
@@ -260,13 +277,13 @@ def load(path: Path, no_return_m: float | None = None) -> DriveLog:
     odometry = recorded = None
     if odom_t:
         order = time_order(np.array(odom_t), path, "ODOM", warnings, _line_label(odom_lines))
-        recorded = OdometryStream(t_s=np.array(odom_t)[order], poses=np.array(odom_poses)[order])
+        recorded = OdometryStream(t_s=np.array(odom_t)[order], poses=np.frombuffer(odom_poses).reshape(-1, 3)[order])
         repaired = _backing_up_forward(recorded, np.array(odom_tv)[order], path, warnings)
         odometry = recorded if repaired is None else repaired
     if chosen is not None and _carries_odometry(lasers[chosen]):
         laser = lasers[chosen]
         order = time_order(np.array(laser.t), path, chosen, [], _line_label(laser.lines))
-        own = OdometryStream(t_s=np.array(laser.t)[order], poses=np.array(laser.robot_pose)[order])
+        own = OdometryStream(t_s=np.array(laser.t)[order], poses=laser.robot_poses()[order])
         if odometry is None or recorded is None:
             odometry = own
             warnings.append(f"{path}: no ODOM records; odometry taken from the {chosen} robot poses")
@@ -285,9 +302,9 @@ def load(path: Path, no_return_m: float | None = None) -> DriveLog:
 
 def _carries_odometry(laser: _Laser) -> bool:
     """Whether the laser records carry the robot's odometry pose (FLASER, ROBOTLASER: not all the same)."""
-    if len(laser.robot_pose) < 2:
+    poses = laser.robot_poses()
+    if len(poses) < 2:
         return False
-    poses = np.asarray(laser.robot_pose)
     return bool(np.any(poses != poses[0]))
 
 
@@ -343,13 +360,13 @@ def _with_scans_own_poses(odom: OdometryStream, own: OdometryStream, kind: str, 
     return OdometryStream(t_s=t_s[order], poses=poses[order])
 
 
-def _line_label(lines: list[int]):
+def _line_label(lines: Sequence[int]):
     return lambda i: f"line {lines[i]}"
 
 
 def _laser_stream(path: Path, kind: str, laser: _Laser, params: dict[str, str], no_return_m: float | None,
                   warnings: list[str]) -> tuple[LidarModel, ScanStream]:
-    counts = np.array([len(r) for r in laser.ranges])
+    counts = np.array(laser.counts, dtype=np.int64)
     n = int(counts.max())
     if counts.min() == 0:
         bad = int(np.argmin(counts))
@@ -366,7 +383,7 @@ def _laser_stream(path: Path, kind: str, laser: _Laser, params: dict[str, str], 
         threshold = _param_float(params, f"robot_{side}_laser_max", path)
     if no_return_m is not None:
         threshold = no_return_m
-    raw = _padded(laser.ranges, n)
+    raw = _padded(np.frombuffer(laser.ranges, dtype=np.float64), counts, n)
     label = _line_label(laser.lines)
     saturation = _saturation_value(raw, threshold)
     if saturation is not None:
@@ -386,13 +403,13 @@ def _laser_stream(path: Path, kind: str, laser: _Laser, params: dict[str, str], 
                              angle_offset_rad=offsets[order] if changing else None)
 
 
-def _padded(ranges: list[np.ndarray], n: int) -> np.ndarray:
-    """(N, n) ranges: scans with fewer beams padded with ``inf`` (no return) at their end."""
-    if all(r.size == n for r in ranges):
-        return np.array(ranges)
-    out = np.full((len(ranges), n), np.inf)
-    for k, r in enumerate(ranges):
-        out[k, :r.size] = r
+def _padded(ranges: np.ndarray, counts: np.ndarray, n: int) -> np.ndarray:
+    """(N, n) ranges from every scan's ranges one after the other (``counts`` each): scans with fewer
+    beams padded with ``inf`` (no return) at their end."""
+    if (counts == n).all():
+        return ranges.reshape(len(counts), n).copy()
+    out = np.full((len(counts), n), np.inf)
+    out[np.arange(n) < counts[:, None]] = ranges  # row after row, as the ranges were read
     return out
 
 
@@ -423,7 +440,7 @@ def _mounting(path: Path, side: str, laser: _Laser, params: dict[str, str]) -> n
             yaw = np.pi
         return to_matrix_4x4(np.array([x, y, yaw]))
     if laser.laser_pose:
-        return to_matrix_4x4(relative(np.array(laser.robot_pose[0]), np.array(laser.laser_pose[0])))
+        return to_matrix_4x4(relative(np.array(laser.robot_pose[0:3]), np.array(laser.laser_pose[0:3])))
     return to_matrix_4x4(np.array([0.0, 0.0, np.pi if side == "rear" else 0.0]))
 
 

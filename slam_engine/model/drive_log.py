@@ -36,11 +36,23 @@ MAX_RANGE_M = 1e6  # a LiDAR range
 MAX_YAW_RATE_RAD_S = 1e3  # a gyro's yaw rate: 160 turns a second
 
 
+CHECK_BLOCK_VALUES = 1 << 20  # values checked at once: a check's copies stay small beside the array
+
+
 def first_beyond(values: np.ndarray, limit: float) -> int | None:
-    """Flat index of the first value that is NaN, infinite or beyond +-``limit``; None when all are fine."""
-    flat = np.asarray(values, dtype=np.float64).reshape(-1)
-    bad = np.flatnonzero(~(np.abs(flat) <= limit))
-    return int(bad[0]) if bad.size else None
+    """Flat index of the first value that is NaN, infinite or beyond +-``limit``; None when all are fine
+    (``limit`` inf: the first value not finite). Checked in blocks of rows (copies of about 8 MB)."""
+    values = np.asarray(values)
+    if values.ndim == 0:
+        values = values.reshape(1)
+    per_row = int(np.prod(values.shape[1:], dtype=np.int64))
+    rows = max(1, CHECK_BLOCK_VALUES // max(per_row, 1))
+    for start in range(0, len(values), rows):
+        block = np.asarray(values[start:start + rows], dtype=np.float64).reshape(-1)
+        bad = np.flatnonzero(~(np.isfinite(block) if limit == np.inf else np.abs(block) <= limit))
+        if bad.size:
+            return start * per_row + int(bad[0])
+    return None
 
 
 class MotionModelKind(StrEnum):

@@ -23,6 +23,9 @@ BOUNDS = (("poses", slice(0, 2), MAX_COORDINATE_M, "m"), ("poses", 2, MAX_ANGLE_
           ("origin_v", None, MAX_RANGE_M, "m"), ("edges_T_i_from_j", slice(0, 2), MAX_COORDINATE_M, "m"),
           ("edges_T_i_from_j", 2, MAX_ANGLE_RAD, "rad"), ("edges_sigmas", None, MAX_COORDINATE_M, "m or rad"))
 
+# an uploaded bundle's arrays, once read: its check holds them whole (a 1.6 GB array took its process to
+# 1.58 GB); about 20 million rays, some 200 times the Intel lab's map
+MAX_UPLOADED_BUNDLE_BYTES = 256 * 1024**2
 BUNDLE_FILE = "map_bundle.npz"
 BUNDLE_FORMAT = "lidarmap-map-bundle"
 BUNDLE_VERSION = 1
@@ -85,7 +88,9 @@ def check_bundle_size(path: str | Path, max_bytes: int, max_members: int = 64) -
                                      f"{len(ARRAYS) + 1}")
             total = sum(m.file_size for m in members)
             if total > max_bytes:
-                raise MapBundleError(f"{path}: the map bundle's arrays take {total} bytes; at most {max_bytes}")
+                largest = max(members, key=lambda m: m.file_size)
+                raise MapBundleError(f"{path}: the map bundle's arrays take {total} bytes once read "
+                                     f"({largest.filename} {largest.file_size}); at most {max_bytes}")
             for member in members:
                 with archive.open(member) as stream:
                     version = np.lib.format.read_magic(stream)
@@ -142,7 +147,7 @@ def _check_shapes(path: Path, b: MapBundle) -> None:
     if len(b.edges_ij) and (b.edges_ij.min() < 0 or b.edges_ij.max() >= k):
         raise MapBundleError(f"{path}: map bundle edges name key frames outside 0..{k - 1}")
     for name in ("poses", "t_s", "ends_v", "free_from_m", "trajectory", "edges_T_i_from_j", "edges_sigmas"):
-        if not np.all(np.isfinite(getattr(b, name))):
+        if first_beyond(getattr(b, name), np.inf) is not None:
             raise MapBundleError(f"{path}: map bundle array {name} holds values that are not finite")
     # the bounds a drive log's values keep (slam_engine.model.drive_log): beyond them the maths overflows
     for name, columns, limit, unit in BOUNDS:

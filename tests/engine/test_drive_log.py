@@ -56,3 +56,21 @@ def test_summary_counts_streams_and_span() -> None:
 
 def test_beam_angles() -> None:
     np.testing.assert_allclose(make_log().lidar.beam_angles_rad, [-0.1, 0.0, 0.1])
+
+
+def test_first_beyond_finds_the_first_bad_value_across_blocks(monkeypatch) -> None:
+    """Checked in blocks of rows (a map bundle's 1.6 GB array must not be copied whole, as float64 and
+    again for its absolute values): the flat index is the same as over the whole array."""
+    from slam_engine.model import drive_log
+
+    monkeypatch.setattr(drive_log, "CHECK_BLOCK_VALUES", 8)  # 4 rows of 2 per block
+    values = np.zeros((10, 2), np.float32)
+    assert drive_log.first_beyond(values, 1.0) is None and drive_log.first_beyond(values, np.inf) is None
+    values[6, 1] = 5.0
+    assert drive_log.first_beyond(values, 1.0) == 13 and drive_log.first_beyond(values, np.inf) is None
+    values[9, 0] = np.inf
+    assert drive_log.first_beyond(values, np.inf) == 18  # an inf limit: the first value not finite
+    values[1, 0] = np.nan
+    assert drive_log.first_beyond(values, 1.0) == 2 and drive_log.first_beyond(values, np.inf) == 2
+    assert drive_log.first_beyond(np.float64(3.0), 1.0) == 0 and drive_log.first_beyond(np.zeros(0), 1.0) is None
+    assert drive_log.first_beyond(values[:, 1], 1.0) == 6  # a strided column

@@ -1,7 +1,8 @@
 """Run inside a private mount namespace (``unshare -rm``): the service on a tiny tmpfs that is then
 filled, and every write route tried once ("full: ..."); then with 512 kB left, so that the database
 still works and big writes fail on the files ("nearly full: ..."); then with room again, what was
-stored. Prints one JSON object: try -> [status, error code] (and the counts stored afterwards).
+stored. Then a job fills the disk as it runs ("job on a full disk": its status, seconds taken, whether
+the disk was still full). Prints one JSON object: try -> [status, error code] (and the counts stored).
 
 ``python full_disk_probe.py MOUNT_POINT`` (the mount point must exist; it is mounted over here)."""
 
@@ -9,8 +10,10 @@ from __future__ import annotations
 
 import io
 import json
+import shutil
 import subprocess
 import sys
+import time
 import zipfile
 from pathlib import Path
 
@@ -37,6 +40,10 @@ def fill(folder: Path, leave_bytes: int = 0) -> None:
         out.truncate(max(out.tell() - leave_bytes, 0))
 
 
+def free_bytes(folder: Path) -> int:
+    return shutil.disk_usage(folder).free
+
+
 def outcome(response) -> list:
     try:
         code = response.json().get("error", {}).get("code")
@@ -48,9 +55,10 @@ def outcome(response) -> list:
 def main(mount: Path) -> None:
     subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={TMPFS_BYTES}", "tmpfs", str(mount)], check=True)
     data_dir = mount / "data"
-    settings = Settings(data_dir=data_dir, workers=1, min_free_bytes=0)
+    settings = Settings(data_dir=data_dir, workers=1, min_free_bytes=0, heartbeat_s=1.0, worker_lost_s=10.0)
     results: dict[str, list] = {}
-    with TestClient(create_app(settings), raise_server_exceptions=False) as client:
+    app = create_app(settings, job_function="service_job_functions:fills_the_disk")
+    with TestClient(app, raise_server_exceptions=False) as client:
         sid = client.post("/v1/sessions", json={"name": "before", "calibration": CALIBRATION}).json()["id"]
         assert client.post(f"/v1/sessions/{sid}/chunks", json={"seq": 0, "messages": [ODOMETRY]}).status_code == 201
         fill(mount)
@@ -93,6 +101,15 @@ def main(mount: Path) -> None:
         (mount / "filler").unlink()
         results["stored afterwards"] = [client.get(f"/v1/sessions/{sid}/logs").json()["count"],
                                         client.get(f"/v1/sessions/{sid}/chunks").json()["received"]]
+        # a job that meets a disk filled meanwhile: it ends failed "disk full" while the disk stays full
+        job_id = client.post(f"/v1/sessions/{sid}/jobs", json={}).json()["id"]
+        started, job = time.monotonic(), {}
+        while time.monotonic() - started < 30 and job.get("status") not in ("succeeded", "failed", "cancelled"):
+            time.sleep(0.1)
+            job = client.get(f"/v1/jobs/{job_id}").json()
+        results["job on a full disk"] = [job.get("status"), job.get("error"), round(time.monotonic() - started, 1),
+                                         (data_dir / "filler").exists(), free_bytes(mount)]
+        (data_dir / "filler").unlink(missing_ok=True)
     print(json.dumps(results))
 
 

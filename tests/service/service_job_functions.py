@@ -99,3 +99,53 @@ def disk_full_writer(ctx) -> None:
     live.mkdir(parents=True, exist_ok=True)
     (live / "occupancy.png").write_bytes(b"\x89PNG" + b"\0" * 100_000)
     raise OSError(errno.ENOSPC, "No space left on device", str(ctx.out_dir / "products" / "occupancy.png"))
+
+
+def _refuse_while(ctx, refused) -> None:
+    """Make this worker's store writes of this job's outcome raise SQLite's full-disk error while
+    ``refused()`` holds (other jobs' writes go through)."""
+    import sqlite3
+
+    store_class = type(ctx.store)
+    finish, job_id = store_class.finish, ctx.job_id
+
+    def refusing_finish(store, job, *args, **kwargs):
+        if job == job_id and refused():
+            raise sqlite3.OperationalError("database or disk is full")
+        return finish(store, job, *args, **kwargs)
+
+    store_class.finish = refusing_finish
+
+
+def store_full(ctx) -> None:
+    """A progress write meets a full disk, and so does every write of the job's outcome in this worker
+    (as a database on a full disk: the worker's own writes all fail)."""
+    import sqlite3
+
+    ctx.progress(1, 2, force=True)
+    _refuse_while(ctx, lambda: True)
+    raise sqlite3.OperationalError("database or disk is full")
+
+
+def store_full_but_spare(ctx) -> None:
+    """As :func:`store_full`, but the outcome's write fits once the data folder's spare file is gone
+    (a disk that another writer keeps full)."""
+    import sqlite3
+
+    ctx.progress(1, 2, force=True)
+    _refuse_while(ctx, ctx.data.spare.exists)
+    raise sqlite3.OperationalError("database or disk is full")
+
+
+def fills_the_disk(ctx) -> None:
+    """Fills the data folder's file system (as another writer would: a file outside the job's
+    folders), then reports progress and writes its product, as a job does."""
+    ctx.progress(1, 3, force=True)
+    with open(ctx.data.root / "filler", "wb", buffering=0) as out:
+        try:
+            while True:
+                out.write(b"\0" * 4096)
+        except OSError:
+            pass
+    ctx.progress(2, 3, force=True)
+    (ctx.out_dir / "run.json").write_text(json.dumps({"steps": 3}) + " " * 1_000_000)

@@ -46,3 +46,10 @@ def test_every_write_route_answers_507_on_a_full_disk(tmp_path) -> None:
     assert results["big log stored"] == [201, None]
     assert results["delete on a full disk"][0] == 200, results
     assert results["deleted session"] == [404, None]
+    # a job that meets a disk another writer filled ends failed "disk full" while the disk stays full
+    # (the status written in the room of the data folder's spare file): before, its worker died on the
+    # write and the job read "running" until space came back, then failed "worker process exited with code 1"
+    status, error, seconds, filled, free = results["job on a full disk"]
+    assert status == "failed" and error.startswith("disk full: "), results["job on a full disk"]
+    assert filled and free <= 1024**2, results["job on a full disk"]  # no more room than the spare gave
+    print(f"job on a full disk: failed 'disk full' after {seconds} s, {free} bytes free")

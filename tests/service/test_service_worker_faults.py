@@ -136,3 +136,106 @@ def test_a_stop_leaves_a_job_its_worker_already_finished_as_it_ended(tmp_path, c
     assert store.get_job(job["id"]).status is JobStatus.SUCCEEDED
     events = [r.getMessage() for r in caplog.records if f"job={job['id']}" in r.getMessage()]
     assert events and not [e for e in events if "event=failed" in e], events
+
+
+def test_a_worker_whose_store_write_meets_a_full_disk_lives_on(tmp_path) -> None:
+    """Issue 64 item 1: the worker crashed on its database write and the job failed, once space came
+    back, as 'worker process exited with code 1'. Now the worker hands the outcome to the runner,
+    which writes 'disk full', and runs the next job itself."""
+    with service_client(tmp_path, job_function=f"{FUNCS}:store_full", worker_max_jobs=0) as client:
+        sid = streaming_session(client)
+        failed = wait_for(client, start(client, sid, 1, 1)["id"], timeout_s=60)
+        assert failed["status"] == "failed", failed
+        assert failed["error"].startswith("disk full: the service's data folder has no space left"), failed
+        second = wait_for(client, start(client, sid, 1, 1)["id"], timeout_s=60)
+        assert second["error"] == failed["error"]
+        store = client.app.state.store
+        assert store.get_job(second["id"]).worker_pid == store.get_job(failed["id"]).worker_pid  # the same worker
+        assert client.get("/readyz").json()["workers"]["workers_alive"] == 1
+
+
+def test_a_job_ends_saying_disk_full_while_the_disk_stays_full(tmp_path) -> None:
+    """Issue 64 item 1: the job read 'running' for as long as the disk was full (96 s, past the
+    worker-lost limit). Now its outcome is written in the room of the data folder's spare file, given
+    up for it; the spare is made again once there is room."""
+    with service_client(tmp_path, job_function=f"{FUNCS}:store_full_but_spare", heartbeat_s=0.2,
+                        worker_lost_s=1.0) as client:
+        spare = tmp_path / "spare"
+        assert spare.stat().st_size == 1024**2
+        sid = streaming_session(client)
+        failed = wait_for(client, start(client, sid, 1, 1)["id"], timeout_s=60)
+        assert failed["status"] == "failed", failed
+        assert failed["error"].startswith("disk full: the service's data folder has no space left"), failed
+        deadline = time.monotonic() + 30
+        while not spare.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert spare.stat().st_size == 1024**2  # made again: this disk has room
+
+
+def test_a_full_disk_in_the_runner_is_logged_once_and_its_dead_worker_replaced(tmp_path, monkeypatch, caplog) -> None:
+    """Issue 64 item 1: while the runner's write of a dead worker's job failed for a full disk, every
+    tick failed before the worker was replaced (1 of 2 alive) and logged a traceback (1627 in 85 s).
+    Now the worker is replaced at once, the outcome kept and written once the store takes it, and the
+    failing ticks logged once, with one line when they work again."""
+    import sqlite3
+
+    caplog.set_level(logging.INFO, logger="lidarmap.runner")
+    with service_client(tmp_path, job_function=f"{FUNCS}:counting") as client:
+        sid = streaming_session(client)
+        job = start(client, sid, 1000, 30)
+        wait_for(client, job["id"], {"running"}, timeout_s=60, condition=lambda j: j["scans_done"] > 0)
+        pid = worker_of(client, job["id"])
+        store, runner = client.app.state.store, client.app.state.runner
+        finish, full = type(store).finish, [True]
+
+        def refusing_finish(*args, **kwargs):
+            if full[0]:
+                raise sqlite3.OperationalError("database or disk is full")
+            return finish(*args, **kwargs)
+
+        monkeypatch.setattr(type(store), "finish", refusing_finish)  # in this process: the runner's writes
+        os.kill(pid, signal.SIGKILL)
+        deadline = time.monotonic() + 30
+        while not (runner._failed_ticks >= 20 and runner.health().workers_alive) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert runner._failed_ticks >= 20  # the write failed at 20 ticks and more
+        ready = client.get("/readyz")  # not ready while the worker was missing; ready with its replacement
+        assert ready.status_code == 200 and ready.json()["workers"]["workers_alive"] == 1, ready.json()
+        assert store.get_job(job["id"]).status is JobStatus.RUNNING  # the store still refuses
+        full[0] = False
+        failed = wait_for(client, job["id"], timeout_s=30)
+        assert failed["status"] == "failed" and failed["error"] == "worker process died (killed by SIGKILL)", failed
+        assert wait_for(client, start(client, sid, 3, 1)["id"], timeout_s=60)["status"] == "succeeded"
+    lines = [r.getMessage() for r in caplog.records if r.name == "lidarmap.runner"]
+    assert len([line for line in lines if line.startswith("runner supervisor tick failed")]) == 1, lines
+    assert len([line for line in lines if line.startswith("runner supervisor ticks work again")]) == 1, lines
+
+
+def test_a_failing_heartbeat_is_logged_once_per_incident(caplog) -> None:
+    """Issue 64 item 1: on a full disk every beat logged a traceback. Now one line while the beats fail,
+    and again only after one has been written."""
+    import sqlite3
+    import threading
+
+    from service.runners.heartbeat import Heartbeat
+
+    class Store:
+        def __init__(self) -> None:
+            self.calls, self.refuse, self.done = 0, set(range(10)) | set(range(15, 20)), threading.Event()
+
+        def heartbeat(self, job_id: str) -> bool:
+            self.calls += 1
+            if self.calls >= 25:
+                self.done.set()
+            if self.calls - 1 in self.refuse:
+                raise sqlite3.OperationalError("database or disk is full")
+            return False
+
+    caplog.set_level(logging.INFO, logger="lidarmap.heartbeat")
+    store = Store()
+    beat = Heartbeat(store, "job", every_s=0.001, cancel_grace_s=60.0, kill=lambda: None)
+    beat.start()
+    assert store.done.wait(30)
+    beat.stop()
+    failed = [r for r in caplog.records if r.getMessage().startswith("job job: heartbeat failed")]
+    assert len(failed) == 2, [r.getMessage() for r in caplog.records]  # beats 0-9, then 15-19
