@@ -45,6 +45,19 @@ def place_each(poses: np.ndarray, points: np.ndarray, owner: np.ndarray) -> np.n
                             poses[owner, 1] + s * points[:, 0] + c * points[:, 1]])
 
 
+def key_poses(poses: np.ndarray, spacing_m: float, spacing_rad: float) -> np.ndarray:
+    """Indices of ``poses`` (S, 3) kept when each must lie ``spacing_m`` [m] or ``spacing_rad`` [rad] from the
+    last kept one (the first is kept): a path thinned as a front end picks its key frames."""
+    if len(poses) == 0:
+        return np.zeros(0, np.int64)
+    kept = [0]
+    for k in range(1, len(poses)):
+        moved = relative(poses[kept[-1]], poses[k])
+        if math.hypot(moved[0], moved[1]) >= spacing_m or abs(moved[2]) >= spacing_rad:
+            kept.append(k)
+    return np.array(kept, np.int64)
+
+
 def point_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The lowest (2,) and the highest (2,) coordinates of (N > 0, 2) points, column by column: the same
     values as ``min(axis=0)`` / ``max(axis=0)``, which walk a two-column array row by row (30x slower

@@ -28,7 +28,7 @@ import numba as nb
 import numpy as np
 
 from slam_engine.config import ChangesConfig, SlamConfig
-from slam_engine.model.poses import place_points, relative
+from slam_engine.model.poses import key_poses, place_points
 from slam_engine.model.result import OccupancyGrid
 
 if TYPE_CHECKING:
@@ -76,19 +76,6 @@ class ChangeMap:
         }
 
 
-def key_scans(poses: np.ndarray, spacing_m: float, spacing_rad: float) -> np.ndarray:
-    """Indices of the poses (S, 3) kept when each must lie ``spacing_m`` or ``spacing_rad`` from the last
-    kept one (the first is kept)."""
-    if len(poses) == 0:
-        return np.zeros(0, np.int64)
-    kept = [0]
-    for k in range(1, len(poses)):
-        moved = relative(poses[kept[-1]], poses[k])
-        if np.hypot(moved[0], moved[1]) >= spacing_m or abs(moved[2]) >= spacing_rad:
-            kept.append(k)
-    return np.array(kept, np.int64)
-
-
 def detect_changes(saved: OccupancyGrid, hits_v: Sequence[np.ndarray], poses: np.ndarray, origin_v: np.ndarray,
                    config: ChangesConfig | None = None) -> ChangeMap:
     """The change map of a drive whose scans ``hits_v`` (returned end points, vehicle frame) lie at
@@ -107,7 +94,7 @@ def detect_changes(saved: OccupancyGrid, hits_v: Sequence[np.ndarray], poses: np
     hits = np.zeros((rows, cols), np.int32)
     passes = np.zeros((rows, cols), np.int32)
     poses = np.asarray(poses, np.float64)
-    keep = key_scans(poses, config.key_spacing_m, config.key_spacing_rad)
+    keep = key_poses(poses, config.key_spacing_m, config.key_spacing_rad)
     origin = np.array([pooled.origin_x_m, pooled.origin_y_m])
     last_hit = np.full((rows, cols), -1, np.int32)
     last_pass = np.full((rows, cols), -1, np.int32)

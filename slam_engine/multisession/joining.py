@@ -48,8 +48,10 @@ class JoinedMap:
 
 
 def place_part(base: MapBundle, part: MapBundle, config: SlamConfig, threads: int = 1) -> LocalizationResult:
-    """Where ``part``'s key frames (poses in their own map frame) lie in ``base``'s map."""
-    return localize(base, DriveScans.from_bundle(part), config, threads=threads)
+    """Where ``part``'s key frames (poses in their own map frame) lie in ``base``'s map (its own loops are
+    closed already: the joint back end closes them again with the map's)."""
+    settings = config.model_copy(update={"localization": config.localization.model_copy(update={"own_loops": False})})
+    return localize(base, DriveScans.from_bundle(part), settings, threads=threads)
 
 
 def join(base: MapBundle, part: MapBundle, config: SlamConfig, threads: int = 1) -> JoinedMap:

@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -42,14 +42,15 @@ from slam_engine.backend.correlative import (
     refine_pose,
     search,
 )
-from slam_engine.backend.loop_closer import thin
+from slam_engine.backend.loop_closer import close_loops, thin
 from slam_engine.backend.place_index import PlaceIndex, map_places
+from slam_engine.backend.pose_graph import Edge
 from slam_engine.backend.submaps import match_grid_from_points
-from slam_engine.config import LocalizationConfig, PlaceIndexConfig, SlamConfig
+from slam_engine.config import LocalizationConfig, LoopClosingConfig, PlaceIndexConfig, SlamConfig
 from slam_engine.errors import ConfigError
 from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.map_bundle import MapBundle
-from slam_engine.model.poses import compose, inverse, place_each, place_points, relative, wrap_angle
+from slam_engine.model.poses import compose, inverse, key_poses, place_each, place_points, relative, wrap_angle
 from slam_engine.model.result import Trajectory
 
 MATCH_RANGE_M = 20.0  # end points farther than this are left out of matching (as the loop closer does)
@@ -90,6 +91,8 @@ MOTION_SD_M, MOTION_SD_PER_M = 0.01, 0.05  # [m], [m/m]
 MOTION_SD_RAD, MOTION_SD_RAD_PER_RAD, MOTION_SD_RAD_PER_M = 0.003, 0.05, 0.01  # [rad], [rad/rad], [rad/m]
 # ... and each matched scan's place in the map
 MAP_SD_M, MAP_SD_RAD = 0.05, 0.02  # the tracking grid's: windows up to 31 cells a side
+# a drive's own loops are closed over key frames this far apart [m], [rad] (the mapper's default scheduling)
+OWN_KEY_FRAME_M, OWN_KEY_FRAME_RAD = 0.2, 0.1
 # a global search prunes below this share of min_score: a weaker placement is still reported as the best
 # score of a refused drive, and pruning at min_score itself would leave it unknown
 REPORT_SHARE = 0.9
@@ -291,6 +294,23 @@ class Near:
                     self.window_rad)
 
 
+@dataclass(frozen=True)
+class OwnLoops:
+    """How a drive's own loops are closed (the back end's settings, :func:`close_loops`): the loop closer's
+    ``config``, its cells ``resolution_m`` and the place index's settings for far searches (None: whole map)."""
+
+    config: LoopClosingConfig
+    resolution_m: float
+    places: PlaceIndexConfig | None = None
+
+    @classmethod
+    def of(cls, config: SlamConfig) -> OwnLoops | None:
+        """The loop closing ``config`` asks for, or None where ``localization.own_loops`` is off."""
+        if not config.localization.own_loops:
+            return None
+        return cls(config.loop_closing, config.grid.resolution_m, config.place_index.for_far_searches())
+
+
 @dataclass
 class LocalizationResult:
     """Where a drive was in a saved map: ``localised``; ``trajectory`` (its scans in the map frame, None
@@ -309,6 +329,7 @@ class LocalizationResult:
     T_map_from_drive: np.ndarray | None = None
     outside_map: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     global_searches: int = 0
+    own_closures: int = 0  # the drive's own loop closures the smoothing took (OwnLoops)
     failed_tries: dict[str, int] = field(default_factory=dict)  # why tries at a first placement failed: count
     wall_time_s: float = 0.0
     search_s: float = 0.0  # of wall_time_s: placing and tracking the drive (the rest: its scans, the map's index)
@@ -320,7 +341,8 @@ class LocalizationResult:
             "scans": int(len(self.confidence)), "scans_tracked": int(tracked.sum()),
             "scans_outside_map": int(self.outside_map.sum()),
             "mean_confidence": round(float(self.confidence.mean()), 4) if len(self.confidence) else None,
-            "events": self.events, "global_searches": self.global_searches, "failed_tries": dict(self.failed_tries),
+            "events": self.events, "global_searches": self.global_searches, "own_loop_closures": self.own_closures,
+            "failed_tries": dict(self.failed_tries),
             "T_map_from_drive": None if self.T_map_from_drive is None else [round(float(v), 5)
                                                                           for v in self.T_map_from_drive],
             "wall_time_s": round(self.wall_time_s, 3),
@@ -330,11 +352,13 @@ class LocalizationResult:
 class Localizer:
     """Places and tracks one drive in one saved map (see the module docstring)."""
 
-    def __init__(self, index: MapIndex, drive: DriveScans, config: LocalizationConfig, threads: int = 1):
+    def __init__(self, index: MapIndex, drive: DriveScans, config: LocalizationConfig, threads: int = 1,
+                 own_loops: OwnLoops | None = None):
         self.index = index
         self.drive = drive
         self.config = config
         self.threads = max(1, int(threads))
+        self.own_loops = own_loops
         self.best_score = 0.0
         self.global_searches = 0
         self.uncovered = np.zeros(len(drive), bool)  # scans too far out of the map to be judged by it
@@ -522,11 +546,12 @@ class Localizer:
             self.step(poses, confidence, tracked, j, j + 1, float(travel[last_tracked] - travel[j + 1]))
             last_tracked = j if tracked[j] else last_tracked
         jumps = self._track_forward(poses, confidence, tracked, last + 1, events)
-        poses = self.smoothed(poses, tracked, jumps)
+        closures = self.own_closures(tracked, jumps)
+        poses = self.smoothed(poses, tracked, jumps, closures)
         T_map_from_drive = _rigid_placement(poses[tracked], drive.poses[tracked])
         return LocalizationResult(True, self.best_score, Trajectory(drive.t_s.copy(), poses), confidence, tracked,
                                   events, T_map_from_drive, self.uncovered.copy(), self.global_searches,
-                                  dict(self.failed_tries), time.perf_counter() - started)
+                                  len(closures), dict(self.failed_tries), time.perf_counter() - started)
 
     def _track_forward(self, poses: np.ndarray, confidence: np.ndarray, tracked: np.ndarray, start: int,
                        events: list[dict]) -> list[int]:
@@ -578,13 +603,37 @@ class Localizer:
             k += 1
         return jumps
 
-    def smoothed(self, poses: np.ndarray, tracked: np.ndarray, jumps: list[int]) -> np.ndarray:
-        """The drive's poses from one pose graph: the drive's own scan-to-scan motions, and each matched
-        scan's place in the map (under a robust loss, so a wrong match lets go), as Cartographer's pure
-        localisation ties its local trajectory to the frozen map. A stretch the map does not cover (a
-        room the map never saw) is then held at both ends instead of dead-reckoned from one: intel-b in
-        intel-a's map, whose drive crosses the building's middle, which intel-a never entered. Motions
-        into the scans in ``jumps`` (placed anew after the drive was lost) are left loose."""
+    def own_closures(self, tracked: np.ndarray, jumps: list[int]) -> list[Edge]:
+        """The drive's own loop closures (edges between its scans, in its own frame), found by the back
+        end's loop closer over its key frames at the drive's scan-matched poses, when it went at least
+        ``own_loops_after_m`` without a scan matching the map (a drive that stays in the map needs none);
+        none where :class:`OwnLoops` is off. Across a jump (the drive lost and placed anew) the drive's
+        own motion is not trusted: its key frames are closed in pieces between jumps."""
+        loops, drive = self.own_loops, self.drive
+        if loops is None or _longest_untracked_m(tracked, drive.travel_m) < self.config.own_loops_after_m:
+            return []
+        out: list[Edge] = []
+        bounds = [0, *sorted(jumps), len(drive)]
+        for start, end in zip(bounds[:-1], bounds[1:], strict=True):
+            frames = start + key_poses(drive.poses[start:end], OWN_KEY_FRAME_M, OWN_KEY_FRAME_RAD)
+            if len(frames) < 3:
+                continue
+            found = close_loops(drive.poses[frames], [drive.hits[k] for k in frames], loops.config, loops.resolution_m,
+                                threads=self.threads, places=loops.places)
+            out += [Edge(int(frames[e.i]), int(frames[e.j]), e.T_i_from_j, e.sigmas, e.loss, e.loss_scale)
+                    for e in found.edges if abs(e.j - e.i) != 1]  # the rest: its motions, which the drive has
+        return out
+
+    def smoothed(self, poses: np.ndarray, tracked: np.ndarray, jumps: list[int], closures: Sequence[Edge] = ()
+                 ) -> np.ndarray:
+        """The drive's poses from one pose graph: the drive's own scan-to-scan motions, its own loop
+        ``closures`` (:meth:`own_closures`) and each matched scan's place in the map (under a robust loss,
+        so a wrong match lets go), as Cartographer's pure localisation ties its local trajectory to the
+        frozen map. A stretch the map does not cover (a room the map never saw) is then held at both ends
+        instead of dead-reckoned from one: intel-b in intel-a's map, whose drive crosses the building's
+        middle, which intel-a never entered; where the drive loops out there, its closures hold it too
+        (aces-rough-b). Motions into the scans in ``jumps`` (placed anew after the drive was lost) are
+        left loose."""
         from slam_engine.backend.pose_graph import PoseGraph
 
         n = len(poses)
@@ -599,9 +648,18 @@ class Localizer:
             if k in jumps:
                 sd_m, sd_rad = 10.0, 1.0
             graph.add_edge(k, k + 1, motion, np.array([sd_m, sd_m, sd_rad]))
+        for edge in closures:  # as the loop closer weighed them
+            graph.add_edge(edge.i + 1, edge.j + 1, edge.T_i_from_j, edge.sigmas, robust=edge.robust)
         for matched in np.flatnonzero(tracked).tolist():
             graph.add_edge(0, matched + 1, poses[matched], np.array([MAP_SD_M, MAP_SD_M, MAP_SD_RAD]), robust=True)
         return graph.optimize(graph.optimize(robust=False))[1:]
+
+
+def _longest_untracked_m(tracked: np.ndarray, travel_m: np.ndarray) -> float:
+    """The longest travel [m] between two scans with no scan that matched the map between them (the
+    drive's start and end count as such scans)."""
+    marks = np.concatenate([[travel_m[0]], travel_m[tracked], [travel_m[-1]]]) if len(travel_m) else np.zeros(1)
+    return float(np.max(np.diff(marks))) if len(marks) > 1 else 0.0
 
 
 def _rigid_placement(map_poses: np.ndarray, drive_poses: np.ndarray) -> np.ndarray:
@@ -708,7 +766,7 @@ def _placed(index: MapIndex, drive: DriveScans, config: SlamConfig, hint: np.nda
     """The drive placed and tracked in the map of ``index``: ``search_s`` that alone took (the
     localizer's own wall time), ``wall_time_s`` since ``started`` (``time.perf_counter()``). ``tried``:
     first tries made before by ``early`` (on the drive's first scans), whose searches count too."""
-    localizer = Localizer(index, drive, config.localization, threads)
+    localizer = Localizer(index, drive, config.localization, threads, OwnLoops.of(config))
     if early is not None:
         localizer.best_score, localizer.global_searches = early.best_score, early.global_searches
         localizer.failed_tries = dict(early.failed_tries)
