@@ -221,6 +221,11 @@ class LocalizationConfig(_Section):
                                      "(35 m out) 0.29 -> 0.07 m on its own relations, in 0.15 s more. Below, it "
                                      "costs more than it gains (intel-b, 14 m out: 0.035 -> 0.032 m in 0.45 s "
                                      "more). 0: always.")
+    live_lost_after_m: float = Field(2.0, gt=0.0, le=10000.0, description="A live localisation (scan by scan) "
+                                     "calls the drive lost after this much travel [m] over scans the map could "
+                                     "judge but none matched, and searches the whole map again: a robot carried "
+                                     "off is found again within a few metres (a finished drive waits "
+                                     "lost_after_m: it has the scans after to judge by).")
     own_loops: bool = Field(True, description="Close the drive's own loops (see own_loops_after_m); off: a "
                             "drive out of the map is carried by its scan-to-scan matches alone.")
 

@@ -247,33 +247,62 @@ class DriveScans:
         percentile) would otherwise smear every stretch and every prediction. ``on_start`` hears the
         first scans matched, once they span ``start_m`` of travel (all of them, when the drive is
         shorter): each scan's match depends only on the scans before it."""
-        poses = [self.poses[0].copy()]
-        in_reach = [h[np.hypot(h[:, 0], h[:, 1]) <= MATCH_RANGE_M] for h in self.hits]
-        placed = [place_points(poses[0], in_reach[0])]
-        travel = [0.0]
-        grid, built_at = None, poses[0]
-        for k in range(1, len(self)):
-            predicted = compose(poses[-1], relative(self.poses[k - 1], self.poses[k]))
-            points = np.ascontiguousarray(thin(in_reach[k], TRACK_POINTS), np.float64)
-            moved = relative(built_at, poses[-1])
-            if grid is None or math.hypot(moved[0], moved[1]) >= JOIN_REBUILD_M or abs(moved[2]) >= JOIN_REBUILD_RAD:
-                first = int(np.searchsorted(travel, travel[-1] - span_m, side="left"))
-                recent = np.concatenate(placed[first:])
-                grid = (match_grid_from_points(thin(recent, JOIN_POINTS), resolution_m, 1.0, n_levels=JOIN_LEVELS)
-                        if len(recent) >= 20 else None)
-                built_at = poses[-1]
-            if len(points) >= 5 and grid is not None:
-                predicted = _joined(grid, points, predicted)
-            travel.append(travel[-1] + float(np.hypot(*(predicted[:2] - poses[-1][:2]))))
-            poses.append(predicted)
-            placed.append(place_points(predicted, in_reach[k]))
-            if on_start is not None and travel[-1] >= start_m:
-                on_start(DriveScans(self.t_s[: k + 1], np.array(poses), self.hits[: k + 1], self.origin_v))
+        joiner = ScanJoiner(resolution_m, span_m)
+        for k in range(len(self)):
+            joiner.add(self.poses[k], self.hits[k])
+            if on_start is not None and joiner.travel_m >= start_m:
+                on_start(DriveScans(self.t_s[: k + 1], np.array(joiner.poses), self.hits[: k + 1], self.origin_v))
                 on_start = None
-        matched = DriveScans(self.t_s, np.array(poses), self.hits, self.origin_v)
+        matched = DriveScans(self.t_s, np.array(joiner.poses), self.hits, self.origin_v)
         if on_start is not None:
             on_start(matched)
         return matched
+
+
+class ScanJoiner:
+    """A drive's scans matched, as they come, to the scans of its last ``span_m`` of travel (on cells of
+    ``resolution_m``), each from where its odometry puts it (:meth:`DriveScans.scan_matched`; a live
+    localisation feeds it scan by scan). ``poses``: every scan's matched pose so far, in the drive's own
+    frame (the first scan's odometry pose is its origin); ``travel_m``: the travel they span."""
+
+    def __init__(self, resolution_m: float, span_m: float):
+        self.resolution_m, self.span_m = resolution_m, span_m
+        self.poses: list[np.ndarray] = []
+        self.travel_m = 0.0
+        self._travel: list[float] = []  # of the scans still within span_m of the last one
+        self._placed: list[np.ndarray] = []  # their end points in the drive's frame
+        self._grid: MatchGrid | None = None
+        self._built_at = np.zeros(3)
+        self._odometry = np.zeros(3)  # the last scan's odometry pose
+
+    def add(self, odometry_pose: np.ndarray, hits_v: np.ndarray) -> np.ndarray:
+        """The next scan's matched pose (drive frame) from its odometry pose and its returns (N, 2) [m,
+        vehicle frame]."""
+        odometry_pose = np.asarray(odometry_pose, np.float64)
+        in_reach = hits_v[np.hypot(hits_v[:, 0], hits_v[:, 1]) <= MATCH_RANGE_M]
+        if not self.poses:
+            pose = odometry_pose.copy()
+        else:
+            last = self.poses[-1]
+            pose = compose(last, relative(self._odometry, odometry_pose))
+            points = np.ascontiguousarray(thin(in_reach, TRACK_POINTS), np.float64)
+            moved = relative(self._built_at, last)
+            if (self._grid is None or math.hypot(moved[0], moved[1]) >= JOIN_REBUILD_M
+                    or abs(moved[2]) >= JOIN_REBUILD_RAD):
+                first = int(np.searchsorted(self._travel, self._travel[-1] - self.span_m, side="left"))
+                del self._travel[:first], self._placed[:first]  # beyond the span: never needed again
+                recent = np.concatenate(self._placed)
+                self._grid = (match_grid_from_points(thin(recent, JOIN_POINTS), self.resolution_m, 1.0,
+                                                     n_levels=JOIN_LEVELS) if len(recent) >= 20 else None)
+                self._built_at = last
+            if len(points) >= 5 and self._grid is not None:
+                pose = _joined(self._grid, points, pose)
+            self.travel_m += float(np.hypot(*(pose[:2] - last[:2])))
+        self.poses.append(pose)
+        self._travel.append(self.travel_m)
+        self._placed.append(place_points(pose, in_reach))
+        self._odometry = odometry_pose
+        return pose
 
 
 @dataclass(frozen=True)

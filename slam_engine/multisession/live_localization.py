@@ -1,0 +1,261 @@
+"""Localising a drive while it drives: each scan placed in a saved map as it arrives.
+
+The same search and tracking as a whole drive's localisation (:mod:`~slam_engine.multisession.localization`),
+taken scan by scan. Each scan is matched to the drive's recent scans (:class:`ScanJoiner`), then:
+
+- **searching** (not placed yet, or lost): the drive is searched for over the whole map in a background
+  thread, on the drive's scans so far (since its last match, when lost): a stretch of ``stretch_m`` of
+  travel, placed unambiguously and confirmed by the next stretch (grown while ambiguous, as far as the
+  drive goes). The scans meanwhile are reported without a pose (or,
+  when lost, where the drive's own motion carries it, with confidence 0). A placement is tracked forward
+  to the newest scan in that thread, so the scans keep their pace;
+- **found**: the scan matched the map near where its motion put it (the tracking of a whole drive);
+- **carried**: it did not match, though the map could judge it: placed by the drive's own motion, not
+  confidently; after ``live_lost_after_m`` of such travel the drive is **lost** and searched for again
+  (carried by its motion meanwhile, confidence 0): a robot carried off (kidnapped) is noticed there, and
+  its poses are never reported as found meanwhile. It is found again when two searches on disjoint
+  stretches place it in one place (look-alike rooms can hold one stretch and its confirmation);
+- **outside**: the scan falls where the map never saw: carried by the drive's own motion, not lost.
+
+Poses are those of the moment (no smoothing with later scans: a finished drive's batch localisation
+smooths them). Frames: poses ``[x_m, y_m, theta_rad]`` in the saved map's frame; scan end points (N, 2)
+[m] in the vehicle frame.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam_engine.config import SlamConfig
+from slam_engine.model.map_bundle import MapBundle
+from slam_engine.model.poses import compose, relative
+from slam_engine.multisession.localization import DriveScans, Localizer, MapIndex, ScanJoiner
+
+SEARCHING, FOUND, CARRIED, OUTSIDE, LOST = "searching", "found", "carried", "outside", "lost"
+STATES = (SEARCHING, FOUND, CARRIED, OUTSIDE, LOST)
+HYPOTHESIS_SLACK = 0.05  # two placements of a lost drive agree within agree_m and this share of the travel between
+
+
+@dataclass(frozen=True)
+class LivePose:
+    """Where scan ``scan`` (stamped ``t_s``) is: ``pose`` in the map frame (None while searching, never
+    placed), its match score ``confidence`` (0-1; 0 unless found) and the ``state`` (module docstring)."""
+
+    scan: int
+    t_s: float
+    pose: np.ndarray | None
+    confidence: float
+    state: str
+
+    def as_dict(self) -> dict:
+        pose = None if self.pose is None else [round(float(v), 5) for v in self.pose]
+        return {"scan": self.scan, "t_s": round(self.t_s, 6), "pose": pose,
+                "confidence": round(self.confidence, 4), "state": self.state}
+
+
+class LiveLocalizer:
+    """A drive localised in the map of ``bundle`` scan by scan (:meth:`add`); see the module docstring.
+    ``index``: the map's index when already built (it is the slow part of starting)."""
+
+    def __init__(self, bundle: MapBundle, config: SlamConfig | None = None, threads: int = 1,
+                 index: MapIndex | None = None):
+        self.config = SlamConfig() if config is None else config
+        c = self.config.localization
+        self.index = index if index is not None else MapIndex.of_bundle(bundle, c)
+        self.threads = max(1, int(threads))
+        self.joiner = ScanJoiner(c.local_map_resolution_m, c.local_map_m)
+        self.t_s: list[float] = []
+        self.hits: list[np.ndarray] = []
+        self.own: list[np.ndarray] = []  # the drive's own (scan-matched) poses
+        self.travel: list[float] = []
+        self.poses: list[np.ndarray | None] = []  # map poses (None: never placed)
+        self.reports: list[LivePose] = []
+        self.events: list[dict] = []
+        self.state = SEARCHING
+        self.global_searches = 0
+        self.failed_tries: dict[str, int] = {}  # why searches found nothing: how many
+        self.best_score = 0.0
+        self._tracker = Localizer(self.index, DriveScans(np.zeros(1), np.zeros((1, 3)), self.hits), c)
+        self._last_tracked = -1
+        self._unmatched_m = 0.0  # travel since the last match over scans the map could judge [m]
+        self._next_try_m = 0.0  # the travel at which the next search may start [m]
+        self._search: Future | None = None
+        self._search_from = 0  # the first scan the next search may start a stretch at
+        self._hypothesis: tuple[int, np.ndarray] | None = None  # a lost drive's first placement again
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="live-localization")
+        self._lock = threading.Lock()
+
+    # --- scans in ---------------------------------------------------------------------------------
+    def add(self, t_s: float, odometry_pose: np.ndarray, hits_v: np.ndarray) -> LivePose:
+        """The next scan (stamp [s], its odometry pose in the odometry's frame, its returns (N, 2) [m,
+        vehicle frame]) placed; returns its report."""
+        hits_v = np.asarray(hits_v, np.float64).reshape(-1, 2)
+        self._take_search()
+        own = self.joiner.add(odometry_pose, hits_v)
+        k = len(self.t_s)
+        self.t_s.append(float(t_s))
+        self.hits.append(hits_v)
+        self.own.append(own)
+        self.travel.append(self.joiner.travel_m)
+        self.poses.append(None)
+        if self.state in (FOUND, CARRIED, OUTSIDE, LOST) and self.poses[k - 1] is not None:
+            report = self._track(k)
+        else:
+            report = LivePose(k, float(t_s), None, 0.0, SEARCHING)
+        self.reports.append(report)
+        self._maybe_search()
+        return report
+
+    def close(self) -> None:
+        """Stop the background search (its outcome is dropped)."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def wait(self) -> None:
+        """Wait for a running search and take its outcome (tests, and a stream that has ended)."""
+        if self._search is not None:
+            self._search.result()
+            self._take_search()
+
+    # --- tracking ---------------------------------------------------------------------------------
+    def _track(self, k: int) -> LivePose:
+        """Scan k from scan k - 1's map pose and the drive's motion (:meth:`Localizer.track`)."""
+        c = self.config.localization
+        previous = self.poses[k - 1]
+        assert previous is not None
+        predicted = compose(previous, relative(self.own[k - 1], self.own[k]))
+        untracked_m = 0.0 if self._last_tracked < 0 else self.travel[k - 1] - self.travel[self._last_tracked]
+        if self.state == LOST:  # carried until searches place it again: near where it was carried, a
+            # look-alike room of the building would match as well as the right one (a robot carried off)
+            self.poses[k] = predicted
+            return LivePose(k, self.t_s[k], predicted.copy(), 0.0, LOST)
+        pose, score = self._tracker.track(k, predicted, untracked_m)
+        uncovered = math.isnan(score)
+        moved = pose - predicted
+        if untracked_m > c.live_lost_after_m:  # back from afar: a match is a placement, scored as one
+            ok = not uncovered and score >= c.min_score
+        else:
+            nudged = math.hypot(moved[0], moved[1]) <= c.nudge_m and abs(float(moved[2])) <= c.nudge_rad
+            ok = not uncovered and (score >= c.track_min_score or (score >= c.nudge_min_score and nudged))
+        if ok:
+            self.poses[k], self._last_tracked, self._unmatched_m = pose, k, 0.0
+            self.state = FOUND
+            return LivePose(k, self.t_s[k], pose.copy(), float(score), FOUND)
+        self.poses[k] = predicted
+        if not uncovered:
+            self._unmatched_m += self.travel[k] - self.travel[k - 1]
+        if self._unmatched_m > c.live_lost_after_m:
+            self.state = LOST
+            self._event("lost", k)
+            self._next_try_m = self.travel[k]
+            self._search_from = self._last_tracked + 1  # carried off after its last match, if at all
+            self._hypothesis = None
+        else:
+            self.state = OUTSIDE if uncovered else CARRIED
+        return LivePose(k, self.t_s[k], predicted.copy(), 0.0, self.state)
+
+    # --- searching --------------------------------------------------------------------------------
+    def _maybe_search(self) -> None:
+        """Start a search in the background when the drive is searching or lost, none runs, and it went
+        ``stretch_m`` since the last one began."""
+        c = self.config.localization
+        k = len(self.t_s) - 1
+        if self.state not in (SEARCHING, LOST) or self._search is not None or self.travel[k] < self._next_try_m:
+            return
+        self._next_try_m = self.travel[k] + c.stretch_m
+        drive = DriveScans(np.array(self.t_s), np.array(self.own), list(self.hits))
+        self._search = self._pool.submit(self._placed, drive, self._search_from)
+
+    def _placed(self, drive: DriveScans, first_allowed: int) -> tuple[int, np.ndarray] | None:
+        """In the background: a stretch of ``drive`` (the scans so far, from ``first_allowed`` on) placed
+        over the whole map and confirmed by the next one, among those ending where the drive is now: two,
+        four and nine stretches long (room for a first stretch grown twice and four times while ambiguous,
+        and its confirmation), the shortest first; then tracked forward to the drive's last scan. (that
+        scan, its map pose) or None."""
+        c = self.config.localization
+        localizer = Localizer(self.index, drive, c, self.threads)
+        travel = drive.travel_m
+        candidates: list[int] = []
+        for span in (2, 4, 9):
+            at = max(int(np.searchsorted(travel, travel[-1] - span * c.stretch_m, side="right")) - 1, 0)
+            if at >= first_allowed and at not in candidates and travel[-1] - travel[at] >= 2 * c.stretch_m:
+                candidates.append(at)
+        for first in candidates:
+            placement = localizer.confirmed_placement(first, None)
+            self.global_searches += 1
+            self.best_score = max(self.best_score, localizer.best_score)
+            if placement is None:
+                self.failed_tries[localizer._why] = self.failed_tries.get(localizer._why, 0) + 1
+                continue
+            _, last, pose = placement
+            poses = np.full((len(drive), 3), np.nan)
+            confidence, tracked = np.zeros(len(drive)), np.zeros(len(drive), bool)
+            poses[last] = pose
+            for j in range(last + 1, len(drive)):
+                localizer.step(poses, confidence, tracked, j, j - 1)
+            return len(drive) - 1, poses[-1]
+        return None
+
+    def _take_search(self) -> None:
+        """A finished background search's outcome: a placement of an earlier scan, carried to the newest
+        by tracking the scans that came since."""
+        future = self._search
+        if future is None or not future.done():
+            return
+        self._search = None
+        outcome = future.result()
+        if outcome is None:
+            return
+        at, pose = outcome
+        was_lost = self.state == LOST
+        if was_lost and not self._agrees_with_hypothesis(at, pose):
+            return  # kept as the hypothesis a later, disjoint search must agree with
+        self.poses[at] = pose
+        self._last_tracked, self._unmatched_m = at, 0.0
+        self.state = FOUND
+        self._event("found", at, jump=was_lost)
+        for j in range(at + 1, len(self.t_s)):  # scans that arrived while it searched (no report rewritten)
+            self._track(j)
+
+    def _agrees_with_hypothesis(self, at: int, pose: np.ndarray) -> bool:
+        """Whether a lost drive's placement of scan ``at`` agrees with the one before it (carried here by the
+        drive's own motion, within ``agree_m`` / ``agree_rad`` and 5 % of the travel between them): a
+        drive found again must be placed twice, on disjoint stretches, in one place (a building's look-alike
+        rooms can place one stretch and its confirmation both in the wrong room). Else the placement
+        becomes the hypothesis, and the next search starts after it."""
+        c = self.config.localization
+        hypothesis, self._hypothesis = self._hypothesis, (at, pose)
+        self._search_from = at + 1
+        if hypothesis is None:
+            return False
+        then, then_pose = hypothesis
+        carried = compose(then_pose, relative(self.own[then], self.own[at]))
+        gap = carried - pose
+        slack_m = c.agree_m + HYPOTHESIS_SLACK * (self.travel[at] - self.travel[then])
+        if math.hypot(gap[0], gap[1]) > slack_m or abs(math.remainder(float(gap[2]), math.tau)) > c.agree_rad:
+            return False
+        self._hypothesis = None
+        return True
+
+    def _event(self, name: str, k: int, jump: bool = False) -> None:
+        event = {"event": name, "t_s": round(self.t_s[k], 3), "scan": k}
+        if jump:
+            event["search"] = True
+        self.events.append(event)
+
+    # --- summary ----------------------------------------------------------------------------------
+    def summary(self) -> dict:
+        """The drive so far: scans per state, when it was found and lost, the searches made."""
+        states = {state: sum(r.state == state for r in self.reports) for state in STATES}
+        found = [r.confidence for r in self.reports if r.state == FOUND]
+        first = next((r for r in self.reports if r.state == FOUND), None)
+        return {"scans": len(self.reports), "states": states, "events": list(self.events),
+                "first_found_t_s": None if first is None else round(first.t_s, 3),
+                "first_found_travel_m": None if first is None else round(self.travel[first.scan], 3),
+                "mean_confidence": round(float(np.mean(found)), 4) if found else None,
+                "global_searches": self.global_searches, "failed_tries": dict(self.failed_tries),
+                "best_score": round(self.best_score, 4)}
