@@ -64,7 +64,9 @@ class JobCreate(BaseModel):
     live: bool = Field(False, description="Follow the session's stream: map chunks in seq order as they "
                        "arrive (a gap waits for its chunk) until the stream is finished "
                        "(POST /v1/sessions/{id}/chunks/finish) or idle for idle_timeout_s. One live job per "
-                       "session at a time; it holds a worker while it waits.")
+                       "session at a time; it holds a worker while it waits. With 'mode': 'localize' it "
+                       "localises the stream in map_job_id's saved map scan by scan instead: each scan's pose, "
+                       "confidence and state at GET /v1/jobs/{id}/poses (server-sent events with stream=true).")
     mode: JobMode = Field(JobMode.MAP, description="'map' the input; 'localize' it in the saved map of "
                           "map_job_id (its trajectory in that map's frame; refused, the job failing with the best "
                           "score, when it is not in the map); 'extend' that map with it (one map of both drives, "
@@ -104,9 +106,11 @@ class JobCreate(BaseModel):
                                            or self.log_id is not None or self.live):
             raise ValueError("a 'merge' joins two saved maps, 'map_job_id' and 'merge_job_id': it maps no log "
                              "or stream")
-        if self.live and self.mode is not JobMode.MAP:
-            raise ValueError("a live job maps its stream ('mode': 'map'); localise or extend with the finished "
-                             "stream instead")
+        if self.live and self.mode not in (JobMode.MAP, JobMode.LOCALIZE):
+            raise ValueError("a live job maps its stream ('mode': 'map') or localises it in a saved map "
+                             "('mode': 'localize'); extend with the finished stream instead")
+        if self.live and self.mode is JobMode.LOCALIZE and self.map_job_id is None:
+            raise ValueError("a live localisation follows the stream in one saved map: name it as 'map_job_id'")
         return self
 
 

@@ -109,6 +109,11 @@ def run_mapping_job(ctx: JobContext) -> None:
 
 
 def _run_mapping_job(ctx: JobContext) -> None:
+    if ctx.job.live and job_mode(ctx.job.config) is JobMode.LOCALIZE:
+        from service.jobs.live_localization import run_live_localization_job
+
+        run_live_localization_job(ctx)
+        return
     if ctx.job.live:
         run_live_job(ctx)
         return

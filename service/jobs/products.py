@@ -28,6 +28,7 @@ MEDIA_TYPES = {  # every file product a job can list; each is served at GET /v1/
     "map_bundle.npz": "application/zip",  # the map for later drives: localise, extend, merge (docs/map-bundle.md)
     "drives.png": "image/png", "localization.png": "image/png", "confidence.json": "application/json",
     "changes.png": "image/png", "changes.geojson": "application/geo+json",
+    "poses.jsonl": "application/x-ndjson",  # a live localisation's reports, one JSON object a line
 }
 LIVE_FILES = {"occupancy.png": "occupancy.png", "grid.npz": "grid.npz", "trajectory.json": "trajectory.json"}
 GRID_FILE, TEXTURE_FILE = "grid.npz", "texture.npz"  # the service's own copies for tiles

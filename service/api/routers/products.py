@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import asyncio
+import json
 import os
+import pathlib
+import time
 from enum import StrEnum
 from functools import partial
 from typing import Annotated, Any
@@ -21,7 +25,7 @@ from api_schemas.jobs import JobStatus
 from api_schemas.products import Pose, TrajectoryPublic
 from service.api.deps import DataDep, JobDep, StoreDep
 from service.api.error_handlers import error_response
-from service.http_errors import InvalidInput
+from service.http_errors import InvalidInput, NotFound
 from service.jobs.products import MEDIA_TYPES, product_path, tile_source
 from service.jobs.trajectory_body import trajectory_body
 from service.storage.data_dir import DataDir
@@ -192,6 +196,9 @@ PRODUCT_SUMMARIES = {
                         "drive's own motion carried them (mode 'localize').",
     "confidence.json": "A localised drive's confidence per pose: its match score against the map, 0-1 "
                        "(mode 'localize').",
+    "poses.jsonl": "A live localisation's reports as it made them, one JSON object a line: scan, t_s, pose "
+                   "[x_m, y_m, theta_rad] (null while searching), confidence, state, the chunk's seq and "
+                   "latency_s (mode 'localize', live; GET /v1/jobs/{id}/poses serves them while it runs).",
     "changes.png": "What changed since the saved map (modes 'localize' and 'extend'): the saved map with the cells "
                    "the drive saw added in red and removed in blue.",
     "changes.geojson": "What changed since the saved map as polygons (kind 'added' or 'removed', area_m2), in the "
@@ -235,3 +242,83 @@ async def tile(request: Request, job: JobDep, data: DataDep, store: StoreDep, la
     if request.method == "HEAD":  # the GET's headers, no body
         return Response(media_type="image/png", headers={**headers, "Content-Length": str(len(png))})
     return Response(png, media_type="image/png", headers=headers or None)
+
+
+POSES_POLL_S = 0.05  # how often a pose stream looks for new reports
+POSES_KEEPALIVE_S = 15.0  # a comment line this often while nothing happens (proxies close idle streams)
+
+
+def _poses_file(data: DataDir, job: JobRow) -> pathlib.Path | None:
+    """A live localisation's reports: the live file while it runs, the product once it finished (None:
+    not written yet)."""
+    from service.jobs.live_localization import POSES_FILE
+
+    stored = job.products.get(POSES_FILE)
+    if stored is not None:
+        return data.resolve(str(pathlib.PurePath("jobs") / job.id / stored))
+    live = data.live_dir(job.id) / POSES_FILE
+    return live if live.exists() else None
+
+
+def _read_lines(path: pathlib.Path | None, offset: int) -> tuple[list[str], int]:
+    """The complete lines of ``path`` from byte ``offset`` on, and the offset after them."""
+    if path is None:
+        return [], offset
+    try:
+        with path.open("rb") as f:
+            f.seek(offset)
+            block = f.read()
+    except FileNotFoundError:  # the live file, just moved into the products
+        return [], offset
+    end = block.rfind(b"\n") + 1
+    return block[:end].decode().splitlines(), offset + end
+
+
+@router.get("/poses", summary="A live localisation's poses, as it makes them",
+            description="Every scan's report of a live job of mode 'localize': `scan`, `t_s`, `pose` "
+                        "[x_m, y_m, theta_rad] in the saved map's frame (null while searching), `confidence` "
+                        "(0-1), `state` (searching, found, carried, outside, lost), the chunk's `seq` and "
+                        "`latency_s` from the chunk accepted to the pose written. With `stream=true` "
+                        "(or `Accept: text/event-stream`): server-sent events, one `pose` event per scan "
+                        "(`id`: the scan) as it is made, then an `end` event with the job's status; "
+                        "`Last-Event-ID` or `after` resumes after a scan.")
+async def live_poses(job: JobDep, data: DataDep, store: StoreDep, request: Request,
+                     stream: Annotated[bool, Query(description="Server-sent events until the job ends.")] = False,
+                     after: Annotated[int, Query(ge=-1, le=10**9, description="Only scans after this one.")] = -1
+                     ) -> Response:
+    if not (job.live and job.config.get("mode") == "localize"):
+        raise NotFound("this job has no poses: they are a live localisation's (a live job of mode 'localize')",
+                       {"job_id": job.id, "live": job.live, "mode": job.config.get("mode")})
+    last_event = request.headers.get("last-event-id", "")
+    if last_event.isdigit():
+        after = max(after, int(last_event))
+    wants_events = stream or "text/event-stream" in request.headers.get("accept", "")
+    if not wants_events:
+        lines, _ = await run_in_threadpool(_read_lines, _poses_file(data, job), 0)
+        poses = [p for p in (json.loads(line) for line in lines) if p["scan"] > after]
+        return JSONResponse({"job_id": job.id, "status": job.status.value, "count": len(poses), "poses": poses})
+
+    async def events():
+        offset, last_sent = 0, time.monotonic()
+        current = job
+        while True:
+            finished = current.status not in (JobStatus.QUEUED, JobStatus.RUNNING)
+            lines, offset = await run_in_threadpool(_read_lines, _poses_file(data, current), offset)
+            for line in lines:
+                scan = json.loads(line)["scan"]
+                if scan > after:
+                    yield f"id: {scan}\nevent: pose\ndata: {line}\n\n"
+                    last_sent = time.monotonic()
+            if finished and not lines:
+                yield f"event: end\ndata: {json.dumps({'status': current.status.value})}\n\n"
+                return
+            if await request.is_disconnected():
+                return
+            if time.monotonic() - last_sent > POSES_KEEPALIVE_S:
+                yield ": waiting for the next scan\n\n"
+                last_sent = time.monotonic()
+            await asyncio.sleep(POSES_POLL_S)
+            current = await run_in_threadpool(store.get_job, job.id) or current
+
+    return StreamingResponse(events(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})

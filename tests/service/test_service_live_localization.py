@@ -1,0 +1,120 @@
+"""A live localisation through the API: the simulated office mapped from an upload, then driven again and
+streamed chunk by chunk into a live job of mode 'localize'; its poses read as they are made, by polling
+and as server-sent events, then its products."""
+
+from __future__ import annotations
+
+import json
+import threading
+
+import numpy as np
+import pytest
+from service_helpers import assert_error, new_session, service_client, wait_for
+
+from service.storage.stream_log import calibration_from_log, messages_of_log
+from slam_engine.evaluation.metrics import align_rigid_2d
+from slam_engine.formats import load_log
+from slam_engine.simulation import simulate, write_simulated
+
+pytestmark = pytest.mark.slow
+
+
+def _sse(lines) -> list[dict]:
+    """Server-sent events from an iterator of lines: [{"event", "id", "data"}]."""
+    events, current = [], {}
+    for line in lines:
+        if not line:
+            if current:
+                events.append(current)
+                if current.get("event") == "end":
+                    return events
+            current = {}
+        elif not line.startswith(":"):
+            field, _, value = line.partition(": ")
+            current[field] = json.loads(value) if field == "data" else value
+    return events
+
+
+def test_a_live_localisation_reports_each_scan_as_it_arrives(tmp_path) -> None:
+    before = simulate("office", seed=0, cameras=False)
+    later = simulate("office", seed=1, cameras=False)
+    mapped_log = write_simulated(before, "carmen", tmp_path / "before")
+    streamed = load_log(write_simulated(later, "carmen", tmp_path / "later"))
+    messages = messages_of_log(streamed)
+    chunks = [messages[i:i + 40] for i in range(0, len(messages), 40)]
+    with service_client(tmp_path / "data", workers=2) as client:
+        sid = new_session(client, calibration=calibration_from_log(streamed))
+        with mapped_log.open("rb") as f:
+            client.post(f"/v1/sessions/{sid}/logs", files={"file": (mapped_log.name, f)})
+        mapped = client.post(f"/v1/sessions/{sid}/jobs", json={"particles": 10}).json()
+        done = wait_for(client, mapped["id"], timeout_s=300)
+        assert done["status"] == "succeeded", done
+
+        jobs = f"/v1/sessions/{sid}/jobs"
+        assert "name it as 'map_job_id'" in assert_error(client.post(jobs, json={"live": True, "mode": "localize"}),
+                                                         422)["message"]
+        assert_error(client.post(jobs, json={"live": True, "mode": "extend", "map_job_id": mapped["id"]}), 422)
+        assert_error(client.get(f"/v1/jobs/{mapped['id']}/poses"), 404)
+        live = client.post(jobs, json={"live": True, "mode": "localize", "map_job_id": mapped["id"],
+                                       "idle_timeout_s": 60}).json()
+        assert live["live"] and live["mode"] == "localize"
+
+        events: list[dict] = []
+
+        def follow() -> None:  # server-sent events, read while the chunks are posted
+            with client.stream("GET", f"/v1/jobs/{live['id']}/poses", params={"stream": "true"}) as response:
+                assert response.headers["content-type"].startswith("text/event-stream")
+                events.extend(_sse(response.iter_lines()))
+
+        follower = threading.Thread(target=follow)
+        follower.start()
+        half = len(chunks) // 2
+        for seq, chunk in enumerate(chunks[:half]):
+            assert client.post(f"/v1/sessions/{sid}/chunks", json={"seq": seq, "messages": chunk}).status_code == 201
+        posted = sum(m["type"] == "scan" for chunk in chunks[:half] for m in chunk)
+        so_far = wait_for(client, live["id"], {"running"}, timeout_s=120,
+                          condition=lambda job: job["scans_done"] >= posted - 2)
+        assert so_far["status"] == "running"
+        polled = client.get(f"/v1/jobs/{live['id']}/poses").json()
+        assert polled["status"] == "running" and polled["count"] >= posted - 2
+        for seq, chunk in enumerate(chunks[half:], start=half):
+            assert client.post(f"/v1/sessions/{sid}/chunks", json={"seq": seq, "messages": chunk}).status_code == 201
+        client.post(f"/v1/sessions/{sid}/chunks/finish", json={"last_seq": len(chunks) - 1})
+        follower.join(timeout=180)
+        assert not follower.is_alive()
+        finished = wait_for(client, live["id"], timeout_s=60)
+        assert finished["status"] == "succeeded", finished
+
+        # every scan once, in order (TestClient hands a streamed body over whole: the events' timing is
+        # tested against a real server, tests/cli/test_client.py)
+        poses = [e["data"] for e in events if e.get("event") == "pose"]
+        assert events[-1] == {"event": "end", "data": {"status": "succeeded"}}
+        assert [p["scan"] for p in poses] == list(range(len(streamed.scans)))
+        assert [int(e["id"]) for e in events if e.get("event") == "pose"] == [p["scan"] for p in poses]
+        states = [p["state"] for p in poses]
+        first = states.index("found")
+        assert set(states[:first]) == {"searching"} and all(p["pose"] is None for p in poses[:first])
+        assert states[first:].count("found") >= 0.95 * (len(states) - first)
+        assert all(p["latency_s"] >= 0 and p["seq"] is not None for p in poses[:-5])
+        # the found poses where the simulator says the robot was (the map's frame carried onto the world)
+        trajectory = client.get(f"/v1/jobs/{mapped['id']}/trajectory").json()["poses"]
+        t = np.array([p["t_s"] for p in trajectory])
+        rotation, translation = align_rigid_2d(np.array([[p["x_m"], p["y_m"]] for p in trajectory]),
+                                               before.pose_at(t)[:, :2])
+        found = [p for p in poses if p["state"] == "found"]
+        placed = np.array([p["pose"][:2] for p in found]) @ rotation.T + translation
+        truth = later.pose_at(np.array([p["t_s"] for p in found]))[:, :2]
+        assert np.hypot(*(placed - truth).T).max() < 0.1
+
+        # resumed after a scan (as an EventSource does with Last-Event-ID), and the products
+        with client.stream("GET", f"/v1/jobs/{live['id']}/poses", headers={"Accept": "text/event-stream",
+                                                                          "Last-Event-ID": "400"}) as response:
+            resumed = _sse(response.iter_lines())
+        assert [int(e["id"]) for e in resumed if e.get("event") == "pose"] == list(range(401, len(poses)))
+        assert {"poses.jsonl", "trajectory.json", "confidence.json", "run.json", "localization.png"} <= set(
+            finished["products"])
+        run = client.get(f"/v1/jobs/{live['id']}/run.json").json()["localization"]
+        assert run["localised"] and run["states"]["found"] == states.count("found")
+        assert run["latency_s"]["count"] > 0 and run["first_found_travel_m"] > 0  # later: posted faster than real time
+        lines = client.get(f"/v1/jobs/{live['id']}/poses.jsonl").text.splitlines()
+        assert [json.loads(line) for line in lines] == poses
