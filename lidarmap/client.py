@@ -12,6 +12,7 @@ Every API error (4xx/5xx) raises :class:`ApiError` with the service's status, co
 
 from __future__ import annotations
 
+import json
 import shutil
 import tempfile
 import time
@@ -22,6 +23,7 @@ from typing import Any, Literal
 
 import httpx
 
+from api_schemas.chunks import ChunkCreate, ChunkPublic, StreamState
 from api_schemas.jobs import JobCreate, JobPublic, JobStatus
 from api_schemas.logs import LogPublic
 from api_schemas.products import TrajectoryPublic
@@ -138,6 +140,49 @@ class LidarmapClient:
         job = self.job(job_id)
         return {name: self.download(job_id, name, out_dir / name)
                 for name in job.products if not name.startswith("tiles/")}
+
+    # --- streams and live jobs -------------------------------------------------------------------
+
+    def send_chunk(self, session_id: str, seq: int, messages: list[dict[str, Any]]) -> ChunkPublic:
+        """Post chunk ``seq`` of the session's stream (sensor messages in time order, as the API takes them)."""
+        body = ChunkCreate.model_validate({"seq": seq, "messages": messages}).model_dump(mode="json",
+                                                                                          exclude_none=True)
+        return ChunkPublic.model_validate(self._json("POST", f"/v1/sessions/{session_id}/chunks", json=body))
+
+    def finish_stream(self, session_id: str, last_seq: int | None = None) -> StreamState:
+        """The session's stream ends at ``last_seq`` (default: the highest chunk sent)."""
+        body = {} if last_seq is None else {"last_seq": last_seq}
+        return StreamState.model_validate(self._json("POST", f"/v1/sessions/{session_id}/chunks/finish", json=body))
+
+    def follow_poses(self, job_id: str, after: int = -1) -> Iterator[dict[str, Any]]:
+        """A live localisation's scan reports as the service makes them (server-sent events; each a dict:
+        ``scan``, ``t_s``, ``pose`` [x_m, y_m, theta_rad] or None, ``confidence``, ``state``, ``seq``,
+        ``latency_s``), from the scan after ``after``, until the job ends. A dropped connection is taken
+        up again after the last scan received."""
+        last = after
+        while True:
+            try:
+                with self._http.stream("GET", f"/v1/jobs/{job_id}/poses", params={"stream": "true", "after": last},
+                                       timeout=httpx.Timeout(TIMEOUT_S, read=None)) as response:
+                    _raise_for_error(response)
+                    event: dict[str, str] = {}
+                    for line in response.iter_lines():
+                        if line:
+                            name, _, value = line.partition(": ")
+                            if not line.startswith(":"):
+                                event[name] = value
+                            continue
+                        if event.get("event") == "end":
+                            return
+                        if event.get("event") == "pose":
+                            report = json.loads(event["data"])
+                            last = report["scan"]
+                            yield report
+                        event = {}
+            except httpx.TransportError:
+                if self.job(job_id).status in FINISHED:
+                    return
+                time.sleep(0.5)
 
     def changes(self, job_id: str) -> dict:
         """What a localise or extend job's drive saw changed since the saved map: ``changes.geojson`` as a

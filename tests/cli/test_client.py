@@ -183,3 +183,59 @@ def test_the_client_reads_what_changed_since_a_saved_map(tmp_path: Path) -> None
                 run["changes"]["added_m2"] + run["changes"]["removed_m2"], abs=0.01)
             files = api.download_products(job.id, tmp_path / "products")
             assert Image.open(files["changes.png"]).size == Image.open(files["localization.png"]).size
+
+
+def _follow(url: str, job_id: str, reports: list, enough: int, seen) -> None:
+    """Collect a live localisation's reports into ``reports``; ``seen`` set once there are ``enough``."""
+    with LidarmapClient(url) as reader:
+        for report in reader.follow_poses(job_id):
+            reports.append(report)
+            if len(reports) >= enough:
+                seen.set()
+
+
+@pytest.mark.slow
+def test_the_client_follows_a_live_localisation_while_it_streams(tmp_path: Path) -> None:
+    """A real service: the simulated office mapped, then driven again and sent chunk by chunk into a live
+    localisation; the client reads each scan's pose while the drive is still being sent."""
+    import threading
+
+    from service.storage.stream_log import calibration_from_log, messages_of_log
+    from slam_engine.formats import load_log
+    from slam_engine.simulation import simulate, write_simulated
+
+    before = write_simulated(simulate("office", seed=0, cameras=False), "carmen", tmp_path / "before")
+    later = load_log(write_simulated(simulate("office", seed=1, cameras=False), "carmen", tmp_path / "later"))
+    messages = messages_of_log(later)
+    chunks = [messages[i:i + 40] for i in range(0, len(messages), 40)]
+    half = len(chunks) // 2
+    first_half_scans = sum(m["type"] == "scan" for chunk in chunks[:half] for m in chunk)
+    for url in start_service(tmp_path / "data", None):
+        with LidarmapClient(url) as api:
+            session = api.create_session("live", calibration=calibration_from_log(later))
+            api.upload_log(session.id, before)
+            mapped = api.wait(api.start_job(session.id, JobCreate(particles=10)).id, timeout_s=600)
+            assert mapped.status is JobStatus.SUCCEEDED, mapped
+            job = api.start_job(session.id, JobCreate(live=True, mode="localize", map_job_id=mapped.id))
+            reports: list[dict] = []
+            first_half_seen = threading.Event()
+
+            follower = threading.Thread(target=_follow, args=(url, job.id, reports, first_half_scans - 1,
+                                                              first_half_seen))
+            follower.start()
+            for seq, chunk in enumerate(chunks[:half]):
+                api.send_chunk(session.id, seq, chunk)
+            # the first half's poses come while the rest of the drive is not sent yet
+            assert first_half_seen.wait(timeout=120), len(reports)
+            assert api.job(job.id).status is JobStatus.RUNNING
+            for seq, chunk in enumerate(chunks[half:], start=half):
+                api.send_chunk(session.id, seq, chunk)
+            api.finish_stream(session.id)
+            follower.join(timeout=180)
+            assert not follower.is_alive()
+            assert [r["scan"] for r in reports] == list(range(len(later.scans)))
+            states = [r["state"] for r in reports]
+            first = states.index("found")  # after a search on the scans so far (sent faster than real time here)
+            assert set(states[:first]) == {"searching"}
+            assert states[first:].count("found") >= 0.95 * (len(states) - first)
+            assert api.wait(job.id, timeout_s=60).status is JobStatus.SUCCEEDED
