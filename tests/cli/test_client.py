@@ -239,3 +239,16 @@ def test_the_client_follows_a_live_localisation_while_it_streams(tmp_path: Path)
             assert set(states[:first]) == {"searching"}
             assert states[first:].count("found") >= 0.95 * (len(states) - first)
             assert api.wait(job.id, timeout_s=60).status is JobStatus.SUCCEEDED
+
+            # the same from the command line: the log sent as a robot streams it, each pose printed as it comes
+            out = tmp_path / "live"
+            result = CliRunner().invoke(app, ["submit", str(tmp_path / "later"), "--server", url, "--out", str(out),
+                                              "--live", "--mode", "localize", "--map-job", mapped.id, "--rate", "0"])
+            assert result.exit_code == 0, result.output
+            printed = [line for line in result.stdout.splitlines() if line.startswith("scan ")]
+            assert printed[0].startswith("scan 0 ") and ": searching, confidence 0.00" in printed[0]
+            assert any(": found at x " in line for line in printed)
+            assert {"poses.jsonl", "trajectory.json", "run.json"} <= {p.name for p in out.iterdir()}
+            refused = CliRunner().invoke(app, ["submit", str(tmp_path / "later"), "--server", url, "--out",
+                                               str(tmp_path / "no"), "--live", "--mode", "localize"])
+            assert refused.exit_code == 2 and "name it as 'map_job_id'" in refused.stderr
