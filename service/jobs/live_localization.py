@@ -34,9 +34,9 @@ from service.storage.stream_log import (
     vehicle_from_calibration,
 )
 from slam_engine.model.messages import ScanMessage
-from slam_engine.progress import MAPPING_SCANS
 
 POSES_FILE = "poses.jsonl"  # one live report per line, in scan order
+LOCALIZING_SCANS = "localising scans"  # the job's stage while it follows the stream
 ODOMETRY_TYPES = ("encoder", "odometry")
 
 
@@ -132,7 +132,7 @@ def run_live_localization_job(ctx: JobContext) -> None:
                     latencies.append(line["latency_s"])
                 poses.write(json.dumps(line) + "\n")
             poses.flush()
-            ctx.progress(len(run.localizer.reports), None, stage=MAPPING_SCANS)
+            ctx.progress(len(run.localizer.reports), None, stage=LOCALIZING_SCANS)
 
         seq, last_seq = 0, None
         idle_since = time.monotonic()
@@ -148,14 +148,14 @@ def run_live_localization_job(ctx: JobContext) -> None:
             if last_seq is not None and seq > last_seq:
                 ended = "finished"
                 break
-            ctx.progress(len(run.localizer.reports), None, force=True, stage=MAPPING_SCANS)  # a cancel stops here
+            ctx.progress(len(run.localizer.reports), None, force=True, stage=LOCALIZING_SCANS)  # a cancel stops here
             if time.monotonic() - idle_since >= idle_timeout_s:
                 ended = "idle_timeout"
                 break
             time.sleep(POLL_S)
         publish(run.finish(), None, None)
     run.localizer.close()
-    ctx.progress(len(run.localizer.reports), None, force=True, stage=MAPPING_SCANS)
+    ctx.progress(len(run.localizer.reports), None, force=True, stage=LOCALIZING_SCANS)
     if not run.localizer.reports:
         raise JobFailed(f"live stream idle: no scan arrived within idle_timeout_s ({idle_timeout_s:g} s), nothing "
                         "to localise")

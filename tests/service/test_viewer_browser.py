@@ -137,7 +137,8 @@ def _require_browser():
 @contextlib.contextmanager
 def _serve(data_dir: Path, job_function: str | None = None, **settings) -> Iterator[str]:
     """The service on a free loopback port (uvicorn in a thread, workers in processes); yields its URL."""
-    app = create_app(Settings(data_dir=data_dir, workers=1, **settings), job_function=job_function)
+    settings.setdefault("workers", 1)
+    app = create_app(Settings(data_dir=data_dir, **settings), job_function=job_function)
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.bind(("127.0.0.1", 0))
     server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
@@ -614,3 +615,51 @@ def test_loop_closures_are_drawn_and_counted(tmp_path) -> None:
             assert summary == f"{len(accepted)} accepted of {closing['candidates_matched']} candidates matched"
             ARTIFACTS.mkdir(exist_ok=True)
             page.screenshot(path=str(ARTIFACTS / "viewer-closures.png"))
+
+
+def test_a_live_localisation_shows_the_robot_moving_in_the_saved_map(tmp_path) -> None:
+    """The simulated office mapped, then driven again and streamed into a live localisation: while it runs
+    the page shows the saved map's tiles, the path of the scans found in it growing, the robot's marker
+    and its state in the key."""
+    from service.storage.stream_log import calibration_from_log, messages_of_log
+    from slam_engine.formats import load_log, write_log
+    from slam_engine.simulation import simulate
+
+    before = write_log(simulate("office", seed=0, cameras=False).log, "carmen", tmp_path / "before")
+    later = load_log(write_log(simulate("office", seed=1, cameras=False).log, "carmen", tmp_path / "later"))
+    messages = messages_of_log(later)
+    chunks = [messages[i:i + 40] for i in range(0, len(messages), 40)]
+    with _serve(tmp_path / "data", workers=2) as url, httpx.Client(base_url=url, timeout=60) as api:
+        sid = api.post("/v1/sessions", json={"name": "office", "calibration": calibration_from_log(later)}).json()["id"]
+        with before.open("rb") as f:
+            api.post(f"/v1/sessions/{sid}/logs", files={"file": (before.name, f)})
+        mapped = api.post(f"/v1/sessions/{sid}/jobs", json={"particles": 10}).json()
+        for _ in range(2400):
+            if api.get(f"/v1/jobs/{mapped['id']}").json()["status"] not in ("queued", "running"):
+                break
+            time.sleep(0.1)
+        live = api.post(f"/v1/sessions/{sid}/jobs", json={"live": True, "mode": "localize",
+                                                          "map_job_id": mapped["id"]}).json()
+        for seq, chunk in enumerate(chunks[: len(chunks) // 2]):
+            api.post(f"/v1/sessions/{sid}/chunks", json={"seq": seq, "messages": chunk})
+        with _browser_page("viewer-live-localisation") as page:
+            page.goto(f"{url}/viewer/#job={live['id']}")
+            page.wait_for_selector(".tiles-occupancy img.leaflet-tile-loaded", timeout=60_000)
+            tiles = page.evaluate("window.lidarmap.jobMap.layers.occupancy._url")
+            assert tiles.startswith(f"/v1/jobs/{mapped['id']}/tiles/occupancy/")  # the saved map's
+            page.wait_for_function("window.lidarmap.jobMap.layers.trajectory.getLatLngs().length > 50",
+                                   timeout=60_000)
+            seen = page.evaluate("window.lidarmap.jobMap.layers.trajectory.getLatLngs().length")
+            assert page.locator(".map-key .key-live").inner_text().startswith("robot: found (confidence ")
+            for seq, chunk in enumerate(chunks[len(chunks) // 2:], start=len(chunks) // 2):
+                api.post(f"/v1/sessions/{sid}/chunks", json={"seq": seq, "messages": chunk})
+            page.wait_for_function(f"window.lidarmap.jobMap.layers.trajectory.getLatLngs().length > {seen + 50}",
+                                   timeout=60_000)  # the robot moves on as the stream goes on
+            marker = page.evaluate("(() => { const p = window.lidarmap.jobMap.layers.pose.getLatLng(); "
+                                   "return [p.lat, p.lng]; })()")
+            poses = api.get(f"/v1/jobs/{live['id']}/poses").json()["poses"]
+            placed = [p["pose"] for p in poses if p["pose"] is not None]
+            assert min(abs(marker[0] - p[1]) + abs(marker[1] - p[0]) for p in placed) < 1e-6  # a reported pose
+            ARTIFACTS.mkdir(exist_ok=True)
+            page.screenshot(path=str(ARTIFACTS / "viewer-live-localisation.png"))
+        api.post(f"/v1/sessions/{sid}/chunks/finish", json={})

@@ -139,6 +139,7 @@ const ColourKey = L.Control.extend({
     this.div = L.DomUtil.create("div", "map-key");
     this.closures = 0;
     this.changes = null;
+    this.live = null;
     this.savedDrivesShown = false;
     this.setDeadReckoning(false);
     return this.div;
@@ -153,6 +154,11 @@ const ColourKey = L.Control.extend({
   },
   setClosures(count) {
     this.closures = count;
+    this._render();
+  },
+  /** A live localisation's last report (its state and confidence in the key), or null. */
+  setLive(report) {
+    this.live = report;
     this._render();
   },
   /** Regions added and removed since the saved map ({added, removed} counts), or null: no change map. */
@@ -173,6 +179,9 @@ const ColourKey = L.Control.extend({
       this.savedDrivesShown ? line(SAVED_DRIVES_STYLE, LAYER_NAMES.savedDrives, "key-saved-drives") : null,
       shown ? line(DEAD_RECKONING_STYLE, LAYER_NAMES.deadReckoning, "key-dead-reckoning") : null,
       this.closures ? line(CLOSURE_STYLE, `${LAYER_NAMES.closures} (${this.closures})`, "key-closures") : null,
+      this.live ? el("div", { class: "map-key-row key-live" }, `robot: ${this.live.state}`
+        + (this.live.state === "found" ? ` (confidence ${this.live.confidence.toFixed(2)})` : "")
+        + ` at scan ${this.live.scan}`) : null,
       ...(this.changes ? [
         el("div", { class: "map-key-row key-changes-added" }, el("span", { class: "map-key-swatch",
           style: `background: ${CHANGE_STYLES.added.color}` }), `added since the saved map (${this.changes.added})`),
@@ -264,6 +273,9 @@ export class JobMap {
   async _update(job) {
     const version = `${job.status}-${job.scans_done}`;
     if (job.id !== this.jobId || (this.map && version === this.version)) return;
+    if (job.live && job.mode === "localize" && job.map_job_id && job.status === "running") {
+      return this._updateLive(job, version);
+    }
     if (job.status === "succeeded" && job.products.includes("localization.png")) {
       return this._showImages(job, [
         ["localization.png", "The drive (red where its scans matched the saved map, blue where its own motion "
@@ -306,6 +318,33 @@ export class JobMap {
     this._setPaths(trajectory, deadReckoning, savedDrives);
     this._setClosures(closures);
     this._setChanges(changes);
+    this.version = version;
+  }
+
+  /** A live localisation while it runs: the saved map's tiles, the path of the scans found in it, the
+   * robot where its last scan was placed, and the state in the key (GET /v1/jobs/{id}/poses, new scans). */
+  async _updateLive(job, version) {
+    if (!this.map || this.liveOf !== job.id) {
+      const scheme = await getJson(TILE_SCHEME.path(job.map_job_id, "occupancy"));
+      if (job.id !== this.jobId) return;
+      this._build(job.map_job_id, scheme, false, version, null);
+      this.liveOf = job.id;
+      this.livePath = [];
+      this.liveAfter = -1;
+    }
+    const answer = await getJson(`/v1/jobs/${job.id}/poses?after=${this.liveAfter}`);
+    if (job.id !== this.jobId || this.liveOf !== job.id) return;
+    let last = null;
+    for (const report of answer.poses) {
+      this.liveAfter = report.scan;
+      if (report.pose && report.state === "found") this.livePath.push([report.pose[1], report.pose[0]]);
+      last = report;
+    }
+    this._setPaths(this.livePath, null, null);
+    if (last) {
+      if (last.pose) this.layers.pose.setLatLng([last.pose[1], last.pose[0]]);
+      this.colourKey.setLive(last);
+    }
     this.version = version;
   }
 
@@ -446,6 +485,7 @@ export class JobMap {
 
   _clear(text) {
     this.imageKey = null;
+    this.liveOf = null;
     if (this.map) this.map.remove();
     this.map = null;
     this.scheme = null;
