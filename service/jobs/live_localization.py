@@ -171,6 +171,7 @@ def _write_products(ctx: JobContext, run: LiveLocalizationRun, poses_path: Path,
     import numpy as np
 
     from slam_engine.model.result import Trajectory
+    from slam_engine.multisession.changes import detect_changes
     from slam_engine.multisession.live_localization import FOUND
     from slam_engine.products.multisession import localization_image, saved_map_grid, write_localization
 
@@ -181,12 +182,18 @@ def _write_products(ctx: JobContext, run: LiveLocalizationRun, poses_path: Path,
     out_dir = ctx.out_dir / "products"
     trajectory = image = None
     confidence = np.zeros(0)
+    changes = None
     if placed:
         trajectory = Trajectory(np.array([r.t_s for r in placed]), np.array([r.pose for r in placed]))
         confidence = np.array([r.confidence for r in placed])
-        image = localization_image(saved_map_grid(bundle, config), trajectory, [localizer.hits[r.scan] for r in placed],
+        grid = saved_map_grid(bundle, config)
+        image = localization_image(grid, trajectory, [localizer.hits[r.scan] for r in placed],
                                    np.array([r.state == FOUND for r in placed]))
-    files = write_localization(out_dir, summary, trajectory, confidence, image)
+        found = [r for r in placed if r.state == FOUND]
+        if found and config.changes.enabled:  # what changed, from the scans that matched the map
+            changes = (detect_changes(grid, [localizer.hits[r.scan] for r in found], np.array([r.pose for r in found]),
+                                      run.projector.origin_v, config.changes), grid)
+    files = write_localization(out_dir, summary, trajectory, confidence, image, changes=changes)
     files[POSES_FILE] = Path(shutil.copy2(poses_path, out_dir / POSES_FILE))
     ctx.store.set_input(ctx.job_id, description)
     ctx.store.set_products(ctx.job_id, product_names(files, ctx.out_dir))

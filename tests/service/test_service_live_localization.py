@@ -111,9 +111,11 @@ def test_a_live_localisation_reports_each_scan_as_it_arrives(tmp_path) -> None:
                                                                           "Last-Event-ID": "400"}) as response:
             resumed = _sse(response.iter_lines())
         assert [int(e["id"]) for e in resumed if e.get("event") == "pose"] == list(range(401, len(poses)))
-        assert {"poses.jsonl", "trajectory.json", "confidence.json", "run.json", "localization.png"} <= set(
-            finished["products"])
-        run = client.get(f"/v1/jobs/{live['id']}/run.json").json()["localization"]
+        assert {"poses.jsonl", "trajectory.json", "confidence.json", "run.json", "localization.png", "changes.png",
+                "changes.geojson"} <= set(finished["products"])
+        report = client.get(f"/v1/jobs/{live['id']}/run.json").json()
+        assert report["changes"]["changed_share"] < 0.005  # the same office: nothing changed
+        run = report["localization"]
         assert run["localised"] and run["states"]["found"] == states.count("found")
         assert run["latency_s"]["count"] > 0 and run["first_found_travel_m"] > 0  # later: posted faster than real time
         lines = client.get(f"/v1/jobs/{live['id']}/poses.jsonl").text.splitlines()
