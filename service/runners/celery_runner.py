@@ -35,7 +35,7 @@ from billiard.exceptions import WorkerLostError
 from celery import Celery, signals
 
 from api_schemas.jobs import JobStatus
-from service.http_errors import Unavailable
+from service.http_errors import LOW_SPACE_BYTES, Unavailable
 from service.jobs.context import JobContext, JobFunction
 from service.jobs.events import job_event
 from service.runners.base import DEFAULT_JOB_FUNCTION, RunnerHealth
@@ -131,6 +131,7 @@ class CeleryRunner:
     def __init__(self, settings: Any, data: DataDir, store: JobStore):
         self._settings = settings
         self._store = store
+        self._data = data
         self._app = make_celery(settings)
         try:
             with self._app.connection_for_write() as conn:
@@ -183,8 +184,10 @@ class CeleryRunner:
     def _reap_loop(self) -> None:
         while not self._stopping.wait(self._settings.heartbeat_s):
             try:
-                for job_id in self._store.fail_lost(self._settings.worker_lost_s):
+                full = self._data.free_bytes() < LOW_SPACE_BYTES  # heartbeats that could not be written
+                for job_id in self._store.fail_lost(self._settings.worker_lost_s, disk_full=full):
                     job_event(JobStatus.FAILED.value, job_id, logging.WARNING,
-                              error=f"worker lost: no heartbeat for {self._settings.worker_lost_s:.0f} s")
+                              error=f"{'disk full' if full else 'worker lost'}: no heartbeat for "
+                                    f"{self._settings.worker_lost_s:.0f} s")
             except Exception:  # the reaper must survive a locked database
                 logger.exception("reaper pass failed")

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from api_schemas.jobs import JobStatus
+from service.http_errors import LOW_SPACE_BYTES
 from service.jobs.events import job_event
 from service.runners.base import DEFAULT_JOB_FUNCTION, RunnerHealth
 from service.storage.data_dir import DataDir
@@ -199,7 +200,8 @@ class LocalProcessRunner:
             return
         self._next_reap_s = now + self._heartbeat_s
         keep_spare(self._data)
-        for job_id in write_status(self._data, lambda: self._store.fail_lost(self._worker_lost_s)):
+        full = self._data.free_bytes() < LOW_SPACE_BYTES  # heartbeats that could not be written
+        for job_id in write_status(self._data, lambda: self._store.fail_lost(self._worker_lost_s, disk_full=full)):
             logger.warning("job %s: no heartbeat for %.0f s: failed, its worker killed", job_id, self._worker_lost_s)
             with self._lock:
                 for slot in self._slots:

@@ -156,9 +156,10 @@ class JobRecords(StoreBase):
             row = tx.execute(select(jobs.c.status, jobs.c.cancel_requested).where(jobs.c.id == job_id)).first()
         return row is None or row.status != JobStatus.RUNNING or bool(row.cancel_requested)
 
-    def fail_lost(self, silent_s: float) -> list[str]:
+    def fail_lost(self, silent_s: float, disk_full: bool = False) -> list[str]:
         """Running jobs whose heartbeat is older than ``silent_s`` -> failed 'worker lost' (their
-        cancel flag is set too, so a worker that was only slow stops at its next progress report).
+        cancel flag is set too, so a worker that was only slow stops at its next progress report);
+        'disk full' when ``disk_full`` (the data folder has no space: the heartbeats could not be written).
         Each update re-checks the heartbeat: one that arrives meanwhile keeps its job running."""
         now = time.time()
         silent = (jobs.c.status == _RUNNING,
@@ -170,6 +171,9 @@ class JobRecords(StoreBase):
                 silence = f"{now - row.heartbeat_at:.0f} s" if row.heartbeat_at else "ever"
                 reason = (f"worker lost: no heartbeat for {silence} (worker pid {row.worker_pid}): its process "
                           "or machine stopped")
+                if disk_full:
+                    reason = (f"disk full: the service's data folder has no space left; no heartbeat for {silence} "
+                              f"(worker pid {row.worker_pid}) could be written")
                 cur = tx.execute(update(jobs).where(jobs.c.id == row.id, *silent)
                                  .values(status=_FAILED, cancel_requested=1, finished_at=now, error=reason))
                 if cur.rowcount == 1:

@@ -66,6 +66,27 @@ def test_a_stopped_worker_is_noticed_and_its_job_failed(tmp_path) -> None:
         assert again["status"] == "succeeded"
 
 
+def test_a_worker_silent_while_the_disk_is_full_fails_its_job_saying_so(tmp_path, monkeypatch) -> None:
+    """A worker whose heartbeats cannot be written (the data folder full) goes silent: its job fails 'disk
+    full' within worker_lost_s, not 'worker lost' (before: 'worker lost: no heartbeat ...')."""
+    from service.storage.data_dir import DataDir
+
+    with service_client(tmp_path, job_function=f"{FUNCS}:counting", heartbeat_s=0.2, worker_lost_s=1.0) as client:
+        sid = streaming_session(client)
+        job = start(client, sid, 1000, 30)
+        wait_for(client, job["id"], {"running"}, timeout_s=60, condition=lambda j: j["scans_done"] > 0)
+        pid = worker_of(client, job["id"])
+        monkeypatch.setattr(DataDir, "free_bytes", lambda self: 0)  # what the runner sees from now on
+        os.kill(pid, signal.SIGSTOP)  # silent, as a worker whose every write fails
+        try:
+            failed = wait_for(client, job["id"], timeout_s=15)
+        finally:
+            if not gone(pid):
+                os.kill(pid, signal.SIGCONT)
+        assert failed["status"] == "failed" and failed["error"].startswith(
+            "disk full: the service's data folder has no space left; no heartbeat for"), failed
+
+
 def test_a_cancel_reaches_a_stopped_worker(tmp_path) -> None:
     """Before: DELETE answered 202 and the stopped job stayed 'running' (SIGTERM waits for SIGCONT).
     Now: its worker is killed after cancel_grace_s (1 s here) and the job ends 'cancelled'."""

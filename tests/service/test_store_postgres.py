@@ -295,6 +295,18 @@ def test_heartbeats_and_lost_workers(store, monkeypatch) -> None:
     assert store.heartbeat(beating) is True
 
 
+def test_a_job_whose_heartbeats_met_a_full_disk_fails_saying_so(store, monkeypatch) -> None:
+    clock = FakeClock(1_000.0)
+    monkeypatch.setattr(job_records, "time", clock)
+    sid = store.create_session("", "s", None, None, None).id
+    job = store.create_job(sid, "", JobSource.LOG, None, {}).id
+    assert store.mark_running(job, worker_pid=33)
+    clock.now = 1_070.0
+    assert store.fail_lost(silent_s=60.0, disk_full=True) == [job]  # the runner saw the data folder full
+    assert store.get_job(job).error == ("disk full: the service's data folder has no space left; no heartbeat "
+                                        "for 70 s (worker pid 33) could be written")
+
+
 def test_restart_keeps_rows_and_fails_interrupted_jobs(store) -> None:
     sid = store.create_session("", "s", None, None, None).id
     done, interrupted, waiting = (store.create_job(sid, "", JobSource.LOG, None, {}).id for _ in range(3))
