@@ -2,8 +2,9 @@
 :func:`bench.harness.run_benchmark` and :func:`bench.report.print_report`, the scored logs against
 the record (:mod:`bench.regression`), followed by the sessions
 table (:mod:`bench.sessions`) on the shared datasets' two-session drives, the margin table
-(:mod:`bench.margin`: the sparse logs at 15 particles, seeds 0-9) and the live table (:mod:`bench.live`:
-the simulated car streamed at real time into a live job)."""
+(:mod:`bench.margin`: the sparse logs at 15 particles, seeds 0-9), the live table (:mod:`bench.live`:
+the simulated car streamed at real time into a live job) and the live localisation table
+(:mod:`bench.live_localization`: the simulated office streamed at real time into a live localize job)."""
 
 from __future__ import annotations
 
@@ -52,6 +53,10 @@ def accuracy(
                                 "particles, seeds 0-9; not with --quick or --no-datasets)."),
     live: bool = typer.Option(True, help="Then the live table (the simulated car streamed at real time into a "
                               "live job beside one busy process, about 2 minutes; not with --quick)."),
+    live_localization: bool = typer.Option(True, help="Then the live localisation table (the simulated office "
+                                           "mapped, driven again and streamed at real time into a live localize job "
+                                           "beside one busy process, a foreign drive after it, about 3 minutes; not "
+                                           "with --quick)."),
     places: bool = typer.Option(True, help="Then the place index's retrieval at the benchmark logs' true revisits "
                                 "(recall@5, precision@1; not with --quick or --no-datasets)."),
     peers: bool = typer.Option(True, help="Then lidarmap and Karto side by side (whole processes, interleaved, "
@@ -124,6 +129,10 @@ def accuracy(
         from bench.live import run_live_table
 
         run_live_table(out, console)
+    if live_localization and not quick:
+        from bench.live_localization import run_live_localization_table
+
+        run_live_localization_table(out, console)
     if places and datasets and not quick:
         from bench import place_recall
 

@@ -154,23 +154,28 @@ def test_the_issue_targets_are_the_default_ones():
 def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_path):
     """``python -m bench`` runs the sessions table after the logs, with its seeds and output folder; not with
     --quick, --no-datasets or --no-sessions. The live table (the simulated car, no datasets) comes last, into
-    the same folder; not with --quick or --no-live."""
+    the same folder; not with --quick or --no-live; the live localisation table right after it, into the same
+    folder; not with --quick or --no-live-localization."""
     import bench.cases
     import bench.changes
     import bench.harness
     import bench.live
+    import bench.live_localization
     import bench.peers
     import bench.place_recall
     import bench.sessions
 
     calls: list = []
     live_calls: list = []
+    localization_calls: list = []
     recall_calls: list = []
     peer_calls: list = []
     change_calls: list = []
     monkeypatch.setattr(bench.changes, "measure", lambda seed: change_calls.append(seed))
     monkeypatch.setattr(bench.changes, "table", lambda rows: "changes table")
     monkeypatch.setattr(bench.live, "run_live_table", lambda out, console: live_calls.append(out))
+    monkeypatch.setattr(bench.live_localization, "run_live_localization_table",
+                        lambda out, console: localization_calls.append(out))
     monkeypatch.setattr(bench.place_recall, "measure", lambda name: recall_calls.append(name))
     monkeypatch.setattr(bench.place_recall, "table", lambda rows, k: "recall table")
     monkeypatch.setattr(bench.peers, "karto_binary", lambda: peer_calls.append("karto") and None)
@@ -188,9 +193,11 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
     out = tmp_path / "out"
     for flags, runs_sessions, runs_live in ((["--seeds", "1-2"], True, True), (["--quick"], False, False),
                                             (["--no-sessions"], False, True), (["--no-datasets"], False, True),
-                                            (["--seeds", "1-2", "--no-live"], True, False)):
+                                            (["--seeds", "1-2", "--no-live"], True, False),
+                                            (["--seeds", "1-2", "--no-live-localization"], True, True)):
         calls.clear()
         live_calls.clear()
+        localization_calls.clear()
         recall_calls.clear()
         peer_calls.clear()
         change_calls.clear()
@@ -199,6 +206,8 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
         assert exit_info.value.code == 0
         assert calls == ([([drive], [1, 2], out)] if runs_sessions else []), flags
         assert live_calls == ([out] if runs_live else []), flags
+        runs_localization = "--quick" not in flags and "--no-live-localization" not in flags
+        assert localization_calls == ([out] if runs_localization else []), flags
         # the place index's recall on the benchmark logs (with the datasets), then Karto side by side
         places = runs_sessions or flags == ["--no-sessions"]
         assert recall_calls == (list(bench.place_recall.DEFAULT_LOGS) if places else []), flags
