@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Any
 
 from service.jobs.context import JobContext, JobFailed
-from service.jobs.live import POLL_S
 from service.jobs.outputs import job_session, product_names
 from service.jobs.settings import engine_config
 from service.storage.chunks import read_chunk_messages
@@ -37,6 +36,11 @@ from slam_engine.model.messages import ScanMessage
 
 POSES_FILE = "poses.jsonl"  # one live report per line, in scan order
 LOCALIZING_SCANS = "localising scans"  # the job's stage while it follows the stream
+POLL_S = 0.01  # how often a job that has caught up looks for the next chunk [s]: each scan's pose waits for it
+STORE_POLL_S = 0.2  # ... and for the stream's end and a cancel, in the store [s]
+# a chunk's last scans, stamped after its last odometry, are placed with that odometry (not the next chunk's)
+# when they are at most this much newer [s]: their own matching to the drive's scans corrects the rest
+EXTRAPOLATE_S = 0.25
 ODOMETRY_TYPES = ("encoder", "odometry")
 
 
@@ -71,7 +75,7 @@ class LiveLocalizationRun:
             elif self.integrator is not None:
                 self.integrator.update(message)
             reports += self._ready()
-        return reports
+        return reports + self._ready(within_s=EXTRAPOLATE_S)  # the chunk's last scans: not a chunk later
 
     def finish(self) -> list[Any]:
         """The scans still waiting for odometry, placed with the last odometry pose; the search waited for."""
@@ -85,12 +89,13 @@ class LiveLocalizationRun:
         source = odometry_source(drive_log_from_messages(self.calibration, messages))
         return OdometryIntegrator(self.vehicle, source, use_gyro=True)
 
-    def _ready(self, final: bool = False) -> list[Any]:
-        """Reports of the pending scans the odometry has reached (all of them when ``final``)."""
+    def _ready(self, final: bool = False, within_s: float = 0.0) -> list[Any]:
+        """Reports of the pending scans the odometry has reached, or comes within ``within_s`` of (all of
+        them when ``final``)."""
         out = []
         integrator = self.integrator
         while self.pending and integrator is not None and integrator.t_s is not None and (
-                final or integrator.t_s >= self.pending[0].t_s):
+                final or integrator.t_s + within_s >= self.pending[0].t_s):
             scan = self.pending.popleft()
             hits = self.projector.project(scan.ranges_m, angle_offset_rad=float(scan.angle_offset_rad)).hits_v
             out.append(self.localizer.add(scan.t_s, integrator.pose_at(scan.t_s), hits))
@@ -135,7 +140,7 @@ def run_live_localization_job(ctx: JobContext) -> None:
             ctx.progress(len(run.localizer.reports), None, stage=LOCALIZING_SCANS)
 
         seq, last_seq = 0, None
-        idle_since = time.monotonic()
+        idle_since = checked_s = time.monotonic()
         while True:
             chunk_file = ctx.data.chunk_file(session_id, seq)
             if chunk_file.exists():
@@ -144,14 +149,16 @@ def run_live_localization_job(ctx: JobContext) -> None:
                 seq += 1
                 idle_since = time.monotonic()
                 continue
-            last_seq = ctx.store.stream_end(session_id)
-            if last_seq is not None and seq > last_seq:
-                ended = "finished"
-                break
-            ctx.progress(len(run.localizer.reports), None, force=True, stage=LOCALIZING_SCANS)  # a cancel stops here
-            if time.monotonic() - idle_since >= idle_timeout_s:
-                ended = "idle_timeout"
-                break
+            if time.monotonic() - checked_s >= STORE_POLL_S:  # the stream's end, a cancel: less often
+                checked_s = time.monotonic()
+                last_seq = ctx.store.stream_end(session_id)
+                if last_seq is not None and seq > last_seq:
+                    ended = "finished"
+                    break
+                ctx.progress(len(run.localizer.reports), None, force=True, stage=LOCALIZING_SCANS)  # cancel: raises
+                if time.monotonic() - idle_since >= idle_timeout_s:
+                    ended = "idle_timeout"
+                    break
             time.sleep(POLL_S)
         publish(run.finish(), None, None)
     run.localizer.close()

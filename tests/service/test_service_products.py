@@ -20,9 +20,11 @@ def test_every_listed_product_downloads_under_its_name(tmp_path) -> None:
         listed = set(done["products"])
         # what the engine writes, each under its file name (texture: the synthetic room has a floor texture)
         # no snapshots; no key frames (a drawn room, not a SLAM run): no map bundle and no point cloud;
-        # not a localisation or an extension (tests/service/test_service_saved_maps.py downloads theirs)
+        # not a localisation or an extension (tests/service/test_service_saved_maps.py downloads theirs, with
+        # their change maps; tests/service/test_service_live_localization.py a live localisation's poses)
         assert listed == set(MEDIA_TYPES) - {"animation.gif", "map_bundle.npz", "map_points.ply",
-                                             "localization.png", "confidence.json", "drives.png"}, listed
+                                             "localization.png", "confidence.json", "drives.png", "changes.png",
+                                             "changes.geojson", "poses.jsonl"}, listed
         job_dir = DataDir(tmp_path).job_dir(job["id"])
         for name in sorted(listed):
             url = f"/v1/jobs/{job['id']}/{name}"
