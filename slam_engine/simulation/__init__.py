@@ -76,7 +76,8 @@ def rig_for_format(format: str) -> str:
 
 def simulate(scenario: str | None = "office", seed: int = 0, rig: str = "robot",
              max_duration_s: float | None = None, scan_hz: float | None = None,
-             rng: np.random.Generator | None = None, cameras: bool = True, scan_lag_s: float = 0.0) -> SimulatedDrive:
+             rng: np.random.Generator | None = None, cameras: bool = True, scan_lag_s: float = 0.0,
+             kidnap: tuple[float, float] | None = None) -> SimulatedDrive:
     """Simulate one drive along the scenario's route (a loop with a closure).
 
     ``scenario`` None picks the rig's own (``office`` for robots, ``campus`` for the car);
@@ -86,6 +87,9 @@ def simulate(scenario: str | None = "office", seed: int = 0, rig: str = "robot",
     the odometry's clock, like BreezySLAM's exp2 by about 0.15 s: the engine's time offset is then
     ``-scan_lag_s``); the ground truth is the pose when each scan was measured, at its stamp. A rig
     whose LiDAR model has a ``time_increment_s`` sweeps its beams while it moves (skewed scans).
+    ``kidnap`` (at [s], skip [s]): the vehicle is carried off ``at`` seconds into the drive to where it
+    would have been ``skip`` seconds later, and drives on from there; its wheels, gyro and odometry feel
+    nothing (they go on from where it was taken), its LiDAR and the ground truth see the jump.
     Same seed, same drive (the camera frames are drawn last: with or without them, the other
     streams are the same).
     """
@@ -107,6 +111,12 @@ def simulate(scenario: str | None = "office", seed: int = 0, rig: str = "robot",
                          the_rig.accel_m_s2, step)
     if max_duration_s is not None:
         motion = motion.truncated(max_duration_s)
+    felt = motion  # what the wheels, gyro and odometry sense
+    if kidnap is not None:
+        if not (0.0 < kidnap[0] < motion.duration_s and 0.0 < kidnap[1] < motion.duration_s - kidnap[0]):
+            raise ConfigError(f"kidnap {kidnap}: (at, skip) [s] must both be positive and within the "
+                              f"{motion.duration_s:.0f} s drive")
+        motion, felt = motion.kidnapped(*kidnap)
 
     t_measured = sample_times(motion, scan_hz or the_rig.scan_hz, the_rig.t0_s, rng)
     scans = scan_stream(world, motion, t_measured, the_rig, rng)
@@ -114,14 +124,14 @@ def simulate(scenario: str | None = "office", seed: int = 0, rig: str = "robot",
     scans = ScanStream(t_s=t_scan, ranges_m=scans.ranges_m, angle_offset_rad=scans.angle_offset_rad)
     encoders = gyro = odometry = None
     if the_rig.encoders_at_scan_times:  # read on each scan's line, at its stamp
-        encoders = encoder_stream(motion, t_scan, the_rig, rng)
+        encoders = encoder_stream(felt, t_scan, the_rig, rng)
     elif the_rig.encoder_hz:
-        encoders = encoder_stream(motion, sample_times(motion, the_rig.encoder_hz, the_rig.t0_s, rng),
+        encoders = encoder_stream(felt, sample_times(motion, the_rig.encoder_hz, the_rig.t0_s, rng),
                                   the_rig, rng)
     if the_rig.gyro_hz:
-        gyro = gyro_stream(motion, sample_times(motion, the_rig.gyro_hz, the_rig.t0_s, rng), the_rig, rng)
+        gyro = gyro_stream(felt, sample_times(motion, the_rig.gyro_hz, the_rig.t0_s, rng), the_rig, rng)
     if the_rig.log_odometry_hz:
-        odometry = odometry_stream(motion, sample_times(motion, the_rig.log_odometry_hz, the_rig.t0_s, rng),
+        odometry = odometry_stream(felt, sample_times(motion, the_rig.log_odometry_hz, the_rig.t0_s, rng),
                                    the_rig, rng)
     stereo = rgbd = None
     if cameras and the_rig.camera_hz and (the_rig.stereo is not None or the_rig.rgbd is not None):

@@ -32,6 +32,26 @@ class Motion:
         rate = np.gradient(self.theta_rad, self.t_s)
         return np.interp(t_s, self.t_s, rate)
 
+    def kidnapped(self, at_s: float, skip_s: float) -> tuple[Motion, Motion]:
+        """The vehicle carried off ``at_s`` seconds into the drive to where it would have been ``skip_s``
+        later, then driving on from there: (where it truly is, what its wheels and gyro feel: the same
+        motion without the jump, continuing from where it was taken)."""
+        t0 = self.t_s[0]
+        before = self.t_s < t0 + at_s
+        after = self.t_s >= t0 + at_s + skip_s
+        t = np.concatenate([self.t_s[before], self.t_s[after] - skip_s])
+        x, y, theta, s = self.at(np.array([t0 + at_s, t0 + at_s + skip_s]))
+        true = Motion(t, *(np.concatenate([v[before], v[after]]) for v in (self.x_m, self.y_m, self.theta_rad,
+                                                                          self.s_m)))
+        turn = theta[0] - theta[1]
+        c, s_turn = np.cos(turn), np.sin(turn)
+        dx, dy = self.x_m[after] - x[1], self.y_m[after] - y[1]
+        felt = Motion(t, np.concatenate([self.x_m[before], x[0] + c * dx - s_turn * dy]),
+                      np.concatenate([self.y_m[before], y[0] + s_turn * dx + c * dy]),
+                      np.concatenate([self.theta_rad[before], self.theta_rad[after] + turn]),
+                      np.concatenate([self.s_m[before], self.s_m[after] - (s[1] - s[0])]))
+        return true, felt
+
     def truncated(self, max_duration_s: float) -> Motion:
         """The first ``max_duration_s`` seconds."""
         keep = self.t_s <= self.t_s[0] + max_duration_s

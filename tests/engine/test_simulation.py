@@ -174,3 +174,23 @@ def test_interlaced_rig_is_the_same_drive_with_each_scan_at_its_own_start_angle(
     np.testing.assert_allclose(bag.scans.angle_offset_rad, offsets, atol=1e-6)  # float32 angle_min in the bag
     np.testing.assert_array_equal(bag.scans.ranges_m, interlaced.log.scans.ranges_m)
     assert any("carried per scan" in w for w in bag.warnings)
+
+
+def test_a_kidnapped_drive_jumps_where_its_wheels_feel_nothing() -> None:
+    from slam_engine.frontend.odometry import dead_reckoning
+
+    drive = simulate("office", seed=1, cameras=False, kidnap=(24.0, 20.0))
+    plain = simulate("office", seed=1, cameras=False)
+    assert drive.motion.duration_s == pytest.approx(plain.motion.duration_s - 20.0, abs=0.02)
+    truth = drive.pose_at(drive.log.scans.t_s)
+    steps = np.hypot(*np.diff(truth[:, :2], axis=0).T)
+    jump = int(np.argmax(steps))
+    assert 23.5 < drive.log.scans.t_s[jump] - drive.log.scans.t_s[0] < 24.5
+    # carried from where the plain drive is 24 s in to where it is 44 s in (a scan or two across the jump)
+    assert np.hypot(*(truth[jump, :2] - plain.pose_at(drive.log.scans.t_s[jump:jump + 1])[0, :2])) < 0.2
+    landed = plain.pose_at(drive.log.scans.t_s[jump + 2:jump + 3] + 20.0)[0]
+    assert np.hypot(*(truth[jump + 2, :2] - landed[:2])) < 0.2
+    odometry = dead_reckoning(drive.log).poses
+    assert np.hypot(*np.diff(odometry[:, :2], axis=0).T).max() < 0.2  # its wheels felt nothing
+    with pytest.raises(ConfigError, match="kidnap"):
+        simulate("office", seed=1, cameras=False, kidnap=(95.0, 20.0))  # beyond the 100 s drive
