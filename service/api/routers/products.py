@@ -244,7 +244,8 @@ async def tile(request: Request, job: JobDep, data: DataDep, store: StoreDep, la
     return Response(png, media_type="image/png", headers=headers or None)
 
 
-POSES_POLL_S = 0.05  # how often a pose stream looks for new reports
+POSES_POLL_S = 0.02  # how often a pose stream looks for new reports in the job's file [s] ...
+POSES_STATUS_S = 0.5  # ... and for the job's end in the store [s]
 POSES_KEEPALIVE_S = 15.0  # a comment line this often while nothing happens (proxies close idle streams)
 
 
@@ -299,7 +300,7 @@ async def live_poses(job: JobDep, data: DataDep, store: StoreDep, request: Reque
         return JSONResponse({"job_id": job.id, "status": job.status.value, "count": len(poses), "poses": poses})
 
     async def events():
-        offset, last_sent = 0, time.monotonic()
+        offset, last_sent, checked = 0, time.monotonic(), time.monotonic()
         current = job
         while True:
             finished = current.status not in (JobStatus.QUEUED, JobStatus.RUNNING)
@@ -318,7 +319,9 @@ async def live_poses(job: JobDep, data: DataDep, store: StoreDep, request: Reque
                 yield ": waiting for the next scan\n\n"
                 last_sent = time.monotonic()
             await asyncio.sleep(POSES_POLL_S)
-            current = await run_in_threadpool(store.get_job, job.id) or current
+            if time.monotonic() - checked >= POSES_STATUS_S:
+                checked = time.monotonic()
+                current = await run_in_threadpool(store.get_job, job.id) or current
 
     return StreamingResponse(events(), media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
