@@ -13,20 +13,20 @@ from __future__ import annotations
 import math
 import os
 import socket
-import subprocess
-import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager, suppress
+from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
 import numpy as np
 import psutil
+
+from bench.serve_process import free_port, lidarmap_serve  # noqa: F401  (tests import them from here)
 
 MB = 1024**2
 ROOT = Path(__file__).resolve().parents[1]
@@ -104,44 +104,6 @@ def grid_job(data_dir: Path, cells: int, legacy: bool = False) -> str:
 
 
 # ---- the service and what it costs --------------------------------------------------------------------
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@contextmanager
-def lidarmap_serve(data_dir: Path, **settings: object) -> Iterator[tuple[str, psutil.Process]]:
-    """``lidarmap serve`` on a free loopback port with ``LIDARMAP_<NAME>`` settings; stopped afterwards."""
-    port = free_port()
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "LIDARMAP_DATA_DIR": str(data_dir),
-           **{f"LIDARMAP_{k.upper()}": str(v) for k, v in settings.items()}}
-    server = subprocess.Popen([sys.executable, "-m", "lidarmap.cli", "serve", "--port", str(port)], env=env,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 120
-        while True:
-            if server.poll() is not None:
-                raise RuntimeError(f"the service exited with {server.returncode}")
-            try:
-                if httpx.get(f"{url}/healthz", timeout=2.0).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if time.monotonic() > deadline:
-                raise RuntimeError("the service did not answer /healthz in 120 s")
-            time.sleep(0.1)
-        yield url, psutil.Process(server.pid)
-    finally:
-        server.terminate()
-        try:
-            server.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            server.kill()
-            server.wait()
 
 
 @dataclass

@@ -32,22 +32,19 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
 import statistics
-import subprocess
-import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from bench.serve_process import lidarmap_serve
+
 CHUNK_S = 0.5  # seconds of drive per posted chunk
 MAP_PARTICLES = 10
 FOREIGN_S = 60.0  # seconds of the foreign drive streamed
@@ -116,43 +113,6 @@ class LiveRun:
     status: str | None = None
     error: Any = None
     localization: dict[str, Any] = field(default_factory=dict)  # run.json's
-
-
-@contextmanager
-def lidarmap_serve(data_dir: Path, workers: int = 1, startup_s: float = 120.0) -> Iterator[str]:
-    """A ``lidarmap serve`` process (``workers`` local worker processes) on a free loopback port with its data
-    in ``data_dir``: its URL once ``/healthz`` answers; stopped afterwards."""
-    import httpx
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])]),
-           "LIDARMAP_DATA_DIR": str(data_dir), "LIDARMAP_WORKERS": str(workers)}
-    server = subprocess.Popen([sys.executable, "-m", "lidarmap.cli", "serve", "--port", str(port)], env=env,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + startup_s
-        while True:
-            if server.poll() is not None:
-                raise RuntimeError(f"the service exited with {server.returncode}")
-            try:
-                if httpx.get(f"{url}/healthz", timeout=2.0).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"the service did not answer /healthz in {startup_s:.0f} s")
-            time.sleep(0.1)
-        yield url
-    finally:
-        server.terminate()
-        try:
-            server.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            server.kill()
-            server.wait()
 
 
 def stream_localize(url: str, stream: DriveStream, map_job_id: str, speed: float = 1.0, timeout_s: float = 300.0,
@@ -309,7 +269,7 @@ def run_live_localization(folder: Path, busy: int = 1, speed: float = 1.0, drive
         f"the campus robot: "
         f"{foreign.chunk_end_s[-1]:.0f} s, {foreign.scans} scans; {chunk_s:g} s chunks at {speed:g}x real time, "
         f"{busy} busy processes beside, {os.cpu_count()} CPU cores")
-    with lidarmap_serve(folder / "data") as url:
+    with lidarmap_serve(folder / "data", workers=1) as (url, _):
         with LidarmapClient(url) as api:
             session = api.create_session("office map")
             api.upload_log(session.id, map_log)

@@ -31,26 +31,16 @@ def changes_image(saved: OccupancyGrid, changes: ChangeMap) -> Image.Image:
     """The saved map (north up, its own cells) with the added cells in red and the removed in blue."""
     image = np.array(Image.fromarray(occupancy_rasters(saved).gray).convert("RGB"))
     rows, cols = image.shape[:2]
+    factor = max(1, int(round(changes.resolution_m / saved.resolution_m)))  # map cells a change cell spans
     for mask, colour in ((changes.removed, REMOVED_RGB), (changes.added, ADDED_RGB)):
         iy, ix = np.nonzero(mask)
-        for dy in range(_factor(saved, changes)):  # each change cell covers factor x factor map cells
-            for dx in range(_factor(saved, changes)):
-                x, y = _map_cells(saved, changes, ix, iy, dx, dy)
+        for dy in range(factor):
+            for dx in range(factor):
+                x, y = saved.world_to_cell(changes.origin_m[0] + (ix + (dx + 0.5) / factor) * changes.resolution_m,
+                                           changes.origin_m[1] + (iy + (dy + 0.5) / factor) * changes.resolution_m)
                 inside = (x >= 0) & (x < cols) & (y >= 0) & (y < rows)
                 image[rows - 1 - y[inside], x[inside]] = colour  # row 0 of the image is the largest y
     return Image.fromarray(image)
-
-
-def _factor(saved: OccupancyGrid, changes: ChangeMap) -> int:
-    return max(1, int(round(changes.resolution_m / saved.resolution_m)))
-
-
-def _map_cells(saved: OccupancyGrid, changes: ChangeMap, ix: np.ndarray, iy: np.ndarray, dx: int, dy: int
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """The saved map's cell (x, y) at offset (dx, dy) inside change cells (ix, iy)."""
-    x_m = changes.origin_m[0] + (ix + (dx + 0.5) / _factor(saved, changes)) * changes.resolution_m
-    y_m = changes.origin_m[1] + (iy + (dy + 0.5) / _factor(saved, changes)) * changes.resolution_m
-    return saved.world_to_cell(x_m, y_m)
 
 
 def changes_geojson(changes: ChangeMap, georef: Georeference | None = None) -> dict:
