@@ -63,6 +63,10 @@ def accuracy(
                                "median of 3; needs ../shared/peers built; not with --quick)."),
     changes: bool = typer.Option(True, help="Then the change map against the simulated office's known changes "
                                  "(precision, recall, seeds 0-4; not with --quick)."),
+    which_map: bool = typer.Option(True, help="Then which map among ten (the sessions' a halves and made-up office "
+                                   "floors): every drive in its own building's, foreign ones refused, the time "
+                                   "against one map alone (seeds 0-2, about 4 minutes; not with --quick or "
+                                   "--no-datasets)."),
     out: Path | None = typer.Option(None, help="Output folder (default bench/results/<date-time>)."),
     record: bool = typer.Option(False, help="Write this run's relation errors (median and worst seed per scored "
                                 "log) into bench/recorded.json, the record later runs are compared with."),
@@ -144,6 +148,12 @@ def accuracy(
 
         console.print("\n[bold]Change map[/bold]: the simulated office's known changes (python -m bench.changes)")
         console.print(change_map.table([change_map.measure(seed) for seed in range(5)]), highlight=False)
+    if which_map and datasets and not quick:
+        from bench import which_map as among_maps
+
+        console.print(f"\n[bold]Which map[/bold] among {among_maps.MAPS} (python -m bench.which_map)")
+        rows = [row for seed in range(3) for row in among_maps.measure(seed, say=lambda line: None)]
+        console.print(among_maps.table(rows), highlight=False)
     if peers and not quick:
         from bench import peers as side_by_side
 

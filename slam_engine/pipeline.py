@@ -347,7 +347,7 @@ def map_bundle(poses: np.ndarray, t_s: np.ndarray, unverified: np.ndarray, scans
         "name": lidar.name, "num_beams": lidar.num_beams, "angle_min_rad": lidar.angle_min_rad,
         "angle_increment_rad": lidar.angle_increment_rad, "range_min_m": lidar.range_min_m,
         "range_max_m": lidar.range_max_m, "T_vehicle_from_lidar": np.asarray(lidar.T_vehicle_from_lidar).tolist()}}
-    return MapBundle(
+    bundle = MapBundle(
         poses=np.asarray(poses, np.float64), t_s=np.asarray(t_s, np.float64),
         drive=np.full(len(poses), drive, np.int32),
         unverified=unverified, scan_offsets=offsets, ends_v=ends_v, is_hit=is_hit, free_from_m=free_from,
@@ -359,6 +359,11 @@ def map_bundle(poses: np.ndarray, t_s: np.ndarray, unverified: np.ndarray, scans
         trajectory_t_s=np.asarray(trajectory.t_s, np.float64), trajectory=np.asarray(trajectory.poses, np.float64),
         trajectory_drive=np.full(len(trajectory), drive, np.int32), resolution_m=config.grid.resolution_m,
         config=config.model_dump(mode="json"), sensors=sensors)
+    if len(bundle):  # its place index, kept with it: which of several saved maps a drive is in asks every one
+        from slam_engine.multisession.localization import map_places_of
+
+        bundle.places = map_places_of(bundle, config.place_index).stored(config.place_index.spacing_m)
+    return bundle
 
 
 def _keep_odometry_precision(poses: np.ndarray, odometry: list[np.ndarray], wheels: list[np.ndarray | None],

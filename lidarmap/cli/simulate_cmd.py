@@ -14,8 +14,9 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(..., "--out", help="Folder to create (must be new or empty)."),
         seed: int = typer.Option(0, help="Random seed: same seed, same drive."),
         scenario: str | None = typer.Option(None, help="office, office-changed (the office days later, "
-                                             "with changes.json: what changed) or campus (default: the vehicle's "
-                                             "own)."),
+                                             "with changes.json: what changed), office-north, campus, or a made-up "
+                                             "office floor building-N / building-N-back (N 1-99; -back: driven the "
+                                             "other way round) (default: the vehicle's own)."),
         duration: float | None = typer.Option(None, help="Stop the drive after this many seconds."),
         cameras: bool = typer.Option(True, help="Render the vehicle's cameras (the car's stereo pair, "
                                      "THOR's Kinect) from the floor texture; about a second per frame."),

@@ -26,11 +26,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from slam_engine.backend.correlative import CorrelativeMatch, MatchGrid, lattice_pose, runner_up_score, search
 from slam_engine.config import PlaceIndexConfig
+from slam_engine.model.map_bundle import StoredPlaces
 from slam_engine.model.poses import wrap_angle
 
 RINGS, SECTORS = 20, 72  # polar bins: rings of radius_m / RINGS, sectors of 5 degrees
@@ -86,6 +88,21 @@ def _deduped(points_m: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class QueryDescription:
+    """End points (vehicle frame) described as a query: one descriptor per QUERY_OFFSETS_M (Q, RINGS,
+    SECTORS), within ``radius_m``: the same for every index of that radius (several maps asked at once)."""
+
+    descriptors: np.ndarray
+    radius_m: float
+
+
+def describe_query(points_v: np.ndarray, radius_m: float) -> QueryDescription:
+    """The query description of end points ``points_v`` (N, 2) [m, vehicle frame] (:meth:`PlaceIndex.query`)."""
+    points = _deduped(points_v)
+    return QueryDescription(np.stack([describe(points, offset, radius_m) for offset in QUERY_OFFSETS_M]), radius_m)
+
+
+@dataclass(frozen=True)
 class PlaceCandidate:
     """A place a query may be at: its index, centre (2,) [m, world], the query's heading there [rad,
     world] and the descriptors' similarity (0-1)."""
@@ -126,26 +143,48 @@ class PlaceIndex:
         return cls(centres[keep], descriptors[keep], radius_m)
 
     @classmethod
+    def of_stored(cls, stored: StoredPlaces) -> PlaceIndex:
+        """The index a map bundle keeps (:meth:`stored`)."""
+        bins = np.asarray(stored.bins, bool)
+        if bins.shape[1:] != (RINGS, SECTORS):
+            raise ValueError(f"stored places of {bins.shape[1:]} bins; this index has {(RINGS, SECTORS)}")
+        return cls(np.asarray(stored.centres, np.float64).reshape(-1, 2), _with_neighbours(bins.astype(np.float32)),
+                   float(stored.radius_m))
+
+    def stored(self, spacing_m: float) -> StoredPlaces:
+        """The index as a map bundle keeps it: the occupied bins (the neighbours' weights follow from them)."""
+        return StoredPlaces(self.centres.copy(), self.descriptors == 1.0, self.radius_m, float(spacing_m))
+
+    @classmethod
     def along(cls, points_m: np.ndarray, positions_m: np.ndarray, spacing_m: float, radius_m: float) -> PlaceIndex:
         """:meth:`build` with a place every ``spacing_m`` of travel along ``positions_m`` (K, 2) [m] (the
         vehicle's path: where a query's vehicle may be)."""
         positions = np.asarray(positions_m, np.float64).reshape(-1, 2)
         return cls.build(points_m, positions[spaced(positions, spacing_m)], radius_m)
 
-    def query(self, points_v: np.ndarray, k: int) -> list[PlaceCandidate]:
-        """The ``k`` places most like the end points ``points_v`` (N, 2) [m, vehicle frame], best first, at
-        most one per SUPPRESS_M / SUPPRESS_RAD; empty when the points describe too little or the index
-        holds no place. The points are described from the vehicle and from QUERY_OFFSETS_M around it
-        (a place's centre is seldom where the vehicle is); a candidate's centre is then where the vehicle
-        is when that description matches (the place's centre less the offset, turned)."""
+    @cached_property
+    def _spectra(self) -> tuple[np.ndarray, np.ndarray]:
+        """The places' FFTs along the sectors: of the descriptors (P, RINGS, SECTORS // 2 + 1) and of their
+        energy per sector (P, SECTORS // 2 + 1); computed once, on the first query."""
+        return (np.fft.rfft(self.descriptors, axis=-1),
+                np.fft.rfft((self.descriptors ** 2).sum(axis=1), axis=-1))
+
+    def query(self, points_v: np.ndarray | QueryDescription, k: int) -> list[PlaceCandidate]:
+        """The ``k`` places most like the end points ``points_v`` (N, 2) [m, vehicle frame] (or their
+        :func:`describe_query`, to ask several indexes), best first, at most one per SUPPRESS_M /
+        SUPPRESS_RAD; empty when the points describe too little or the index holds no place. The points
+        are described from the vehicle and from QUERY_OFFSETS_M around it (a place's centre is seldom
+        where the vehicle is); a candidate's centre is then where the vehicle is when that description
+        matches (the place's centre less the offset, turned)."""
         if len(self) == 0 or k <= 0:
             return []
-        points = _deduped(points_v)
-        C = np.fft.rfft(self.descriptors, axis=-1)
-        column_energy = np.fft.rfft((self.descriptors ** 2).sum(axis=1), axis=-1)  # (P, SECTORS // 2 + 1)
+        described = points_v if isinstance(points_v, QueryDescription) else describe_query(points_v, self.radius_m)
+        if described.radius_m != self.radius_m:
+            raise ValueError(f"a query described within {described.radius_m} m asked of places of {self.radius_m} m")
+        C, column_energy = self._spectra
         found = []
-        for offset in QUERY_OFFSETS_M:
-            peaks = self._peaks(describe(points, offset, self.radius_m), C, column_energy)
+        for offset, q in zip(QUERY_OFFSETS_M, described.descriptors, strict=True):
+            peaks = self._peaks(q, C, column_energy)
             if peaks is None:
                 continue
             places, heading, scores = peaks

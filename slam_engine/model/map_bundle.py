@@ -17,6 +17,18 @@ from slam_engine.frontend.lidar_points import ProjectedScan
 
 
 @dataclass
+class StoredPlaces:
+    """A map's place index as the bundle keeps it (:mod:`slam_engine.backend.place_index`): ``centres`` (P, 2)
+    [m, map frame], ``bins`` (P, rings, sectors) bool (a bin holds an end point), the ``radius_m`` the bins
+    cover and the ``spacing_m`` the places were laid out at."""
+
+    centres: np.ndarray
+    bins: np.ndarray
+    radius_m: float
+    spacing_m: float
+
+
+@dataclass
 class MapBundle:
     """Key frames at their optimised poses with the scans that drew the map, the pose graph's
     constraints and the per-scan trajectory of every drive.
@@ -31,7 +43,9 @@ class MapBundle:
       ``edges_robust`` (E,) bool: the pose graph (motions and accepted loop closures);
     - ``trajectory_t_s`` (S,), ``trajectory`` (S, 3), ``trajectory_drive`` (S,): every scan's pose;
     - ``resolution_m``: the grid's cell size; ``config``: the SlamConfig as JSON-ready settings;
-      ``sensors``: the LiDAR set-up (model, beams, range) as JSON-ready settings.
+      ``sensors``: the LiDAR set-up (model, beams, range) as JSON-ready settings;
+    - ``places``: its place index, when made (a map that was built on or merged has none until it is made
+      again: :func:`slam_engine.multisession.localization.map_places_of`).
     """
 
     poses: np.ndarray
@@ -53,6 +67,7 @@ class MapBundle:
     resolution_m: float
     config: dict = field(default_factory=dict)
     sensors: dict = field(default_factory=dict)
+    places: StoredPlaces | None = None
 
     def __len__(self) -> int:
         return int(len(self.poses))

@@ -75,6 +75,7 @@ FINE_LEVELS = 6
 # counts when it moved at most this far [m], [rad] and scores track_min_score, else the window is searched
 FIT_TRUST_M, FIT_TRUST_RAD = 0.15, 0.05
 COVERAGE_CELL_M = 0.1  # the map's observed area is kept on cells this large [m]
+PLACES_COVERAGE_CELL_M = 0.2  # ... and rendered on cells this large for its places alone (which map) [m]
 # a stretch is placed only where its last scan's origin lies within this of a cell the map observed: a
 # vehicle is where its map saw free space (on intel-a's map that leaves a third of the map's bounding
 # box, on aces-rough-a's a quarter) [m]
@@ -114,13 +115,16 @@ class Coverage:
     resolution_m: float
 
     @classmethod
-    def of_bundle(cls, bundle: MapBundle) -> Coverage:
+    def of_bundle(cls, bundle: MapBundle, cell_m: float | None = None) -> Coverage:
+        """The bundle's scans rendered on the map's cells and pooled to COVERAGE_CELL_M; with ``cell_m``,
+        rendered on cells of that size [m] (coarser and faster: cells a ray passes by at a corner may be
+        left out)."""
         from slam_engine.backend.map_builder import render_occupancy
         from slam_engine.config import GridConfig
 
-        grid = render_occupancy(bundle.scans(), bundle.poses, bundle.origin_v,
-                                GridConfig(resolution_m=bundle.resolution_m))
-        factor = max(1, int(round(COVERAGE_CELL_M / bundle.resolution_m)))
+        resolution_m = bundle.resolution_m if cell_m is None else max(cell_m, bundle.resolution_m)
+        grid = render_occupancy(bundle.scans(), bundle.poses, bundle.origin_v, GridConfig(resolution_m=resolution_m))
+        factor = 1 if cell_m is not None else max(1, int(round(COVERAGE_CELL_M / bundle.resolution_m)))
         pooled = grid.pooled(factor)
         return cls(pooled.known(), np.array([pooled.origin_x_m, pooled.origin_y_m]), pooled.resolution_m)
 
@@ -154,25 +158,41 @@ class MapIndex:
     places: PlaceIndex | None = None  # what :mod:`~slam_engine.multisession.which_map` ranks maps by
 
     @classmethod
-    def of_bundle(cls, bundle: MapBundle, config: LocalizationConfig,
-                  place_config: PlaceIndexConfig | None = None) -> MapIndex:
+    def of_bundle(cls, bundle: MapBundle, config: LocalizationConfig, place_config: PlaceIndexConfig | None = None,
+                  places: PlaceIndex | None = None) -> MapIndex:
         """The bundle's index; with ``place_config``, its places too
-        (:func:`~slam_engine.backend.place_index.map_places`)."""
-        hits = bundle.all_hits()
-        owner = np.repeat(np.arange(len(bundle)), [len(h) for h in hits])
-        points = np.concatenate(hits) if hits else np.zeros((0, 2))
-        if len(points) == 0:
-            raise ConfigError("the saved map holds no end points to localise against")
-        points_m = place_each(bundle.poses, points, owner)
+        (:func:`~slam_engine.backend.place_index.map_places`); ``places``: the bundle's, when already made
+        (:func:`map_places_of`)."""
+        points_m = map_points(bundle)
         coarse = match_grid_from_points(points_m, max(config.search_resolution_m, bundle.resolution_m), 1.0,
                                         n_levels=COARSE_LEVELS)
         fine = match_grid_from_points(points_m, bundle.resolution_m, 1.0, n_levels=FINE_LEVELS)
         coverage = Coverage.of_bundle(bundle)
         origins = max_pyramid(coverage.near_cells_of(coarse, ORIGIN_REACH_M).astype(np.uint8), coarse.n_levels)
-        places = None
-        if place_config is not None:
+        if places is None and place_config is not None:
             places = map_places(points_m, bundle.poses[:, :2], coverage.covers, place_config)
         return cls(coarse, fine, coverage, origins, places)
+
+
+def map_points(bundle: MapBundle) -> np.ndarray:
+    """Every end point of the saved map (N, 2) [m, map frame]; refuses a map that holds none."""
+    hits = bundle.all_hits()
+    owner = np.repeat(np.arange(len(bundle)), [len(h) for h in hits])
+    points = np.concatenate(hits) if hits else np.zeros((0, 2))
+    if len(points) == 0:
+        raise ConfigError("the saved map holds no end points to localise against")
+    return place_each(bundle.poses, points, owner)
+
+
+def map_places_of(bundle: MapBundle, place_config: PlaceIndexConfig) -> PlaceIndex:
+    """A saved map's places (:func:`~slam_engine.backend.place_index.map_places`): those the bundle keeps when
+    they were laid out as ``place_config`` asks, else made now without its match grids (its lattice over the
+    free space it observed on cells of PLACES_COVERAGE_CELL_M: ranking maps needs no finer)."""
+    stored = bundle.places
+    if stored is not None and stored.radius_m == place_config.radius_m and stored.spacing_m == place_config.spacing_m:
+        return PlaceIndex.of_stored(stored)
+    coverage = Coverage.of_bundle(bundle, PLACES_COVERAGE_CELL_M)
+    return map_places(map_points(bundle), bundle.poses[:, :2], coverage.covers, place_config)
 
 
 @dataclass

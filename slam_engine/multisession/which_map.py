@@ -17,16 +17,25 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam_engine.backend.place_index import PlaceIndex
+from slam_engine.backend.place_index import PlaceIndex, QueryDescription, describe_query
 from slam_engine.config import SlamConfig
 from slam_engine.errors import ConfigError
 from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.map_bundle import MapBundle
-from slam_engine.multisession.localization import DriveScans, LocalizationResult, Localizer, MapIndex
+from slam_engine.multisession.localization import (
+    DriveScans,
+    LocalizationResult,
+    Localizer,
+    MapIndex,
+    OwnLoops,
+    map_places_of,
+)
 
 DESCRIBE_POINTS = 3000  # a stretch's end points that describe it to the index, at most
 
@@ -72,15 +81,24 @@ class WhichMap:
                 "maps": [t.as_dict() for t in self.tries], "wall_time_s": round(self.wall_time_s, 3)}
 
 
-def likeness(index: PlaceIndex, drive: DriveScans, config: SlamConfig) -> float:
-    """How much the drive looks like the map of ``index`` (0-1): the median over ``stretches`` stretches
-    spread over the drive of the best place's similarity."""
+def stretch_descriptions(drive: DriveScans, config: SlamConfig) -> list[QueryDescription]:
+    """The drive as the maps' place indexes are asked about it: ``stretches`` stretches of ``stretch_m``
+    spread over the drive, each described once (the same for every map)."""
     c = config.place_index
     ends = np.unique(np.linspace(0, len(drive) - 1, c.stretches + 1)[1:].round().astype(int))
-    scores = []
+    described = []
     for last in ends.tolist():
         first = int(np.searchsorted(drive.travel_m, drive.travel_m[last] - c.stretch_m))
-        found = index.query(drive.cloud(first, last, DESCRIBE_POINTS), 1)
+        described.append(describe_query(drive.cloud(first, last, DESCRIBE_POINTS), c.radius_m))
+    return described
+
+
+def likeness(index: PlaceIndex, stretches: Sequence[QueryDescription]) -> float:
+    """How much the drive looks like the map of ``index`` (0-1): the median over the drive's stretches
+    (:func:`stretch_descriptions`) of the best place's similarity."""
+    scores = []
+    for described in stretches:
+        found = index.query(described, 1)
         scores.append(found[0].similarity if found else 0.0)
     return float(np.median(scores)) if scores else 0.0
 
@@ -88,24 +106,32 @@ def likeness(index: PlaceIndex, drive: DriveScans, config: SlamConfig) -> float:
 def localize_in_maps(maps: Sequence[tuple[str, MapBundle]], log: DriveLog, config: SlamConfig | None = None,
                      threads: int = 1) -> WhichMap:
     """The drive of ``log`` localised in the first of ``maps`` ((name, bundle) pairs) that places it, tried
-    in the order of the drive's likeness to each (see the module docstring)."""
+    in the order of the drive's likeness to each (see the module docstring). With ``threads`` > 1 the
+    drive's scans are matched in a second thread while this one makes the maps' places; a map's match
+    grids are made only when the drive is tried in it."""
     if not maps:
         raise ConfigError("no saved map to localise in")
     config = SlamConfig() if config is None else config
     started = time.perf_counter()
-    drive = DriveScans.from_log(log, config)
-    tries, indexes = [], []
-    for name, bundle in maps:
+    with ThreadPoolExecutor(1) if threads > 1 else nullcontext() as pool:
+        matching = None if pool is None else pool.submit(DriveScans.from_log, log, config)
+        made, seconds = [], []
+        for _, bundle in maps:
+            t0 = time.perf_counter()
+            made.append(map_places_of(bundle, config.place_index))
+            seconds.append(time.perf_counter() - t0)
+        drive = DriveScans.from_log(log, config) if matching is None else matching.result()
+    stretches = stretch_descriptions(drive, config)
+    tries = []
+    for (name, _), places, spent in zip(maps, made, seconds, strict=True):
         t0 = time.perf_counter()
-        index = MapIndex.of_bundle(bundle, config.localization, config.place_index)
-        assert index.places is not None
-        indexes.append(index)
-        tries.append(MapTry(name, likeness(index.places, drive, config), seconds=time.perf_counter() - t0))
+        tries.append(MapTry(name, likeness(places, stretches), seconds=spent + time.perf_counter() - t0))
     order = sorted(range(len(maps)), key=lambda i: -tries[i].likeness)
     chosen, result = None, None
     for i in order:
         t0 = time.perf_counter()
-        placed = Localizer(indexes[i], drive, config.localization, threads).run()
+        index = MapIndex.of_bundle(maps[i][1], config.localization, places=made[i])
+        placed = Localizer(index, drive, config.localization, threads, OwnLoops.of(config)).run()
         tries[i].localised, tries[i].best_score = placed.localised, placed.best_score
         tries[i].seconds += time.perf_counter() - t0
         if placed.localised:

@@ -12,7 +12,7 @@ import numpy as np
 
 from slam_engine.errors import MapBundleError
 from slam_engine.model.drive_log import MAX_ANGLE_RAD, MAX_COORDINATE_M, MAX_RANGE_M, MAX_TIME_S, first_beyond
-from slam_engine.model.map_bundle import MapBundle
+from slam_engine.model.map_bundle import MapBundle, StoredPlaces
 
 MAX_BEAMS = 100_000  # a scan's beams (as a streamed scan message may hold)
 # (array, columns or None for all, bound, unit): the bounds of a drive log's values
@@ -28,10 +28,12 @@ BOUNDS = (("poses", slice(0, 2), MAX_COORDINATE_M, "m"), ("poses", 2, MAX_ANGLE_
 MAX_UPLOADED_BUNDLE_BYTES = 256 * 1024**2
 BUNDLE_FILE = "map_bundle.npz"
 BUNDLE_FORMAT = "lidarmap-map-bundle"
-BUNDLE_VERSION = 1
+BUNDLE_VERSION = 2  # 2: the place index (optional arrays PLACE_ARRAYS, header "places"); 1 is still read
+READ_VERSIONS = (1, 2)
 ARRAYS = ("poses", "t_s", "drive", "unverified", "scan_offsets", "ends_v", "is_hit", "free_from_m", "origin_v",
           "edges_ij", "edges_T_i_from_j", "edges_sigmas", "edges_robust", "trajectory_t_s", "trajectory",
           "trajectory_drive")
+PLACE_ARRAYS = ("place_centres", "place_bins")  # (P, 2) float64 [m]; (P, rings, ceil(sectors / 8)) uint8: packed bits
 
 
 def write_bundle(bundle: MapBundle, path: str | Path) -> Path:
@@ -42,6 +44,12 @@ def write_bundle(bundle: MapBundle, path: str | Path) -> Path:
     header = {"format": BUNDLE_FORMAT, "version": BUNDLE_VERSION, "resolution_m": bundle.resolution_m,
               "key_frames": len(bundle), "drives": bundle.drives, "config": bundle.config, "sensors": bundle.sensors}
     arrays = {name: np.asarray(getattr(bundle, name)) for name in ARRAYS}
+    if bundle.places is not None:
+        bins = np.asarray(bundle.places.bins, bool)
+        header["places"] = {"radius_m": bundle.places.radius_m, "spacing_m": bundle.places.spacing_m,
+                            "rings": int(bins.shape[1]), "sectors": int(bins.shape[2])}
+        arrays["place_centres"] = np.asarray(bundle.places.centres, np.float64)
+        arrays["place_bins"] = np.packbits(bins, axis=-1)
     with path.open("wb") as f:
         # numpy's stubs type **kwds like its allow_pickle flag (bool): the arrays are what it takes
         np.savez_compressed(f, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)  # type: ignore[arg-type]
@@ -66,10 +74,11 @@ def read_bundle(path: str | Path) -> MapBundle:
             if missing:
                 raise MapBundleError(f"{path}: map bundle lacks {', '.join(missing)}")
             arrays = {name: archive[name] for name in ARRAYS}
+            places = _read_places(path, header, archive)
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError) as error:
         raise MapBundleError(f"{path}: not a readable map bundle ({error})") from None
     bundle = MapBundle(**arrays, resolution_m=float(header["resolution_m"]), config=header.get("config") or {},
-                       sensors=header.get("sensors") or {})
+                       sensors=header.get("sensors") or {}, places=places)
     _check_shapes(path, bundle)
     return bundle
 
@@ -84,8 +93,8 @@ def check_bundle_size(path: str | Path, max_bytes: int, max_members: int = 64) -
         with zipfile.ZipFile(path) as archive:
             members = archive.infolist()
             if len(members) > max_members:
-                raise MapBundleError(f"{path}: {len(members)} files in the archive; a map bundle has "
-                                     f"{len(ARRAYS) + 1}")
+                raise MapBundleError(f"{path}: {len(members)} files in the archive; a map bundle has at most "
+                                     f"{len(ARRAYS) + len(PLACE_ARRAYS) + 1}")
             total = sum(m.file_size for m in members)
             if total > max_bytes:
                 largest = max(members, key=lambda m: m.file_size)
@@ -111,10 +120,11 @@ def _check_header(path: Path, header: object) -> None:
     if not isinstance(header, dict) or header.get("format") != BUNDLE_FORMAT:
         raise MapBundleError(f"{path}: not a lidarmap map bundle")
     version = header.get("version")
-    if version != BUNDLE_VERSION:
+    if isinstance(version, bool) or version not in READ_VERSIONS:
         newer = isinstance(version, int) and version > BUNDLE_VERSION
-        raise MapBundleError(f"{path}: map bundle format version {version}; this lidarmap reads version "
-                             f"{BUNDLE_VERSION} (written by {'a newer' if newer else 'another'} lidarmap)")
+        raise MapBundleError(f"{path}: map bundle format version {version}; this lidarmap reads versions "
+                             f"{', '.join(map(str, READ_VERSIONS))} (written by {'a newer' if newer else 'another'} "
+                             "lidarmap)")
     resolution = header.get("resolution_m")
     if isinstance(resolution, bool) or not isinstance(resolution, int | float) or not 0.001 <= resolution <= 10.0:
         raise MapBundleError(f"{path}: map bundle resolution_m {resolution!r} is not a cell size in [0.001, 10] m")
@@ -124,6 +134,35 @@ def _check_header(path: Path, header: object) -> None:
         if isinstance(beams, bool) or not isinstance(beams, int) or not 1 <= beams <= MAX_BEAMS:
             raise MapBundleError(f"{path}: map bundle sensors.lidar.num_beams {beams!r} is not a beam count in "
                                  f"[1, {MAX_BEAMS}]")
+
+
+def _read_places(path: Path, header: dict, archive) -> StoredPlaces | None:
+    """The place index a version-2 bundle keeps (None when it keeps none); its header and arrays checked."""
+    meta = header.get("places")
+    if meta is None:
+        return None
+    limits = {"radius_m": (0.1, 1000.0), "spacing_m": (0.01, 1000.0), "rings": (1, 1000), "sectors": (8, 10_000)}
+    numbers: dict[str, float] = {}
+    for key, (lo, hi) in limits.items():
+        value = meta.get(key) if isinstance(meta, dict) else None
+        if isinstance(value, bool) or not isinstance(value, int | float) or not lo <= value <= hi:
+            raise MapBundleError(f"{path}: map bundle places.{key} {value!r} is not within [{lo}, {hi}]")
+        numbers[key] = value
+    missing = [name for name in PLACE_ARRAYS if name not in archive.files]
+    if missing:
+        raise MapBundleError(f"{path}: map bundle names places but lacks {', '.join(missing)}")
+    centres, packed = archive["place_centres"], archive["place_bins"]
+    rings, sectors = int(numbers["rings"]), int(numbers["sectors"])
+    if (centres.ndim != 2 or centres.shape[1] != 2 or packed.dtype != np.uint8
+            or packed.shape != (len(centres), rings, (sectors + 7) // 8)):
+        raise MapBundleError(f"{path}: map bundle place arrays of shapes {centres.shape} and {packed.shape} do not "
+                             f"hold {rings} x {sectors} bins per place")
+    at = first_beyond(np.asarray(centres, np.float64), MAX_COORDINATE_M)
+    if at is not None:
+        raise MapBundleError(f"{path}: map bundle place_centres holds a value (flat index {at}) that is not a "
+                             f"coordinate within {MAX_COORDINATE_M:g} m")
+    bins = np.unpackbits(packed, axis=-1, count=sectors).astype(bool)
+    return StoredPlaces(np.asarray(centres, np.float64), bins, float(numbers["radius_m"]), float(numbers["spacing_m"]))
 
 
 def _check_shapes(path: Path, b: MapBundle) -> None:

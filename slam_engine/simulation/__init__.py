@@ -26,6 +26,7 @@ from slam_engine.formats import write_log
 from slam_engine.model.drive_log import DriveLog, ScanStream
 from slam_engine.model.poses import relative, wrap_angle
 from slam_engine.model.result import Trajectory
+from slam_engine.simulation.buildings import scenario_world as building_world
 from slam_engine.simulation.motion import Motion, drive_route
 from slam_engine.simulation.rigs import FORMAT_RIGS, RIGS, Rig
 from slam_engine.simulation.sensors import (
@@ -67,6 +68,15 @@ class SimulatedDrive:
         return np.column_stack([x, y, wrap_angle(theta)])
 
 
+SCENARIO_NAMES = ", ".join([*SCENARIOS, "building-N", "building-N-back (N 1-99)"])
+
+
+def scenario_world(name: str) -> World | None:
+    """The world of scenario ``name`` (:data:`SCENARIOS`, or a made-up office floor ``building-N`` /
+    ``building-N-back``: :mod:`slam_engine.simulation.buildings`); None for an unknown name."""
+    return SCENARIOS[name]() if name in SCENARIOS else building_world(name)
+
+
 def rig_for_format(format: str) -> str:
     """Name of the rig whose sensors ``format`` can hold."""
     if format not in FORMAT_RIGS:
@@ -97,12 +107,12 @@ def simulate(scenario: str | None = "office", seed: int = 0, rig: str = "robot",
         raise ConfigError(f"unknown rig {rig!r}; rigs: {', '.join(RIGS)}")
     the_rig = RIGS[rig]
     scenario = scenario or the_rig.default_scenario
-    if scenario not in SCENARIOS:
-        raise ConfigError(f"unknown scenario {scenario!r}; scenarios: {', '.join(SCENARIOS)}")
+    world = scenario_world(scenario)
+    if world is None:
+        raise ConfigError(f"unknown scenario {scenario!r}; scenarios: {SCENARIO_NAMES}")
     if max_duration_s is not None and max_duration_s <= 2.0:
         raise ConfigError(f"max_duration_s must be above 2 s, got {max_duration_s}")
     rng = rng or np.random.default_rng(seed)
-    world = SCENARIOS[scenario]()
     if world.changed_from is not None:  # a later state of a world: driven later, as its clock says
         the_rig = dataclasses.replace(the_rig, t0_s=the_rig.t0_s + CHANGED_LATER_S)
     speed = min(world.cruise_speed_m_s, 12.0)
@@ -230,10 +240,12 @@ def floor_beside_log(log_path: str | Path) -> FloorRgb | None:
         scenario = json.loads(path.read_text(encoding="utf-8"))["scenario"]
     except (ValueError, KeyError, TypeError) as error:
         raise LogFormatError(f"not a ground-texture file ({type(error).__name__}: {error})", path) from None
-    if scenario not in SCENARIOS:
-        raise LogFormatError(f"unknown scenario {scenario!r}; scenarios: {', '.join(SCENARIOS)}", path, "scenario")
-    return SCENARIOS[scenario]().floor_rgb
+    world = scenario_world(scenario) if isinstance(scenario, str) else None
+    if world is None:
+        raise LogFormatError(f"unknown scenario {scenario!r}; scenarios: {SCENARIO_NAMES}", path, "scenario")
+    return world.floor_rgb
 
 
 __all__ = ["CHANGES_FILE", "GROUND_TEXTURE_FILE", "SimulatedDrive", "changes_beside_log", "floor_beside_log",
-           "rig_for_format", "relations", "simulate", "write_simulated", "RIGS", "SCENARIOS"]
+           "rig_for_format", "relations", "scenario_world", "simulate", "write_simulated", "RIGS", "SCENARIOS",
+           "SCENARIO_NAMES"]

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import zipfile
+from io import BytesIO
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,10 +25,11 @@ from slam_engine.multisession.localization import (
     MapIndex,
     localize,
     localize_log,
+    map_places_of,
     refusal_reason,
 )
 from slam_engine.pipeline import run_slam
-from slam_engine.products.map_bundle import ARRAYS, BUNDLE_FILE, read_bundle, write_bundle
+from slam_engine.products.map_bundle import ARRAYS, BUNDLE_FILE, PLACE_ARRAYS, read_bundle, write_bundle
 from slam_engine.products.multisession import joined_result
 from slam_engine.simulation import SimulatedDrive, simulate
 
@@ -229,22 +232,44 @@ def test_the_bundle_round_trips_and_a_future_version_is_refused(tmp_path, first_
     assert again.resolution_m == bundle.resolution_m and SlamConfig.model_validate(again.config) == CONFIG.model_copy(
         update={"snapshot_every_scans": bundle.config["snapshot_every_scans"]})
     assert len(bundle.edges_ij) >= len(bundle) - 1  # a motion edge between every two key frames at least
+    assert bundle.places is not None and again.places is not None  # the place index is kept with the map
+    np.testing.assert_array_equal(again.places.centres, bundle.places.centres)
+    np.testing.assert_array_equal(again.places.bins, bundle.places.bins)
+    assert (again.places.radius_m, again.places.spacing_m) == (CONFIG.place_index.radius_m,
+                                                               CONFIG.place_index.spacing_m)
 
-    future = tmp_path / "future.npz"
-    with zipfile.ZipFile(path) as source, zipfile.ZipFile(future, "w") as target:
-        for item in source.namelist():
-            data = source.read(item)
-            if item == "header.npy":
-                header = json.loads(np.load(path)["header"].tobytes())
-                header["version"] = 99
-                from io import BytesIO
+    def rewritten(name: str, change, drop: tuple[str, ...] = ()) -> Path:
+        """The bundle file with its header changed by ``change`` and the arrays ``drop`` left out."""
+        out = tmp_path / name
+        header = json.loads(np.load(path)["header"].tobytes())
+        change(header)
+        with zipfile.ZipFile(path) as source, zipfile.ZipFile(out, "w") as target:
+            for item in source.namelist():
+                if item.removesuffix(".npy") in drop:
+                    continue
+                data = source.read(item)
+                if item == "header.npy":
+                    buffer = BytesIO()
+                    np.save(buffer, np.frombuffer(json.dumps(header).encode(), np.uint8))
+                    data = buffer.getvalue()
+                target.writestr(item, data)
+        return out
 
-                buffer = BytesIO()
-                np.save(buffer, np.frombuffer(json.dumps(header).encode(), np.uint8))
-                data = buffer.getvalue()
-            target.writestr(item, data)
     with pytest.raises(MapBundleError, match="format version 99.*newer"):
-        read_bundle(future)
+        read_bundle(rewritten("future.npz", lambda h: h.update(version=99)))
+    # a bundle of the first version, which kept no places: read, its places made when asked for
+    old = read_bundle(rewritten("v1.npz", lambda h: (h.update(version=1), h.pop("places")), PLACE_ARRAYS))
+    assert old.places is None
+    for name in ARRAYS:
+        np.testing.assert_array_equal(getattr(old, name), getattr(bundle, name), err_msg=name)
+    made = map_places_of(old, CONFIG.place_index)
+    np.testing.assert_array_equal(made.descriptors == 1.0, bundle.places.bins)
+    with pytest.raises(MapBundleError, match="places.rings -3"):
+        read_bundle(rewritten("rings.npz", lambda h: h["places"].update(rings=-3)))
+    with pytest.raises(MapBundleError, match="names places but lacks place_bins"):
+        read_bundle(rewritten("no-bins.npz", lambda h: None, ("place_bins",)))
+    with pytest.raises(MapBundleError, match="do not hold 20 x 80 bins"):
+        read_bundle(rewritten("sectors.npz", lambda h: h["places"].update(sectors=80)))
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(MapBundleError, match="not a readable map bundle"):
         read_bundle(tmp_path / "junk.npz")

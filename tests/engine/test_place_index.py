@@ -7,6 +7,7 @@ saved maps a drive is in (:mod:`slam_engine.multisession.which_map`)."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -138,3 +139,29 @@ def test_a_search_at_the_proposed_places_answers_as_the_whole_map_or_refuses(off
     missed = search_at_places(grid, cloud, centre, reach, math.pi, elsewhere, 2.5, 0.25, 0.5, *args)
     assert missed is not None and missed.score < whole.score
     assert missed.runner_up_score >= c.runner_up_ratio * missed.score
+
+
+def test_a_drive_is_placed_in_its_own_building_among_made_up_ones_with_the_places_its_bundle_keeps(tmp_path) -> None:
+    """Three made-up office floors mapped; each one's places kept in its bundle (read back from the file,
+    and made again from a bundle of the first format version, which kept none: the same ranking); a drive
+    of the second floor driven the other way round is placed in its map, ranked first; a fourth floor's
+    drive is refused by all three."""
+    from slam_engine.products.map_bundle import read_bundle, write_bundle
+
+    maps = []
+    for number in (1, 2, 3):
+        bundle = run_slam(simulate(f"building-{number}", seed=0, cameras=False).log, CONFIG).bundle
+        assert bundle is not None and bundle.places is not None and len(bundle.places.centres) > 50
+        maps.append((f"building-{number}", read_bundle(write_bundle(bundle, tmp_path / f"{number}.npz"))))
+        assert np.array_equal(maps[-1][1].places.bins, bundle.places.bins)
+    back = simulate("building-2-back", seed=1, cameras=False).log
+    which = localize_in_maps(maps, back, CONFIG)
+    assert which.summary()["chosen"] == "building-2" and which.tries[0].name == "building-2"
+    assert [t.localised for t in which.tries] == [True, None, None]
+    assert which.tries[0].likeness > max(t.likeness for t in which.tries[1:]) + 0.05
+    unkept = [(name, replace(bundle, places=None)) for name, bundle in maps]  # as version 1 bundles read
+    again = localize_in_maps(unkept, back, CONFIG)
+    assert [t.name for t in again.tries] == [t.name for t in which.tries]
+    assert [t.likeness for t in again.tries] == pytest.approx([t.likeness for t in which.tries], abs=1e-6)
+    foreign = localize_in_maps(maps, simulate("building-4", seed=1, cameras=False).log, CONFIG)
+    assert foreign.chosen is None and all(t.localised is False for t in foreign.tries)

@@ -194,3 +194,28 @@ def test_a_kidnapped_drive_jumps_where_its_wheels_feel_nothing() -> None:
     assert np.hypot(*np.diff(odometry[:, :2], axis=0).T).max() < 0.2  # its wheels felt nothing
     with pytest.raises(ConfigError, match="kidnap"):
         simulate("office", seed=1, cameras=False, kidnap=(95.0, 20.0))  # beyond the 100 s drive
+
+
+def test_made_up_buildings_are_their_own_floors_and_their_routes_keep_clear_of_every_wall() -> None:
+    from slam_engine.simulation import RIGS, scenario_world
+    from slam_engine.simulation.motion import rounded_path
+
+    first, again, other = (scenario_world(name) for name in ("building-3", "building-3", "building-4"))
+    assert first is not None and again is not None and other is not None
+    np.testing.assert_array_equal(first.segments, again.segments)  # the number is the floor
+    assert first.segments.shape != other.segments.shape or not np.allclose(first.segments, other.segments)
+    back = scenario_world("building-3-back")
+    assert back is not None and np.array_equal(back.segments, first.segments)
+    np.testing.assert_array_equal(back.route, first.route[::-1])  # the same floor driven the other way
+    for number in range(1, 21):
+        world = scenario_world(f"building-{number}")
+        assert world is not None
+        path, _ = rounded_path(world.route, RIGS["robot"].turn_radius_m, 0.05)
+        assert point_to_segments_m(path, world.segments).min() > 0.4, number  # through doors, past furniture
+        assert 40.0 < float(np.hypot(*np.diff(path, axis=0).T).sum()) < 90.0
+    drive = simulate("building-2", seed=0, rig="robot", max_duration_s=10.0, cameras=False)
+    truth = drive.ground_truth.poses
+    assert len(truth) >= 40 and drive.scenario == "building-2"
+    for name in ("building-0", "building-100", "building-3-forth", "buildings-3"):
+        with pytest.raises(ConfigError, match="unknown scenario.*building-N"):
+            simulate(scenario=name)

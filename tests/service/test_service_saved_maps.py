@@ -13,6 +13,7 @@ from PIL import Image
 from service_helpers import assert_error, new_session, service_client, wait_for
 
 from slam_engine.formats import write_log
+from slam_engine.products.map_bundle import BUNDLE_VERSION
 from slam_engine.simulation import simulate
 
 pytestmark = pytest.mark.slow
@@ -142,7 +143,7 @@ def test_an_uploaded_map_is_checked_and_a_job_can_start_from_it(tmp_path) -> Non
             for item in source.namelist():
                 data = source.read(item)
                 if item == "header.npy":
-                    data = data.replace(b'"version": 1', b'"version": 7')
+                    data = data.replace(f'"version": {BUNDLE_VERSION}'.encode(), b'"version": 7')
                 target.writestr(item, data)
         with zipfile.ZipFile(bundle) as source, zipfile.ZipFile(lying, "w") as target:
             for item in source.namelist():
