@@ -6,9 +6,10 @@ each scan to a :class:`~slam_engine.multisession.live_localization.LiveLocalizer
 odometry has reached its stamp. Every scan's report (map pose, confidence, state: searching, found,
 carried, outside, lost) is appended to ``poses.jsonl`` in the job's live folder with the chunk's ``seq``
 and its latency (from the chunk accepted to the pose written), which ``GET /v1/jobs/{id}/poses`` serves
-and streams (server-sent events). When the stream ends the job writes a localisation's products (the
-poses it reported, confidence, run.json with the live summary, the drive over the map) and
-``poses.jsonl`` among them.
+and streams (server-sent events). When the stream ends the search still running is waited for: a
+placement it delivers reports the last scan again (found). Then the job writes a localisation's products
+(the poses it reported, each scan's latest report; confidence, run.json with the live summary, the drive
+over the map) and ``poses.jsonl`` among them.
 """
 
 from __future__ import annotations
@@ -78,10 +79,11 @@ class LiveLocalizationRun:
         return reports + self._ready(within_s=EXTRAPOLATE_S)  # the chunk's last scans: not a chunk later
 
     def finish(self) -> list[Any]:
-        """The scans still waiting for odometry, placed with the last odometry pose; the search waited for."""
+        """The scans still waiting for odometry, placed with the last odometry pose; then the running search
+        waited for: when it placed the drive, the last scan's report again (found) after them."""
         reports = self._ready(final=True)
-        self.localizer.wait()
-        return reports
+        again = self.localizer.wait()
+        return reports if again is None else [*reports, again]
 
     def _integrator(self, messages: list[dict[str, Any]]) -> Any:
         from slam_engine.frontend.odometry import OdometryIntegrator, odometry_source
@@ -173,8 +175,9 @@ def run_live_localization_job(ctx: JobContext) -> None:
 
 def _write_products(ctx: JobContext, run: LiveLocalizationRun, poses_path: Path, description: dict,
                     latencies: list[float], bundle: Any, config: Any) -> None:
-    """A localisation's products from the live reports (the poses as reported: no later scan moved
-    them), with ``poses.jsonl``; the live folder removed."""
+    """A localisation's products from the live reports (each scan's latest: the poses as reported, no
+    later scan moved them; a last scan reported again when the stream ended counts as that report), with
+    ``poses.jsonl``; the live folder removed."""
     import numpy as np
 
     from slam_engine.model.result import Trajectory
