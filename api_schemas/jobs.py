@@ -127,8 +127,8 @@ class JobPublic(BaseModel):
     particles: int | None = Field(None, description="The engine's particle count (= config.slam.particles).")
     stage: str | None = Field(None, description="While running: what the job does now - 'mapping scans', "
                               "'closing loops', 'aligning to the map', 'rendering the map', 'writing products', "
-                              "in that order ('localising scans' for a live localisation; null when not running or "
-                              "not yet known).")
+                              "in that order ('loading the map' then 'localising scans' for a live localisation: it is "
+                              "ready for the stream once it localises; null when not running or not yet known).")
     progress: float | None = Field(ge=0.0, le=1.0, description="The job's share done, 0..1, over every stage "
                                    "(each weighted by its usual share of a run's time: mapping the scans is about "
                                    "70 %); 1.0 once it succeeded. Null for a live job until it succeeds (its total "

@@ -3,12 +3,15 @@
 A ``live`` job of mode ``localize`` follows the session's stream as a live mapping job does (chunks in
 seq order, waiting at a gap; the stream's end or ``idle_timeout_s`` without a chunk ends it) and hands
 each scan to a :class:`~slam_engine.multisession.live_localization.LiveLocalizer` as soon as the
-odometry has reached its stamp. Every scan's report (map pose, confidence, state: searching, found,
-carried, outside, lost) is appended to ``poses.jsonl`` in the job's live folder with the chunk's ``seq``
-and its latency (from the chunk accepted to the pose written), which ``GET /v1/jobs/{id}/poses`` serves
-and streams (server-sent events). When the stream ends the job writes a localisation's products (the
-poses it reported, confidence, run.json with the live summary, the drive over the map) and
-``poses.jsonl`` among them.
+odometry has reached its stamp. Until it is ready (the saved map read and its index built) the job's stage
+is ``loading the map``, then ``localising scans``; chunks that came meanwhile wait. Every scan's report
+(map pose, confidence, state: searching, found, carried, outside, lost) is appended to ``poses.jsonl`` in
+the job's live folder with the chunk's ``seq`` and its latency (from the chunk accepted, or the job ready
+when that came later, to the pose written), which ``GET /v1/jobs/{id}/poses`` serves and streams
+(server-sent events). When the stream ends the search still running is waited for: a placement it
+delivers reports the last scan again (found). Then the job writes a localisation's products (the poses it
+reported, each scan's latest report; confidence, run.json with the live summary, the drive over the map)
+and ``poses.jsonl`` among them.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from service.storage.stream_log import (
 from slam_engine.model.messages import ScanMessage
 
 POSES_FILE = "poses.jsonl"  # one live report per line, in scan order
+LOADING_MAP = "loading the map"  # the job's stage until it is ready: the saved map read, its index built
 LOCALIZING_SCANS = "localising scans"  # the job's stage while it follows the stream
 POLL_S = 0.01  # how often a job that has caught up looks for the next chunk [s]: each scan's pose waits for it
 STORE_POLL_S = 0.2  # ... and for the stream's end and a cancel, in the store [s]
@@ -78,10 +82,11 @@ class LiveLocalizationRun:
         return reports + self._ready(within_s=EXTRAPOLATE_S)  # the chunk's last scans: not a chunk later
 
     def finish(self) -> list[Any]:
-        """The scans still waiting for odometry, placed with the last odometry pose; the search waited for."""
+        """The scans still waiting for odometry, placed with the last odometry pose; then the running search
+        waited for: when it placed the drive, the last scan's report again (found) after them."""
         reports = self._ready(final=True)
-        self.localizer.wait()
-        return reports
+        again = self.localizer.wait()
+        return reports if again is None else [*reports, again]
 
     def _integrator(self, messages: list[dict[str, Any]]) -> Any:
         from slam_engine.frontend.odometry import OdometryIntegrator, odometry_source
@@ -110,6 +115,7 @@ def run_live_localization_job(ctx: JobContext) -> None:
     from slam_engine.products.map_bundle import read_bundle
 
     job, session_id = ctx.job, ctx.job.session_id
+    ctx.progress(0, None, force=True, stage=LOADING_MAP)
     calibration = job_session(ctx).calibration
     if calibration is None or calibration.get("lidar") is None:
         raise JobFailed("a live job needs the session's calibration with 'lidar'")
@@ -121,7 +127,9 @@ def run_live_localization_job(ctx: JobContext) -> None:
     idle_timeout_s = float(job.config["idle_timeout_s"])
     ctx.store.set_input(ctx.job_id, {"source": "stream", "live": True, "ended": None,
                                      "map_job_id": job.config["map_job_id"]})
-    run = LiveLocalizationRun(calibration, config, bundle, engine_threads())
+    run = LiveLocalizationRun(calibration, config, bundle, engine_threads())  # the map's index: the slow part
+    ready_s = time.time()  # chunks accepted before wait for the job: their latency counts from here
+    ctx.progress(0, None, force=True, stage=LOCALIZING_SCANS)
     live_dir = ctx.data.live_dir(ctx.job_id)
     live_dir.mkdir(parents=True, exist_ok=True)
     poses_path = live_dir / POSES_FILE
@@ -133,7 +141,7 @@ def run_live_localization_job(ctx: JobContext) -> None:
                 line = report.as_dict()
                 line["seq"] = seq
                 if accepted_s is not None:
-                    line["latency_s"] = round(max(0.0, now - accepted_s), 4)
+                    line["latency_s"] = round(max(0.0, now - max(accepted_s, ready_s)), 4)
                     latencies.append(line["latency_s"])
                 poses.write(json.dumps(line) + "\n")
             poses.flush()
@@ -173,8 +181,9 @@ def run_live_localization_job(ctx: JobContext) -> None:
 
 def _write_products(ctx: JobContext, run: LiveLocalizationRun, poses_path: Path, description: dict,
                     latencies: list[float], bundle: Any, config: Any) -> None:
-    """A localisation's products from the live reports (the poses as reported: no later scan moved
-    them), with ``poses.jsonl``; the live folder removed."""
+    """A localisation's products from the live reports (each scan's latest: the poses as reported, no
+    later scan moved them; a last scan reported again when the stream ended counts as that report), with
+    ``poses.jsonl``; the live folder removed."""
     import numpy as np
 
     from slam_engine.model.result import Trajectory

@@ -115,11 +115,18 @@ class LiveLocalizer:
         """Stop the background search (its outcome is dropped)."""
         self._pool.shutdown(wait=True, cancel_futures=True)
 
-    def wait(self) -> None:
-        """Wait for a running search and take its outcome (tests, and a stream that has ended)."""
-        if self._search is not None:
-            self._search.result()
-            self._take_search()
+    def wait(self) -> LivePose | None:
+        """Wait for a running search and take its outcome (a stream that has ended; tests). When it placed
+        the drive, the newest scan is reported again where the placement puts it (its map pose, state and
+        confidence now): that report replaces the scan's first in :attr:`reports` (and in :meth:`summary`)
+        and is returned; None otherwise. A placement otherwise lands only with the next scan."""
+        if self._search is None:
+            return None
+        self._search.result()
+        report = self._take_search()
+        if report is not None:
+            self.reports[report.scan] = report
+        return report
 
     # --- tracking ---------------------------------------------------------------------------------
     def _track(self, k: int) -> LivePose:
@@ -170,12 +177,12 @@ class LiveLocalizer:
         drive = DriveScans(np.array(self.t_s), np.array(self.own), list(self.hits))
         self._search = self._pool.submit(self._placed, drive, self._search_from)
 
-    def _placed(self, drive: DriveScans, first_allowed: int) -> tuple[int, np.ndarray] | None:
+    def _placed(self, drive: DriveScans, first_allowed: int) -> tuple[int, np.ndarray, float] | None:
         """In the background: a stretch of ``drive`` (the scans so far, from ``first_allowed`` on) placed
         over the whole map and confirmed by the next one, among those ending where the drive is now: two,
         four and nine stretches long (room for a first stretch grown twice and four times while ambiguous,
         and its confirmation), the shortest first; then tracked forward to the drive's last scan. (that
-        scan, its map pose) or None."""
+        scan, its map pose, its match score there) or None."""
         c = self.config.localization
         localizer = Localizer(self.index, drive, c, self.threads)
         travel = drive.travel_m
@@ -195,31 +202,37 @@ class LiveLocalizer:
             poses = np.full((len(drive), 3), np.nan)
             confidence, tracked = np.zeros(len(drive)), np.zeros(len(drive), bool)
             poses[last] = pose
+            if last == len(drive) - 1:  # placed at the newest scan itself: its score at the placement
+                _, score = localizer.track(last, pose)
+                confidence[last] = 0.0 if math.isnan(score) else score
             for j in range(last + 1, len(drive)):
                 localizer.step(poses, confidence, tracked, j, j - 1)
-            return len(drive) - 1, poses[-1]
+            return len(drive) - 1, poses[-1], float(confidence[-1])
         return None
 
-    def _take_search(self) -> None:
+    def _take_search(self) -> LivePose | None:
         """A finished background search's outcome: a placement of an earlier scan, carried to the newest
-        by tracking the scans that came since."""
+        by tracking the scans that came since. The newest scan's report as it stands now when the drive
+        was placed (no report rewritten here), else None."""
         future = self._search
         if future is None or not future.done():
-            return
+            return None
         self._search = None
         outcome = future.result()
         if outcome is None:
-            return
-        at, pose = outcome
+            return None
+        at, pose, confidence = outcome
         was_lost = self.state == LOST
         if was_lost and not self._agrees_with_hypothesis(at, pose):
-            return  # kept as the hypothesis a later, disjoint search must agree with
+            return None  # kept as the hypothesis a later, disjoint search must agree with
         self.poses[at] = pose
         self._last_tracked, self._unmatched_m = at, 0.0
         self.state = FOUND
         self._event("found", at, jump=was_lost)
-        for j in range(at + 1, len(self.t_s)):  # scans that arrived while it searched (no report rewritten)
-            self._track(j)
+        report = LivePose(at, self.t_s[at], pose.copy(), confidence, FOUND)
+        for j in range(at + 1, len(self.t_s)):  # scans that arrived while it searched
+            report = self._track(j)
+        return report
 
     def _agrees_with_hypothesis(self, at: int, pose: np.ndarray) -> bool:
         """Whether a lost drive's placement of scan ``at`` agrees with the one before it (carried here by the

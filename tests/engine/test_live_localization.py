@@ -27,7 +27,8 @@ def office_map():
 
 
 def _stream(bundle, drive):
-    """The drive's scans fed one by one, each search waited for (as if it took no time)."""
+    """The drive's scans fed one by one, each search waited for (as if it took no time): a scan whose search
+    placed the drive is reported again, and that report kept."""
     log = drive.log
     odometry = dead_reckoning(log).poses
     projector = make_projector(log.lidar, CONFIG, no_return_bounded=False)
@@ -36,7 +37,9 @@ def _stream(bundle, drive):
     for i in range(len(log.scans)):
         hits = projector.project(log.scans.ranges_m[i]).hits_v
         reports.append((int(i), live.add(log.scans.t_s[i], odometry[i], hits)))
-        live.wait()
+        again = live.wait()
+        if again is not None:
+            reports[-1] = (int(i), again)
     live.close()
     return live, reports
 
@@ -60,6 +63,35 @@ def test_the_office_driven_again_is_found_within_two_stretches_and_tracked(offic
     errors = _errors(reports, again, rotation, translation)
     assert max(errors.values()) < 0.05  # measured 0.016 m
     assert live.summary()["states"]["found"] == len(states) - first and live.events[0]["event"] == "found"
+
+
+@pytest.mark.slow
+def test_a_placement_the_last_search_delivers_is_reported_when_the_stream_ends(office_map) -> None:
+    """The drive streamed until the first search that places it is running, then the stream ends: waiting
+    for that search reports the last scan again, found where the robot is, and the summary counts it."""
+    bundle, rotation, translation = office_map
+    again = simulate("office", seed=1, cameras=False)
+    log = again.log
+    odometry = dead_reckoning(log).poses
+    projector = make_projector(log.lidar, CONFIG, no_return_bounded=False)
+    live = LiveLocalizer(bundle, CONFIG)
+    for i in range(len(log.scans)):
+        first = live.add(log.scans.t_s[i], odometry[i], projector.project(log.scans.ranges_m[i]).hits_v)
+        again_reported = live.wait()  # as at the stream's end: the search this scan started waited for
+        if live.state == FOUND:
+            break
+    live.close()
+    last = len(live.reports) - 1
+    assert first.scan == last and first.state == SEARCHING and first.pose is None
+    assert again_reported is not None and again_reported.scan == last and again_reported.t_s == first.t_s
+    assert again_reported.state == FOUND and again_reported.confidence >= CONFIG.localization.track_min_score
+    error = _errors([(last, again_reported)], again, rotation, translation)[last]
+    assert error < 0.05  # measured 0.003 m (scan 81, confidence 0.999)
+    summary = live.summary()
+    assert live.reports[last] is again_reported and summary["scans"] == last + 1
+    assert summary["states"]["found"] == 1 and summary["states"]["searching"] == last
+    assert summary["first_found_t_s"] == round(first.t_s, 3) and summary["mean_confidence"] > 0
+    assert live.wait() is None  # nothing more to report
 
 
 @pytest.mark.slow

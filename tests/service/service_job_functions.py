@@ -149,3 +149,50 @@ def fills_the_disk(ctx) -> None:
             pass
     ctx.progress(2, 3, force=True)
     (ctx.out_dir / "run.json").write_text(json.dumps({"steps": 3}) + " " * 1_000_000)
+
+
+def map_index_held(ctx) -> None:
+    """The service's own job function, with a live localisation's map index built only once the test writes
+    ``release`` into the data folder (at most 60 s later): its time loading the map, as long as a test needs."""
+    from service.jobs.mapping import run_mapping_job
+    from slam_engine.multisession.localization import MapIndex
+
+    built = MapIndex.__dict__["of_bundle"]
+
+    def held(cls, *args, **kwargs):
+        deadline = time.monotonic() + 60.0
+        while not (ctx.data.root / "release").exists() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return built.__func__(cls, *args, **kwargs)
+
+    MapIndex.of_bundle = classmethod(held)
+    try:
+        run_mapping_job(ctx)
+    finally:
+        MapIndex.of_bundle = built
+
+
+def placement_held_to_the_end(ctx) -> None:
+    """The service's own job function, with a live localisation's background search that places the drive
+    taken only when the stream has ended (``LiveLocalizer.wait``), not with the next scan: the stream ends
+    right after the search delivered, whenever that was."""
+    from service.jobs.mapping import run_mapping_job
+    from slam_engine.multisession.live_localization import LiveLocalizer
+
+    add = LiveLocalizer.add
+
+    def held_add(self, *args):
+        search = self._search
+        if search is None or not search.done() or search.result() is None:
+            return add(self, *args)
+        self._take_search = lambda: None  # held (no other search starts meanwhile)
+        try:
+            return add(self, *args)
+        finally:
+            del self._take_search
+
+    LiveLocalizer.add = held_add
+    try:
+        run_mapping_job(ctx)
+    finally:
+        LiveLocalizer.add = add

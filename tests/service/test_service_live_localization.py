@@ -120,3 +120,91 @@ def test_a_live_localisation_reports_each_scan_as_it_arrives(tmp_path) -> None:
         assert run["latency_s"]["count"] > 0 and run["first_found_travel_m"] > 0  # later: posted faster than real time
         lines = client.get(f"/v1/jobs/{live['id']}/poses.jsonl").text.splitlines()
         assert [json.loads(line) for line in lines] == poses
+
+
+def _short_map_and_stream(client, tmp_path, map_s: float, drive_s: float) -> tuple[str, str, list[list[dict]]]:
+    """The office's first ``map_s`` mapped from an upload, and the office driven again (seed 1, its first
+    ``drive_s``) as chunks of 40 messages: (session, saved map's job, chunks)."""
+    mapped_log = write_simulated(simulate("office", seed=0, cameras=False, max_duration_s=map_s), "carmen",
+                                 tmp_path / "before")
+    streamed = load_log(write_simulated(simulate("office", seed=1, cameras=False, max_duration_s=drive_s), "carmen",
+                                        tmp_path / "later"))
+    messages = messages_of_log(streamed)
+    sid = new_session(client, calibration=calibration_from_log(streamed))
+    with mapped_log.open("rb") as f:
+        client.post(f"/v1/sessions/{sid}/logs", files={"file": (mapped_log.name, f)})
+    mapped = client.post(f"/v1/sessions/{sid}/jobs", json={"particles": 10}).json()
+    done = wait_for(client, mapped["id"], timeout_s=300)
+    assert done["status"] == "succeeded", done
+    return sid, mapped["id"], [messages[i:i + 40] for i in range(0, len(messages), 40)]
+
+
+def test_a_live_localisation_says_when_it_is_ready_and_counts_latency_from_then(tmp_path) -> None:
+    """The map's index held while chunks come: the job runs in stage 'loading the map' meanwhile, keeps the
+    chunks, then localises them in stage 'localising scans' with their latency counted from its readiness
+    (not from the chunks accepted, which came seconds before)."""
+    import time
+
+    with service_client(tmp_path / "data", job_function="service_job_functions:map_index_held",
+                        workers=2) as client:
+        (tmp_path / "data" / "release").write_text("")  # the mapping job's own index (none) is not held
+        sid, map_job, chunks = _short_map_and_stream(client, tmp_path, 30.0, 6.0)
+        (tmp_path / "data" / "release").unlink()
+        live = client.post(f"/v1/sessions/{sid}/jobs", json={"live": True, "mode": "localize", "map_job_id": map_job,
+                                                               "idle_timeout_s": 60}).json()
+        loading = wait_for(client, live["id"], {"running"}, timeout_s=60,
+                           condition=lambda job: job["stage"] is not None)
+        assert loading["stage"] == "loading the map" and loading["scans_done"] == 0
+        for seq, chunk in enumerate(chunks):
+            assert client.post(f"/v1/sessions/{sid}/chunks", json={"seq": seq, "messages": chunk}).status_code == 201
+        client.post(f"/v1/sessions/{sid}/chunks/finish", json={"last_seq": len(chunks) - 1})
+        posted = time.time()
+        time.sleep(2.0)  # the chunks wait for the job to be ready
+        still = client.get(f"/v1/jobs/{live['id']}").json()
+        assert still["status"] == "running" and still["stage"] == "loading the map" and still["scans_done"] == 0
+        held_s = time.time() - posted
+        (tmp_path / "data" / "release").write_text("")
+        scans = sum(m["type"] == "scan" for chunk in chunks for m in chunk)
+        localising = wait_for(client, live["id"], {"running", "succeeded"}, timeout_s=60,
+                              condition=lambda job: job["scans_done"] > 0)
+        assert localising["stage"] in ("localising scans", None)  # None: already succeeded
+        finished = wait_for(client, live["id"], timeout_s=120)
+        assert finished["status"] == "succeeded", finished
+        poses = client.get(f"/v1/jobs/{live['id']}/poses").json()["poses"]
+        latencies = [p["latency_s"] for p in poses if p["seq"] is not None]
+        assert len(poses) == scans and len(latencies) >= scans - 5
+        # counted from the chunks accepted, every one would be over held_s (2 s): from the job ready, the
+        # time the scans took to localise (measured: 0.02-0.04 s)
+        assert max(latencies) < held_s
+
+
+def test_a_placement_the_search_delivers_as_the_stream_ends_is_reported(tmp_path) -> None:
+    """A search's placement taken only when the stream has ended (the job function holds it until then): the
+    last scan is reported again, found, and the products hold that pose."""
+    with service_client(tmp_path / "data", job_function="service_job_functions:placement_held_to_the_end",
+                        workers=2) as client:
+        sid, map_job, chunks = _short_map_and_stream(client, tmp_path, 30.0, 24.0)
+        live = client.post(f"/v1/sessions/{sid}/jobs", json={"live": True, "mode": "localize", "map_job_id": map_job,
+                                                               "idle_timeout_s": 60}).json()
+        for seq, chunk in enumerate(chunks):
+            assert client.post(f"/v1/sessions/{sid}/chunks", json={"seq": seq, "messages": chunk}).status_code == 201
+        client.post(f"/v1/sessions/{sid}/chunks/finish", json={"last_seq": len(chunks) - 1})
+        finished = wait_for(client, live["id"], timeout_s=180)
+        assert finished["status"] == "succeeded", finished
+        poses = client.get(f"/v1/jobs/{live['id']}/poses").json()["poses"]
+        scans = sum(m["type"] == "scan" for chunk in chunks for m in chunk)
+        # every scan searching as it came; then the last one again, found, where the search put it
+        assert [p["scan"] for p in poses] == [*range(scans), scans - 1]
+        assert {p["state"] for p in poses[:-1]} == {"searching"}
+        last = poses[-1]
+        assert last["state"] == "found" and last["pose"] is not None and last["confidence"] >= 0.5
+        assert last["t_s"] == poses[-2]["t_s"] and last["seq"] is None
+        lines = client.get(f"/v1/jobs/{live['id']}/poses.jsonl").text.splitlines()
+        assert [json.loads(line) for line in lines] == poses
+        run = client.get(f"/v1/jobs/{live['id']}/run.json").json()["localization"]
+        assert run["localised"] and run["scans"] == scans
+        assert run["states"]["found"] == 1 and run["states"]["searching"] == scans - 1
+        assert run["first_found_t_s"] == round(last["t_s"], 3)
+        trajectory = client.get(f"/v1/jobs/{live['id']}/trajectory").json()["poses"]
+        assert len(trajectory) == 1 and trajectory[0]["t_s"] == pytest.approx(last["t_s"], abs=1e-6)
+        assert [trajectory[0]["x_m"], trajectory[0]["y_m"]] == pytest.approx(last["pose"][:2], abs=1e-4)

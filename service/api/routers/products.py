@@ -279,7 +279,9 @@ def _read_lines(path: pathlib.Path | None, offset: int) -> tuple[list[str], int]
             description="Every scan's report of a live job of mode 'localize': `scan`, `t_s`, `pose` "
                         "[x_m, y_m, theta_rad] in the saved map's frame (null while searching), `confidence` "
                         "(0-1), `state` (searching, found, carried, outside, lost), the chunk's `seq` and "
-                        "`latency_s` from the chunk accepted to the pose written. With `stream=true` "
+                        "`latency_s` from the chunk accepted (or the job ready, when later) to the pose written. "
+                        "The last scan may come again, found, when the search running as the stream ended "
+                        "placed the drive. With `stream=true` "
                         "(or `Accept: text/event-stream`): server-sent events, one `pose` event per scan "
                         "(`id`: the scan) as it is made, then an `end` event with the job's status; "
                         "`Last-Event-ID` or `after` resumes after a scan.")
