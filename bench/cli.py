@@ -152,8 +152,8 @@ def accuracy(
         from bench import which_map as among_maps
 
         console.print(f"\n[bold]Which map[/bold] among {among_maps.MAPS} (python -m bench.which_map)")
-        rows = [row for seed in range(3) for row in among_maps.measure(seed, say=lambda line: None)]
-        console.print(among_maps.table(rows), highlight=False)
+        answers = [row for seed in range(3) for row in among_maps.measure(seed, say=lambda line: None)]
+        console.print(among_maps.table(answers), highlight=False)
     if peers and not quick:
         from bench import peers as side_by_side
 

@@ -18,11 +18,13 @@ import argparse
 import statistics
 import time
 from dataclasses import dataclass
+from typing import Any
 
 from bench.options import parse_seeds
 from slam_engine.config import SlamConfig
 from slam_engine.frontend.particle_filter import engine_threads
 from slam_engine.model.drive_log import DriveLog
+from slam_engine.model.map_bundle import MapBundle
 from slam_engine.multisession.localization import localize_log
 from slam_engine.multisession.which_map import localize_in_maps
 from slam_engine.pipeline import run_slam
@@ -43,23 +45,29 @@ class Drive:
 
 
 def maps_and_drives(seed: int, n_maps: int = MAPS, config: SlamConfig | None = None, shared: bool = True
-                    ) -> tuple[list[tuple[str, object]], list[Drive]]:
+                    ) -> tuple[list[tuple[str, MapBundle]], list[Drive]]:
     """The saved maps ((name, bundle), mapped with ``seed``) and the drives to place (module docstring);
     ``shared`` False: made-up floors only."""
     from bench.sessions import session_drives
     from slam_engine.formats import load_log
 
     config = config or SlamConfig(seed=seed)
-    maps: list[tuple[str, object]] = []
+
+    def mapped(log: DriveLog) -> MapBundle:
+        bundle = run_slam(log, config).bundle
+        assert bundle is not None  # a mapping run always makes one
+        return bundle
+
+    maps: list[tuple[str, MapBundle]] = []
     drives: list[Drive] = []
     for halves in [d for d in session_drives() if d.name in SHARED_DRIVES and shared][:n_maps]:
-        maps.append((f"{halves.name}-a", run_slam(load_log(halves.a_log), config).bundle))
+        maps.append((f"{halves.name}-a", mapped(load_log(halves.a_log))))
         drives.append(Drive(f"{halves.name}-b", load_log(halves.b_log), f"{halves.name}-a"))
     number = 0
     while len(maps) < n_maps:
         number += 1
         name = f"building-{number}"
-        maps.append((name, run_slam(simulate(name, seed=seed, cameras=False).log, config).bundle))
+        maps.append((name, mapped(simulate(name, seed=seed, cameras=False).log)))
         drives.append(Drive(f"{name}-back", simulate(f"{name}-back", seed=seed + 1, cameras=False).log, name))
     drives.append(Drive("office", simulate("office", seed=seed + 1, cameras=False).log, None))
     drives.append(Drive(f"building-{number + 1}", simulate(f"building-{number + 1}", seed=seed + 1,
@@ -78,14 +86,15 @@ def measure(seed: int, n_maps: int = MAPS, say=print, shared: bool = True) -> li
     for drive in drives:
         found = localize_in_maps(maps, drive.log, config, threads=threads)
         chosen = None if found.chosen is None else found.tries[found.chosen].name
-        row = {"seed": seed, "drive": drive.name, "home": drive.home, "chosen": chosen, "right": chosen == drive.home,
-               "wall_s": found.wall_time_s, "tried": sum(t.localised is not None for t in found.tries),
-               "home_rank": next((i + 1 for i, t in enumerate(found.tries) if t.name == drive.home), None)}
+        row: dict[str, Any] = {
+            "seed": seed, "drive": drive.name, "home": drive.home, "chosen": chosen, "right": chosen == drive.home,
+            "wall_s": found.wall_time_s, "tried": sum(t.localised is not None for t in found.tries),
+            "home_rank": next((i + 1 for i, t in enumerate(found.tries) if t.name == drive.home), None)}
         if drive.home is not None:
             started = time.perf_counter()
             localize_log(bundles[drive.home], drive.log, config, threads=threads)
-            row["one_map_s"] = time.perf_counter() - started
-            row["time_ratio"] = found.wall_time_s / row["one_map_s"]
+            one_map_s = time.perf_counter() - started
+            row.update(one_map_s=one_map_s, time_ratio=found.wall_time_s / one_map_s)
         say(f"  seed {seed}: {drive.name} among {len(maps)} maps: {chosen or 'refused'} "
             f"({'right' if row['right'] else 'WRONG'}; tried {row['tried']}, {found.wall_time_s:.1f} s"
             + (f", {row['one_map_s']:.1f} s in its own map alone)" if "one_map_s" in row else ")"))

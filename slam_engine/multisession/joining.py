@@ -26,7 +26,13 @@ from slam_engine.evaluation.consistency import MapConsistency, map_consistency
 from slam_engine.model.map_bundle import MapBundle
 from slam_engine.model.poses import compose, relative
 from slam_engine.model.result import OccupancyGrid, Trajectory
-from slam_engine.multisession.localization import DriveScans, LocalizationResult, localize, refusal_reason
+from slam_engine.multisession.localization import (
+    DriveScans,
+    LocalizationResult,
+    localize,
+    map_places_of,
+    refusal_reason,
+)
 
 
 @dataclass
@@ -75,6 +81,9 @@ def join(base: MapBundle, part: MapBundle, config: SlamConfig, threads: int = 1)
     bundle = joint
     for candidate in left:
         bundle = concatenated(bundle, candidate, connect=False)
+    # its place index, kept with it as a mapping run's is (of the connected map: the parts left beside it
+    # are in frames of their own)
+    bundle.places = map_places_of(joint, config.place_index).stored(config.place_index.spacing_m)
     grid = render_occupancy(joint.scans(), joint.poses, joint.origin_v, config.grid)
     consistency = map_consistency(grid, joint.poses, joint.all_hits())
     keep = ~np.isin(bundle.trajectory_drive, disconnected_drives(bundle))

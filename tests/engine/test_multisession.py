@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import zipfile
+from dataclasses import replace
 from io import BytesIO
 from pathlib import Path
 
@@ -186,6 +187,12 @@ def test_extending_a_map_closes_loops_across_the_drives(office, halves, first_ma
     # the joint map agrees with both drives' scans (measured: none of its key frames contradicted)
     assert joined.consistency is not None and not joined.consistency.flagged
     assert joined.consistency.judged == len(joined.bundle) and joined.consistency.contradicted_share < 0.02
+    # the joint map keeps its place index, over both drives' places (the second half drove the south rooms)
+    places = joined.bundle.places
+    assert places is not None and first_map.bundle.places is not None
+    assert len(places.centres) > len(first_map.bundle.places.centres)
+    made = map_places_of(replace(joined.bundle, places=None), CONFIG.place_index)
+    np.testing.assert_array_equal(made.centres, places.centres)
 
 
 def test_an_extended_maps_closures_end_on_its_key_frames(office, first_map) -> None:
