@@ -157,9 +157,10 @@ class LidarmapClient:
     def follow_poses(self, job_id: str, after: int = -1) -> Iterator[dict[str, Any]]:
         """A live localisation's scan reports as the service makes them (server-sent events; each a dict:
         ``scan``, ``t_s``, ``pose`` [x_m, y_m, theta_rad] or None, ``confidence``, ``state``, ``seq``,
-        ``latency_s``), from the scan after ``after``, until the job ends. A dropped connection is taken
-        up again after the last scan received."""
-        last = after
+        ``latency_s``; ``revised``: true on a scan reported again, found, as the stream ended), from the scan
+        after ``after``, until the job ends. A dropped connection is taken up again after the last scan
+        received."""
+        last, revised = after, False
         while True:
             try:
                 with self._http.stream("GET", f"/v1/jobs/{job_id}/poses", params={"stream": "true", "after": last},
@@ -176,8 +177,10 @@ class LidarmapClient:
                             return
                         if event.get("event") == "pose":
                             report = json.loads(event["data"])
-                            last = report["scan"]
-                            yield report
+                            if not (report.get("revised") and revised and report["scan"] == last):  # not twice
+                                revised = bool(report.get("revised"))
+                                last = report["scan"]
+                                yield report
                         event = {}
             except httpx.TransportError:
                 if self.job(job_id).status in FINISHED:

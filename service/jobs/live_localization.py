@@ -81,12 +81,11 @@ class LiveLocalizationRun:
             reports += self._ready()
         return reports + self._ready(within_s=EXTRAPOLATE_S)  # the chunk's last scans: not a chunk later
 
-    def finish(self) -> list[Any]:
+    def finish(self) -> tuple[list[Any], Any]:
         """The scans still waiting for odometry, placed with the last odometry pose; then the running search
-        waited for: when it placed the drive, the last scan's report again (found) after them."""
+        waited for: when it placed the drive, the last scan's report again (found; else None)."""
         reports = self._ready(final=True)
-        again = self.localizer.wait()
-        return reports if again is None else [*reports, again]
+        return reports, self.localizer.wait()
 
     def _integrator(self, messages: list[dict[str, Any]]) -> Any:
         from slam_engine.frontend.odometry import OdometryIntegrator, odometry_source
@@ -135,11 +134,13 @@ def run_live_localization_job(ctx: JobContext) -> None:
     poses_path = live_dir / POSES_FILE
     latencies: list[float] = []
     with poses_path.open("a", encoding="utf-8") as poses:
-        def publish(reports: list[Any], seq: int | None, accepted_s: float | None) -> None:
+        def publish(reports: list[Any], seq: int | None, accepted_s: float | None, revised: bool = False) -> None:
             now = time.time()
             for report in reports:
                 line = report.as_dict()
                 line["seq"] = seq
+                if revised:  # a scan reported before, again: a client that resumes after it still gets this
+                    line["revised"] = True
                 if accepted_s is not None:
                     line["latency_s"] = round(max(0.0, now - max(accepted_s, ready_s)), 4)
                     latencies.append(line["latency_s"])
@@ -168,7 +169,10 @@ def run_live_localization_job(ctx: JobContext) -> None:
                     ended = "idle_timeout"
                     break
             time.sleep(POLL_S)
-        publish(run.finish(), None, None)
+        remaining, again = run.finish()
+        publish(remaining, None, None)
+        if again is not None:
+            publish([again], None, None, revised=True)
     run.localizer.close()
     ctx.progress(len(run.localizer.reports), None, force=True, stage=LOCALIZING_SCANS)
     if not run.localizer.reports:

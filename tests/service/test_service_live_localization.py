@@ -199,6 +199,12 @@ def test_a_placement_the_search_delivers_as_the_stream_ends_is_reported(tmp_path
         last = poses[-1]
         assert last["state"] == "found" and last["pose"] is not None and last["confidence"] >= 0.5
         assert last["t_s"] == poses[-2]["t_s"] and last["seq"] is None
+        assert last["revised"] is True and not any("revised" in p for p in poses[:-1])
+        # a client that had the last scan's first report and resumes after it still gets the revision
+        assert client.get(f"/v1/jobs/{live['id']}/poses", params={"after": scans - 1}).json()["poses"] == [last]
+        events = client.get(f"/v1/jobs/{live['id']}/poses", params={"stream": "true"},
+                            headers={"Last-Event-ID": str(scans - 1)}).text
+        assert events.count("event: pose") == 1 and '"revised": true' in events and "event: end" in events
         lines = client.get(f"/v1/jobs/{live['id']}/poses.jsonl").text.splitlines()
         assert [json.loads(line) for line in lines] == poses
         run = client.get(f"/v1/jobs/{live['id']}/run.json").json()["localization"]

@@ -275,16 +275,21 @@ def _read_lines(path: pathlib.Path | None, offset: int) -> tuple[list[str], int]
     return block[:end].decode().splitlines(), offset + end
 
 
+def _after(report: dict[str, Any], after: int) -> bool:
+    """Whether a live report comes after scan ``after``: a later scan's, or a revision of that scan's."""
+    return report["scan"] > after or (bool(report.get("revised")) and report["scan"] == after)
+
+
 @router.get("/poses", summary="A live localisation's poses, as it makes them",
             description="Every scan's report of a live job of mode 'localize': `scan`, `t_s`, `pose` "
                         "[x_m, y_m, theta_rad] in the saved map's frame (null while searching), `confidence` "
                         "(0-1), `state` (searching, found, carried, outside, lost), the chunk's `seq` and "
                         "`latency_s` from the chunk accepted (or the job ready, when later) to the pose written. "
-                        "The last scan may come again, found, when the search running as the stream ended "
-                        "placed the drive. With `stream=true` "
+                        "The last scan may come again, found and marked `revised: true`, when the search "
+                        "running as the stream ended placed the drive. With `stream=true` "
                         "(or `Accept: text/event-stream`): server-sent events, one `pose` event per scan "
                         "(`id`: the scan) as it is made, then an `end` event with the job's status; "
-                        "`Last-Event-ID` or `after` resumes after a scan.")
+                        "`Last-Event-ID` or `after` resumes after a scan (a revision of that scan still comes).")
 async def live_poses(job: JobDep, data: DataDep, store: StoreDep, request: Request,
                      stream: Annotated[bool, Query(description="Server-sent events until the job ends.")] = False,
                      after: Annotated[int, Query(ge=-1, le=10**9, description="Only scans after this one.")] = -1
@@ -298,7 +303,7 @@ async def live_poses(job: JobDep, data: DataDep, store: StoreDep, request: Reque
     wants_events = stream or "text/event-stream" in request.headers.get("accept", "")
     if not wants_events:
         lines, _ = await run_in_threadpool(_read_lines, _poses_file(data, job), 0)
-        poses = [p for p in (json.loads(line) for line in lines) if p["scan"] > after]
+        poses = [p for p in (json.loads(line) for line in lines) if _after(p, after)]
         return JSONResponse({"job_id": job.id, "status": job.status.value, "count": len(poses), "poses": poses})
 
     async def events():
@@ -308,9 +313,9 @@ async def live_poses(job: JobDep, data: DataDep, store: StoreDep, request: Reque
             finished = current.status not in (JobStatus.QUEUED, JobStatus.RUNNING)
             lines, offset = await run_in_threadpool(_read_lines, _poses_file(data, current), offset)
             for line in lines:
-                scan = json.loads(line)["scan"]
-                if scan > after:
-                    yield f"id: {scan}\nevent: pose\ndata: {line}\n\n"
+                report = json.loads(line)
+                if _after(report, after):
+                    yield f"id: {report['scan']}\nevent: pose\ndata: {line}\n\n"
                     last_sent = time.monotonic()
             if finished and not lines:
                 yield f"event: end\ndata: {json.dumps({'status': current.status.value})}\n\n"
