@@ -55,8 +55,8 @@ def accuracy(
                               "live job beside one busy process, about 2 minutes; not with --quick)."),
     live_localization: bool = typer.Option(True, help="Then the live localisation table (the simulated office "
                                            "mapped, driven again and streamed at real time into a live localize job "
-                                           "beside one busy process, a foreign drive after it, about 3 minutes; not "
-                                           "with --quick)."),
+                                           "beside one busy process, a foreign drive after it; and a robot carried "
+                                           "off in eight made-up floors; about 4 minutes; not with --quick)."),
     places: bool = typer.Option(True, help="Then the place index's retrieval at the benchmark logs' true revisits "
                                 "(recall@5, precision@1; not with --quick or --no-datasets)."),
     peers: bool = typer.Option(True, help="Then lidarmap and Karto side by side (whole processes, interleaved, "
@@ -137,6 +137,10 @@ def accuracy(
         from bench.live_localization import run_live_localization_table
 
         run_live_localization_table(out, console)
+        from bench import kidnap
+
+        console.print("\n[bold]Kidnapped[/bold] in made-up office floors (python -m bench.kidnap)")
+        console.print(kidnap.table([kidnap.measure(number) for number in range(1, 9)]), highlight=False)
     if places and datasets and not quick:
         from bench import place_recall
 

@@ -13,8 +13,11 @@ taken scan by scan. Each scan is matched to the drive's recent scans (:class:`Sc
 - **carried**: it did not match, though the map could judge it: placed by the drive's own motion, not
   confidently; after ``live_lost_after_m`` of such travel the drive is **lost** and searched for again
   (carried by its motion meanwhile, confidence 0): a robot carried off (kidnapped) is noticed there, and
-  its poses are never reported as found meanwhile. It is found again when two searches on disjoint
-  stretches place it in one place (look-alike rooms can hold one stretch and its confirmation);
+  its poses are never reported as found meanwhile. A scan whose score drops below ``SCORE_DROP_SHARE`` of
+  the found scan before it is carried too (the first scan after a kidnap can still fit, weakly, where the
+  robot was). It is found again when two searches on disjoint stretches place it in one place (look-alike
+  rooms can hold one stretch and its confirmation), the second one's starting at the first one's
+  confirming stretch;
 - **outside**: the scan falls where the map never saw: carried by the drive's own motion, not lost.
 
 Poses are those of the moment (no smoothing with later scans: a finished drive's batch localisation
@@ -38,6 +41,10 @@ from slam_engine.multisession.localization import DriveScans, Localizer, MapInde
 
 SEARCHING, FOUND, CARRIED, OUTSIDE, LOST = "searching", "found", "carried", "outside", "lost"
 STATES = (SEARCHING, FOUND, CARRIED, OUTSIDE, LOST)
+# a tracked scan scoring below this share of the scan before it (found) is not found: a robot carried off
+# (kidnapped) whose first scan there still fits where it was, weakly (0.55 after 1.00 in a made-up floor); the
+# sharpest drop of a drive tracked in its own building was to 0.53 of the scan before (intel-b, once in 278)
+SCORE_DROP_SHARE = 0.6
 HYPOTHESIS_SLACK = 0.05  # two placements of a lost drive agree within agree_m and this share of the travel between
 
 
@@ -87,6 +94,7 @@ class LiveLocalizer:
         self._search: Future | None = None
         self._search_from = 0  # the first scan the next search may start a stretch at
         self._hypothesis: tuple[int, np.ndarray] | None = None  # a lost drive's first placement again
+        self._confirmed_from = 0  # the first scan of the stretch that confirmed the last placement
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="live-localization")
         self._lock = threading.Lock()
 
@@ -148,6 +156,9 @@ class LiveLocalizer:
         else:
             nudged = math.hypot(moved[0], moved[1]) <= c.nudge_m and abs(float(moved[2])) <= c.nudge_rad
             ok = not uncovered and (score >= c.track_min_score or (score >= c.nudge_min_score and nudged))
+            last = self.reports[k - 1] if k - 1 < len(self.reports) else None
+            if ok and last is not None and last.state == FOUND and score < SCORE_DROP_SHARE * last.confidence:
+                ok = False  # a sudden drop: carried off, more likely than the map's fit falling apart in a step
         if ok:
             self.poses[k], self._last_tracked, self._unmatched_m = pose, k, 0.0
             self.state = FOUND
@@ -199,6 +210,7 @@ class LiveLocalizer:
                 self.failed_tries[localizer._why] = self.failed_tries.get(localizer._why, 0) + 1
                 continue
             _, last, pose = placement
+            self._confirmed_from = last + 1  # the confirming stretch: a lost drive's next placement may start it
             poses = np.full((len(drive), 3), np.nan)
             confidence, tracked = np.zeros(len(drive)), np.zeros(len(drive), bool)
             poses[last] = pose
@@ -242,7 +254,7 @@ class LiveLocalizer:
         becomes the hypothesis, and the next search starts after it."""
         c = self.config.localization
         hypothesis, self._hypothesis = self._hypothesis, (at, pose)
-        self._search_from = at + 1
+        self._search_from = self._confirmed_from
         if hypothesis is None:
             return False
         then, then_pose = hypothesis

@@ -1,0 +1,101 @@
+"""A robot carried off (kidnapped) in made-up office floors: each floor (``building-N``) mapped with seed 0, then
+driven again (seed 1) and carried 30 s in to where it would have been 20 s later; its scans fed to a live
+localisation one by one, each search waited for (as if it took no time). Per floor: the jump, how far it drove
+after it until reported lost, until found again (None: not within the drive), and how many scans after it
+were reported found more than 0.3 m from the truth (the target: none).
+
+    python -m bench.kidnap [--buildings 8]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+
+import numpy as np
+
+from slam_engine.config import SlamConfig
+from slam_engine.evaluation.metrics import align_rigid_2d
+from slam_engine.frontend.odometry import dead_reckoning
+from slam_engine.frontend.particle_filter import make_projector
+from slam_engine.multisession.live_localization import FOUND, LOST, LiveLocalizer
+from slam_engine.pipeline import run_slam
+from slam_engine.simulation import SimulatedDrive, simulate
+
+KIDNAP = (30.0, 20.0)  # carried off this far into the drive [s], to where it would have been this much later [s]
+WRONG_M = 0.3  # a found pose farther than this from the truth [m] is confidently wrong
+REFIND_TARGET_M = 10.0  # found again within this much driving after the kidnap [m]
+
+
+def stream(bundle, drive: SimulatedDrive, config: SlamConfig) -> list:
+    """The drive's scans fed one by one, each search waited for; (scan, report) with a scan whose search
+    placed the drive reported again."""
+    log = drive.log
+    assert log.scans is not None and log.lidar is not None
+    odometry = dead_reckoning(log).poses
+    projector = make_projector(log.lidar, config, no_return_bounded=False)
+    live = LiveLocalizer(bundle, config)
+    reports = []
+    for i in range(len(log.scans)):
+        reports.append((i, live.add(log.scans.t_s[i], odometry[i], projector.project(log.scans.ranges_m[i]).hits_v)))
+        again = live.wait()
+        if again is not None:
+            reports[-1] = (i, again)
+    live.close()
+    return reports
+
+
+def measure(number: int, config: SlamConfig | None = None) -> dict:
+    """One floor's row (module docstring)."""
+    config = config or SlamConfig(seed=0)
+    name = f"building-{number}"
+    mapped = simulate(name, seed=0, cameras=False)
+    result = run_slam(mapped.log, config)
+    rotation, translation = align_rigid_2d(result.trajectory.poses[:, :2],
+                                           mapped.pose_at(result.trajectory.t_s)[:, :2])
+    drive = simulate(name, seed=1, cameras=False, kidnap=KIDNAP)
+    assert drive.log.scans is not None
+    truth = drive.pose_at(drive.log.scans.t_s)
+    steps = np.hypot(*np.diff(truth[:, :2], axis=0).T)
+    kidnap = int(np.argmax(steps))
+    driven = np.concatenate([[0.0], np.cumsum(np.where(steps > 1.0, 0.0, steps))])  # driven, not carried [m]
+    since = driven - driven[kidnap + 1]
+    reports = stream(result.bundle, drive, config)
+    after = [(i, r) for i, r in reports if i > kidnap]
+    error = {i: float(np.hypot(*(r.pose[:2] @ rotation.T + translation - truth[i, :2]))) for i, r in after
+             if r.pose is not None}
+    lost = next((i for i, r in after if r.state == LOST), None)
+    found = next((i for i, r in after if r.state == FOUND and lost is not None and i > lost), None)
+    return {"building": name, "jump_m": float(steps[kidnap]), "lost_after_m": None if lost is None else since[lost],
+            "found_after_m": None if found is None else since[found],
+            "wrong": sum(r.state == FOUND and error[i] > WRONG_M for i, r in after), "driven_after_m": since[-1]}
+
+
+def table(rows: list[dict]) -> str:
+    """The floors' rows and a summary against the targets (markdown)."""
+    def m(value: float | None) -> str:
+        return "-" if value is None else f"{value:.1f}"
+
+    lines = ["| floor | jump [m] | lost after [m] | found again after [m] | found > 0.3 m off (scans) "
+             "| driven after [m] |", "|---|---|---|---|---|---|"]
+    lines += [f"| {r['building']} | {r['jump_m']:.1f} | {m(r['lost_after_m'])} | {m(r['found_after_m'])} | "
+              f"{r['wrong']} | {r['driven_after_m']:.1f} |" for r in rows]
+    found = [r["found_after_m"] for r in rows if r["found_after_m"] is not None]
+    lines.append(f"\nfound again on {len(found)} of {len(rows)} floors"
+                 + (f" (median {statistics.median(found):.1f} m; target <= {REFIND_TARGET_M:g} m)" if found else "")
+                 + f"; confidently wrong scans {sum(r['wrong'] for r in rows)} (target 0)")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench.kidnap", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--buildings", type=int, default=8, help="made-up floors building-1 .. building-N (default 8)")
+    args = parser.parse_args(argv)
+    if not 1 <= args.buildings <= 99:
+        parser.error("--buildings must be within 1..99")
+    print(table([measure(n) for n in range(1, args.buildings + 1)]))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
