@@ -155,17 +155,22 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
     """``python -m bench`` runs the sessions table after the logs, with its seeds and output folder; not with
     --quick, --no-datasets or --no-sessions. The live table (the simulated car, no datasets) comes last, into
     the same folder; not with --quick or --no-live; the live localisation table right after it, into the same
-    folder; not with --quick or --no-live-localization."""
+    folder; not with --quick or --no-live-localization (the kidnapped robot in made-up floors with it); which
+    map among ten with the datasets, not with --no-which-map."""
     import bench.cases
     import bench.changes
     import bench.harness
+    import bench.kidnap
     import bench.live
     import bench.live_localization
     import bench.peers
     import bench.place_recall
     import bench.sessions
+    import bench.which_map
 
     calls: list = []
+    which_calls: list = []
+    kidnap_calls: list = []
     live_calls: list = []
     localization_calls: list = []
     recall_calls: list = []
@@ -173,6 +178,10 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
     change_calls: list = []
     monkeypatch.setattr(bench.changes, "measure", lambda seed: change_calls.append(seed))
     monkeypatch.setattr(bench.changes, "table", lambda rows: "changes table")
+    monkeypatch.setattr(bench.which_map, "measure", lambda seed, say=print: which_calls.append(seed) or [])
+    monkeypatch.setattr(bench.which_map, "table", lambda rows: "which map table")
+    monkeypatch.setattr(bench.kidnap, "measure", lambda number: kidnap_calls.append(number))
+    monkeypatch.setattr(bench.kidnap, "table", lambda rows: "kidnap table")
     monkeypatch.setattr(bench.live, "run_live_table", lambda out, console: live_calls.append(out))
     monkeypatch.setattr(bench.live_localization, "run_live_localization_table",
                         lambda out, console: localization_calls.append(out))
@@ -194,13 +203,16 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
     for flags, runs_sessions, runs_live in ((["--seeds", "1-2"], True, True), (["--quick"], False, False),
                                             (["--no-sessions"], False, True), (["--no-datasets"], False, True),
                                             (["--seeds", "1-2", "--no-live"], True, False),
-                                            (["--seeds", "1-2", "--no-live-localization"], True, True)):
+                                            (["--seeds", "1-2", "--no-live-localization"], True, True),
+                                            (["--seeds", "1-2", "--no-which-map"], True, True)):
         calls.clear()
         live_calls.clear()
         localization_calls.clear()
         recall_calls.clear()
         peer_calls.clear()
         change_calls.clear()
+        which_calls.clear()
+        kidnap_calls.clear()
         with pytest.raises(SystemExit) as exit_info:
             main([*flags, "--no-simulated", "--out", str(out), str(log)])
         assert exit_info.value.code == 0
@@ -208,8 +220,11 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
         assert live_calls == ([out] if runs_live else []), flags
         runs_localization = "--quick" not in flags and "--no-live-localization" not in flags
         assert localization_calls == ([out] if runs_localization else []), flags
+        assert kidnap_calls == (list(range(1, 9)) if runs_localization else []), flags  # eight made-up floors
         # the place index's recall on the benchmark logs (with the datasets), then Karto side by side
         places = runs_sessions or flags == ["--no-sessions"]
         assert recall_calls == (list(bench.place_recall.DEFAULT_LOGS) if places else []), flags
         assert peer_calls == (["karto"] if "--quick" not in flags else []), flags
         assert change_calls == ([0, 1, 2, 3, 4] if "--quick" not in flags else []), flags  # the simulated office
+        which = places and "--no-which-map" not in flags  # which map among ten: with the datasets
+        assert which_calls == ([0, 1, 2] if which else []), flags
