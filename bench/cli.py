@@ -140,7 +140,8 @@ def accuracy(
         from bench import kidnap
 
         console.print("\n[bold]Kidnapped[/bold] in made-up office floors (python -m bench.kidnap)")
-        console.print(kidnap.table([kidnap.measure(number) for number in range(1, 9)]), highlight=False)
+        console.print(kidnap.table([kidnap.measure(number) for number in range(1, kidnap.FLOORS + 1)]),
+                      highlight=False)
     if places and datasets and not quick:
         from bench import place_recall
 

@@ -17,4 +17,6 @@ def test_a_kidnapped_robot_is_lost_within_metres_and_never_found_wrong() -> None
     assert row["found_after_m"] is None or row["lost_after_m"] < row["found_after_m"] <= row["driven_after_m"]
     text = table([row]).splitlines()
     assert text[2].startswith(f"| building-2 | {row['jump_m']:.1f} | {row['lost_after_m']:.1f} | ")
-    assert text[-1].endswith("confidently wrong scans 0 (target 0)")
+    assert row["foreign_scans"] > 300 and 0 <= row["foreign_found"] <= row["foreign_scans"]
+    assert f"| {row['foreign_found']} of {row['foreign_scans']} |" in text[2]
+    assert "confidently wrong scans 0 (target 0); the next floor's drive found in " in text[-1]
