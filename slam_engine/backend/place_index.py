@@ -28,6 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 
+import numba as nb
 import numpy as np
 
 from slam_engine.backend.correlative import CorrelativeMatch, MatchGrid, lattice_pose, runner_up_score, search
@@ -54,14 +55,50 @@ def describe(points_m: np.ndarray, centre_m: np.ndarray | tuple[float, float], r
     """(RINGS, SECTORS) float32 descriptor of the points (N, 2) [m] around ``centre_m`` (2,), sectors
     measured from the points' +x axis: 1 where a bin holds a point, the neighbour weight where only a
     neighbouring bin does, else 0."""
-    rel = np.asarray(points_m, np.float64) - np.asarray(centre_m, np.float64)[:2]
-    rng = np.hypot(rel[:, 0], rel[:, 1])
-    keep = (rng < radius_m) & (rng > 1e-6)
-    ring = np.minimum((rng[keep] / radius_m * RINGS).astype(np.int64), RINGS - 1)
-    bearing = np.mod(np.arctan2(rel[keep, 1], rel[keep, 0]), 2.0 * np.pi)
-    sector = np.minimum((bearing / SECTOR_RAD).astype(np.int64), SECTORS - 1)
-    hit = np.zeros((RINGS, SECTORS), np.float32)
-    hit[ring, sector] = 1.0
+    return _described(points_m, np.asarray(centre_m, np.float64)[None, :2], radius_m)[0]
+
+
+@nb.njit(cache=True, nogil=True)
+def _bin_points(points_m, order, bucket_starts, width, lo_x, lo_y, cell_m, centres_m, radius_m, hit):
+    """Marks in ``hit`` (P, RINGS, SECTORS) each bin of place p (centre ``centres_m[p]``) that a point within
+    ``radius_m`` of it (not on it) falls in. The points are bucketed on square cells of ``cell_m`` >=
+    ``radius_m`` from (``lo_x``, ``lo_y``), ``width`` a row: ``order[bucket_starts[b]:bucket_starts[b + 1]]``
+    are bucket b's; a place looks in its own bucket and the eight around it."""
+    two_pi = 2.0 * np.pi
+    height = (bucket_starts.shape[0] - 1) // width
+    for p in range(centres_m.shape[0]):
+        cx, cy = centres_m[p, 0], centres_m[p, 1]
+        bx = int(math.floor((cx - lo_x) / cell_m))
+        by = int(math.floor((cy - lo_y) / cell_m))
+        for ny in range(max(by - 1, 0), min(by + 2, height)):
+            for nx in range(max(bx - 1, 0), min(bx + 2, width)):
+                b = ny * width + nx
+                for j in range(bucket_starts[b], bucket_starts[b + 1]):
+                    dx = points_m[order[j], 0] - cx
+                    dy = points_m[order[j], 1] - cy
+                    rng = math.hypot(dx, dy)
+                    if not (rng < radius_m and rng > 1e-6):
+                        continue
+                    ring = min(int(rng / radius_m * RINGS), RINGS - 1)
+                    bearing = math.atan2(dy, dx) % two_pi
+                    sector = min(int(bearing / SECTOR_RAD), SECTORS - 1)
+                    hit[p, ring, sector] = 1.0
+
+
+def _described(points_m: np.ndarray, centres_m: np.ndarray, radius_m: float) -> np.ndarray:
+    """(P, RINGS, SECTORS) float32: :func:`describe` of each centre (P, 2) with the points (N, 2) [m]."""
+    points = np.ascontiguousarray(points_m, np.float64).reshape(-1, 2)
+    centres = np.ascontiguousarray(centres_m, np.float64).reshape(-1, 2)
+    hit = np.zeros((len(centres), RINGS, SECTORS), np.float32)
+    if len(points) and len(centres):
+        lo = points.min(axis=0)
+        cell = float(radius_m) * (1.0 + 1e-9)  # a point within the radius is in the place's bucket or one beside
+        cells = np.floor((points - lo) / cell).astype(np.int64)
+        width = int(cells[:, 0].max()) + 1
+        key = cells[:, 1] * width + cells[:, 0]
+        order = np.argsort(key, kind="stable")
+        starts = np.searchsorted(key[order], np.arange((int(cells[:, 1].max()) + 1) * width + 1))
+        _bin_points(points, order, starts, width, float(lo[0]), float(lo[1]), cell, centres, float(radius_m), hit)
     return _with_neighbours(hit)
 
 
@@ -133,12 +170,7 @@ class PlaceIndex:
         centres = np.asarray(centres_m, np.float64).reshape(-1, 2)
         if len(points) == 0 or len(centres) == 0:
             return cls(np.zeros((0, 2)), np.zeros((0, RINGS, SECTORS), np.float32), radius_m)
-        from scipy.spatial import cKDTree  # here: scipy.spatial costs 0.3 s to import, every run would pay it
-
-        tree = cKDTree(points)
-        near = tree.query_ball_point(centres, radius_m, return_sorted=False)
-        descriptors = np.stack([describe(points[np.asarray(i, np.int64)], c, radius_m)
-                                for c, i in zip(centres, near, strict=True)])
+        descriptors = _described(points, centres, radius_m)
         keep = (descriptors == 1.0).sum(axis=(1, 2)) >= MIN_BINS
         return cls(centres[keep], descriptors[keep], radius_m)
 
