@@ -42,6 +42,7 @@ SECTOR_RAD = 2.0 * math.pi / SECTORS
 # little off the place's centre, or turned between two sectors, still overlaps it
 NEIGHBOUR_WEIGHT = 0.5
 MIN_BINS = 12  # a place or a query with fewer occupied bins describes nothing
+BUCKETS_PER_RADIUS = 4  # binning places: the points bucketed on cells of a quarter of the radius
 DEDUPE_CELL_M = 0.1  # points are kept once per cell of this size before binning (density does not count)
 # candidates closer than this [m] (and turned less than SUPPRESS_RAD) to a better one are the same place
 SUPPRESS_M, SUPPRESS_RAD = 3.0, 0.5
@@ -59,19 +60,24 @@ def describe(points_m: np.ndarray, centre_m: np.ndarray | tuple[float, float], r
 
 
 @nb.njit(cache=True, nogil=True)
-def _bin_points(points_m, order, bucket_starts, width, lo_x, lo_y, cell_m, centres_m, radius_m, hit):
+def _bin_points(points_m, order, bucket_starts, width, lo_x, lo_y, cell_m, reach, centres_m, radius_m, hit):
     """Marks in ``hit`` (P, RINGS, SECTORS) each bin of place p (centre ``centres_m[p]``) that a point within
-    ``radius_m`` of it (not on it) falls in. The points are bucketed on square cells of ``cell_m`` >=
-    ``radius_m`` from (``lo_x``, ``lo_y``), ``width`` a row: ``order[bucket_starts[b]:bucket_starts[b + 1]]``
-    are bucket b's; a place looks in its own bucket and the eight around it."""
+    ``radius_m`` of it (not on it) falls in. The points are bucketed on square cells of ``cell_m`` from
+    (``lo_x``, ``lo_y``), ``width`` a row: ``order[bucket_starts[b]:bucket_starts[b + 1]]`` are bucket b's; a
+    place looks in the buckets up to ``reach`` (``reach * cell_m`` >= ``radius_m``) from its own that come
+    within the radius."""
     two_pi = 2.0 * np.pi
     height = (bucket_starts.shape[0] - 1) // width
     for p in range(centres_m.shape[0]):
         cx, cy = centres_m[p, 0], centres_m[p, 1]
         bx = int(math.floor((cx - lo_x) / cell_m))
         by = int(math.floor((cy - lo_y) / cell_m))
-        for ny in range(max(by - 1, 0), min(by + 2, height)):
-            for nx in range(max(bx - 1, 0), min(bx + 2, width)):
+        for ny in range(max(by - reach, 0), min(by + reach + 1, height)):
+            gap_y = max(lo_y + ny * cell_m - cy, cy - (lo_y + (ny + 1) * cell_m), 0.0)
+            for nx in range(max(bx - reach, 0), min(bx + reach + 1, width)):
+                gap_x = max(lo_x + nx * cell_m - cx, cx - (lo_x + (nx + 1) * cell_m), 0.0)
+                if gap_x * gap_x + gap_y * gap_y > radius_m * radius_m * (1.0 + 1e-9):
+                    continue  # the bucket lies wholly beyond the radius
                 b = ny * width + nx
                 for j in range(bucket_starts[b], bucket_starts[b + 1]):
                     dx = points_m[order[j], 0] - cx
@@ -92,13 +98,14 @@ def _described(points_m: np.ndarray, centres_m: np.ndarray, radius_m: float) -> 
     hit = np.zeros((len(centres), RINGS, SECTORS), np.float32)
     if len(points) and len(centres):
         lo = points.min(axis=0)
-        cell = float(radius_m) * (1.0 + 1e-9)  # a point within the radius is in the place's bucket or one beside
+        cell = float(radius_m) / BUCKETS_PER_RADIUS
         cells = np.floor((points - lo) / cell).astype(np.int64)
         width = int(cells[:, 0].max()) + 1
         key = cells[:, 1] * width + cells[:, 0]
         order = np.argsort(key, kind="stable")
         starts = np.searchsorted(key[order], np.arange((int(cells[:, 1].max()) + 1) * width + 1))
-        _bin_points(points, order, starts, width, float(lo[0]), float(lo[1]), cell, centres, float(radius_m), hit)
+        _bin_points(points, order, starts, width, float(lo[0]), float(lo[1]), cell, BUCKETS_PER_RADIUS + 1, centres,
+                    float(radius_m), hit)
     return _with_neighbours(hit)
 
 
