@@ -31,9 +31,9 @@ REFIND_TARGET_M = 10.0  # found again within this much driving after the kidnap 
 FLOORS = 8  # building-1 .. building-8
 
 
-def stream(bundle, drive: SimulatedDrive, config: SlamConfig) -> list:
-    """The drive's scans fed one by one, each search waited for; (scan, report) with a scan whose search
-    placed the drive reported again."""
+def stream(bundle, drive: SimulatedDrive, config: SlamConfig) -> tuple[LiveLocalizer, list]:
+    """The drive's scans fed one by one, each search waited for (as if it took no time): the localiser and
+    (scan, report) per scan, a scan whose search placed the drive with that report."""
     log = drive.log
     assert log.scans is not None and log.lidar is not None
     odometry = dead_reckoning(log).poses
@@ -46,7 +46,7 @@ def stream(bundle, drive: SimulatedDrive, config: SlamConfig) -> list:
         if again is not None:
             reports[-1] = (i, again)
     live.close()
-    return reports
+    return live, reports
 
 
 def measure(number: int, config: SlamConfig | None = None) -> dict:
@@ -64,7 +64,7 @@ def measure(number: int, config: SlamConfig | None = None) -> dict:
     kidnap = int(np.argmax(steps))
     driven = np.concatenate([[0.0], np.cumsum(np.where(steps > 1.0, 0.0, steps))])  # driven, not carried [m]
     since = driven - driven[kidnap + 1]
-    reports = stream(result.bundle, drive, config)
+    _, reports = stream(result.bundle, drive, config)
     after = [(i, r) for i, r in reports if i > kidnap]
     error = {i: float(np.hypot(*(r.pose[:2] @ rotation.T + translation - truth[i, :2]))) for i, r in after
              if r.pose is not None}
@@ -74,7 +74,7 @@ def measure(number: int, config: SlamConfig | None = None) -> dict:
     return {"building": name, "jump_m": float(steps[kidnap]), "lost_after_m": None if lost is None else since[lost],
             "found_after_m": None if found is None else since[found],
             "wrong": sum(r.state == FOUND and error[i] > WRONG_M for i, r in after), "driven_after_m": since[-1],
-            "foreign_found": sum(r.state == FOUND for _, r in stream(result.bundle, foreign, config)),
+            "foreign_found": sum(r.state == FOUND for _, r in stream(result.bundle, foreign, config)[1]),
             "foreign_scans": len(foreign.log.scans or [])}
 
 

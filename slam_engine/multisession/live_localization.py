@@ -94,7 +94,6 @@ class LiveLocalizer:
         self._search: Future | None = None
         self._search_from = 0  # the first scan the next search may start a stretch at
         self._hypothesis: tuple[int, np.ndarray] | None = None  # a lost drive's first placement again
-        self._confirmed_from = 0  # the first scan of the stretch that confirmed the last placement
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="live-localization")
         self._lock = threading.Lock()
 
@@ -188,12 +187,12 @@ class LiveLocalizer:
         drive = DriveScans(np.array(self.t_s), np.array(self.own), list(self.hits))
         self._search = self._pool.submit(self._placed, drive, self._search_from)
 
-    def _placed(self, drive: DriveScans, first_allowed: int) -> tuple[int, np.ndarray, float] | None:
+    def _placed(self, drive: DriveScans, first_allowed: int) -> tuple[int, np.ndarray, float, int] | None:
         """In the background: a stretch of ``drive`` (the scans so far, from ``first_allowed`` on) placed
         over the whole map and confirmed by the next one, among those ending where the drive is now: two,
         four and nine stretches long (room for a first stretch grown twice and four times while ambiguous,
         and its confirmation), the shortest first; then tracked forward to the drive's last scan. (that
-        scan, its map pose, its match score there) or None."""
+        scan, its map pose, its match score there, the first scan of the stretch that confirmed it) or None."""
         c = self.config.localization
         localizer = Localizer(self.index, drive, c, self.threads)
         travel = drive.travel_m
@@ -210,7 +209,6 @@ class LiveLocalizer:
                 self.failed_tries[localizer._why] = self.failed_tries.get(localizer._why, 0) + 1
                 continue
             _, last, pose = placement
-            self._confirmed_from = last + 1  # the confirming stretch: a lost drive's next placement may start it
             poses = np.full((len(drive), 3), np.nan)
             confidence, tracked = np.zeros(len(drive)), np.zeros(len(drive), bool)
             poses[last] = pose
@@ -219,7 +217,7 @@ class LiveLocalizer:
                 confidence[last] = 0.0 if math.isnan(score) else score
             for j in range(last + 1, len(drive)):
                 localizer.step(poses, confidence, tracked, j, j - 1)
-            return len(drive) - 1, poses[-1], float(confidence[-1])
+            return len(drive) - 1, poses[-1], float(confidence[-1]), last + 1
         return None
 
     def _take_search(self) -> LivePose | None:
@@ -233,9 +231,9 @@ class LiveLocalizer:
         outcome = future.result()
         if outcome is None:
             return None
-        at, pose, confidence = outcome
+        at, pose, confidence, confirmed_from = outcome
         was_lost = self.state == LOST
-        if was_lost and not self._agrees_with_hypothesis(at, pose):
+        if was_lost and not self._agrees_with_hypothesis(at, pose, confirmed_from):
             return None  # kept as the hypothesis a later, disjoint search must agree with
         self.poses[at] = pose
         self._last_tracked, self._unmatched_m = at, 0.0
@@ -246,15 +244,15 @@ class LiveLocalizer:
             report = self._track(j)
         return report
 
-    def _agrees_with_hypothesis(self, at: int, pose: np.ndarray) -> bool:
+    def _agrees_with_hypothesis(self, at: int, pose: np.ndarray, confirmed_from: int) -> bool:
         """Whether a lost drive's placement of scan ``at`` agrees with the one before it (carried here by the
         drive's own motion, within ``agree_m`` / ``agree_rad`` and 5 % of the travel between them): a
         drive found again must be placed twice, on disjoint stretches, in one place (a building's look-alike
         rooms can place one stretch and its confirmation both in the wrong room). Else the placement
-        becomes the hypothesis, and the next search starts after it."""
+        becomes the hypothesis, and the next search starts at its confirming stretch (``confirmed_from``)."""
         c = self.config.localization
         hypothesis, self._hypothesis = self._hypothesis, (at, pose)
-        self._search_from = self._confirmed_from
+        self._search_from = confirmed_from
         if hypothesis is None:
             return False
         then, then_pose = hypothesis

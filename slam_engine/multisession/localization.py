@@ -158,19 +158,14 @@ class MapIndex:
     places: PlaceIndex | None = None  # what :mod:`~slam_engine.multisession.which_map` ranks maps by
 
     @classmethod
-    def of_bundle(cls, bundle: MapBundle, config: LocalizationConfig, place_config: PlaceIndexConfig | None = None,
-                  places: PlaceIndex | None = None) -> MapIndex:
-        """The bundle's index; with ``place_config``, its places too
-        (:func:`~slam_engine.backend.place_index.map_places`); ``places``: the bundle's, when already made
-        (:func:`map_places_of`)."""
+    def of_bundle(cls, bundle: MapBundle, config: LocalizationConfig, places: PlaceIndex | None = None) -> MapIndex:
+        """The bundle's index, holding ``places`` (:func:`map_places_of`) when given."""
         points_m = map_points(bundle)
         coarse = match_grid_from_points(points_m, max(config.search_resolution_m, bundle.resolution_m), 1.0,
                                         n_levels=COARSE_LEVELS)
         fine = match_grid_from_points(points_m, bundle.resolution_m, 1.0, n_levels=FINE_LEVELS)
         coverage = Coverage.of_bundle(bundle)
         origins = max_pyramid(coverage.near_cells_of(coarse, ORIGIN_REACH_M).astype(np.uint8), coarse.n_levels)
-        if places is None and place_config is not None:
-            places = map_places(points_m, bundle.poses[:, :2], coverage.covers, place_config)
         return cls(coarse, fine, coverage, origins, places)
 
 

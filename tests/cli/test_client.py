@@ -5,10 +5,7 @@ from __future__ import annotations
 
 import io
 import os
-import socket
-import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -18,18 +15,12 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from api_schemas.jobs import JobCreate, JobStatus
+from bench.serve_process import free_port, serving
 from lidarmap.cli import app
 from lidarmap.client import ApiError, LidarmapClient
 
 ROOT = Path(__file__).resolve().parents[2]
 ROOM_JOB = "viewer_job_functions:synthetic_room"  # every product of a known room, no SLAM (fast)
-STARTUP_LIMIT_S = 120.0  # a bound on the wait for the server's /healthz, not a speed target
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def start_service(data_dir: Path, job_function: str | None) -> Iterator[str]:
@@ -37,27 +28,8 @@ def start_service(data_dir: Path, job_function: str | None) -> Iterator[str]:
     path = [str(ROOT), str(ROOT / "tests"), str(ROOT / "tests" / "service")]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(path)}
     args = [sys.executable, str(ROOT / "tests" / "service" / "live_server.py"), str(data_dir), str(port)]
-    server = subprocess.Popen(args + ([job_function] if job_function else []), env=env)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + STARTUP_LIMIT_S
-        while True:
-            assert server.poll() is None, f"the service exited with {server.returncode}"
-            try:
-                if httpx.get(f"{url}/healthz", timeout=2.0).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert time.monotonic() < deadline, f"the service did not answer /healthz in {STARTUP_LIMIT_S} s"
-            time.sleep(0.1)
-        yield url
-    finally:
-        server.terminate()
-        try:
-            server.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            server.kill()
-            server.wait()
+    with serving(args + ([job_function] if job_function else []), env, port, quiet=False):
+        yield f"http://127.0.0.1:{port}"
 
 
 @pytest.fixture(scope="module")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from bench.kidnap import stream
 from slam_engine.config import SlamConfig
 from slam_engine.evaluation.metrics import align_rigid_2d
 from slam_engine.frontend.odometry import dead_reckoning
@@ -27,21 +28,8 @@ def office_map():
 
 
 def _stream(bundle, drive):
-    """The drive's scans fed one by one, each search waited for (as if it took no time): a scan whose search
-    placed the drive is reported again, and that report kept."""
-    log = drive.log
-    odometry = dead_reckoning(log).poses
-    projector = make_projector(log.lidar, CONFIG, no_return_bounded=False)
-    live = LiveLocalizer(bundle, CONFIG)
-    reports = []
-    for i in range(len(log.scans)):
-        hits = projector.project(log.scans.ranges_m[i]).hits_v
-        reports.append((int(i), live.add(log.scans.t_s[i], odometry[i], hits)))
-        again = live.wait()
-        if again is not None:
-            reports[-1] = (int(i), again)
-    live.close()
-    return live, reports
+    """The drive's scans fed one by one, each search waited for: the localiser and (scan, report) per scan."""
+    return stream(bundle, drive, CONFIG)
 
 
 def _errors(reports, drive, rotation, translation):

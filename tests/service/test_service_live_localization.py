@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import threading
+from typing import Any
 
 import numpy as np
 import pytest
@@ -38,24 +39,15 @@ def _sse(lines) -> list[dict]:
 def test_a_live_localisation_reports_each_scan_as_it_arrives(tmp_path) -> None:
     before = simulate("office", seed=0, cameras=False)
     later = simulate("office", seed=1, cameras=False)
-    mapped_log = write_simulated(before, "carmen", tmp_path / "before")
-    streamed = load_log(write_simulated(later, "carmen", tmp_path / "later"))
-    messages = messages_of_log(streamed)
-    chunks = [messages[i:i + 40] for i in range(0, len(messages), 40)]
     with service_client(tmp_path / "data", workers=2) as client:
-        sid = new_session(client, calibration=calibration_from_log(streamed))
-        with mapped_log.open("rb") as f:
-            client.post(f"/v1/sessions/{sid}/logs", files={"file": (mapped_log.name, f)})
-        mapped = client.post(f"/v1/sessions/{sid}/jobs", json={"particles": 10}).json()
-        done = wait_for(client, mapped["id"], timeout_s=300)
-        assert done["status"] == "succeeded", done
+        sid, map_job, chunks, streamed = _map_and_stream(client, tmp_path, before, later)
 
         jobs = f"/v1/sessions/{sid}/jobs"
         assert "name it as 'map_job_id'" in assert_error(client.post(jobs, json={"live": True, "mode": "localize"}),
                                                          422)["message"]
-        assert_error(client.post(jobs, json={"live": True, "mode": "extend", "map_job_id": mapped["id"]}), 422)
-        assert_error(client.get(f"/v1/jobs/{mapped['id']}/poses"), 404)
-        live = client.post(jobs, json={"live": True, "mode": "localize", "map_job_id": mapped["id"],
+        assert_error(client.post(jobs, json={"live": True, "mode": "extend", "map_job_id": map_job}), 422)
+        assert_error(client.get(f"/v1/jobs/{map_job}/poses"), 404)
+        live = client.post(jobs, json={"live": True, "mode": "localize", "map_job_id": map_job,
                                        "idle_timeout_s": 60}).json()
         assert live["live"] and live["mode"] == "localize"
 
@@ -97,7 +89,7 @@ def test_a_live_localisation_reports_each_scan_as_it_arrives(tmp_path) -> None:
         assert states[first:].count("found") >= 0.95 * (len(states) - first)
         assert all(p["latency_s"] >= 0 and p["seq"] is not None for p in poses[:-5])
         # the found poses where the simulator says the robot was (the map's frame carried onto the world)
-        trajectory = client.get(f"/v1/jobs/{mapped['id']}/trajectory").json()["poses"]
+        trajectory = client.get(f"/v1/jobs/{map_job}/trajectory").json()["poses"]
         t = np.array([p["t_s"] for p in trajectory])
         rotation, translation = align_rigid_2d(np.array([[p["x_m"], p["y_m"]] for p in trajectory]),
                                                before.pose_at(t)[:, :2])
@@ -122,13 +114,11 @@ def test_a_live_localisation_reports_each_scan_as_it_arrives(tmp_path) -> None:
         assert [json.loads(line) for line in lines] == poses
 
 
-def _short_map_and_stream(client, tmp_path, map_s: float, drive_s: float) -> tuple[str, str, list[list[dict]]]:
-    """The office's first ``map_s`` mapped from an upload, and the office driven again (seed 1, its first
-    ``drive_s``) as chunks of 40 messages: (session, saved map's job, chunks)."""
-    mapped_log = write_simulated(simulate("office", seed=0, cameras=False, max_duration_s=map_s), "carmen",
-                                 tmp_path / "before")
-    streamed = load_log(write_simulated(simulate("office", seed=1, cameras=False, max_duration_s=drive_s), "carmen",
-                                        tmp_path / "later"))
+def _map_and_stream(client, tmp_path, before, later) -> tuple[str, str, list[list[dict]], Any]:
+    """The simulated drive ``before`` mapped from an upload, and ``later`` as chunks of 40 messages: (session,
+    saved map's job, chunks, ``later``'s log as the stream carries it)."""
+    mapped_log = write_simulated(before, "carmen", tmp_path / "before")
+    streamed = load_log(write_simulated(later, "carmen", tmp_path / "later"))
     messages = messages_of_log(streamed)
     sid = new_session(client, calibration=calibration_from_log(streamed))
     with mapped_log.open("rb") as f:
@@ -136,7 +126,16 @@ def _short_map_and_stream(client, tmp_path, map_s: float, drive_s: float) -> tup
     mapped = client.post(f"/v1/sessions/{sid}/jobs", json={"particles": 10}).json()
     done = wait_for(client, mapped["id"], timeout_s=300)
     assert done["status"] == "succeeded", done
-    return sid, mapped["id"], [messages[i:i + 40] for i in range(0, len(messages), 40)]
+    return sid, mapped["id"], [messages[i:i + 40] for i in range(0, len(messages), 40)], streamed
+
+
+def _short_map_and_stream(client, tmp_path, map_s: float, drive_s: float) -> tuple[str, str, list[list[dict]]]:
+    """The office's first ``map_s`` mapped from an upload, and the office driven again (seed 1, its first
+    ``drive_s``) as chunks of 40 messages: (session, saved map's job, chunks)."""
+    sid, map_job, chunks, _ = _map_and_stream(client, tmp_path,
+                                              simulate("office", seed=0, cameras=False, max_duration_s=map_s),
+                                              simulate("office", seed=1, cameras=False, max_duration_s=drive_s))
+    return sid, map_job, chunks
 
 
 def test_a_live_localisation_says_when_it_is_ready_and_counts_latency_from_then(tmp_path) -> None:
