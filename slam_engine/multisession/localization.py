@@ -155,18 +155,17 @@ class MapIndex:
     fine: MatchGrid
     coverage: Coverage
     origins: np.ndarray
-    places: PlaceIndex | None = None  # what :mod:`~slam_engine.multisession.which_map` ranks maps by
 
     @classmethod
-    def of_bundle(cls, bundle: MapBundle, config: LocalizationConfig, places: PlaceIndex | None = None) -> MapIndex:
-        """The bundle's index, holding ``places`` (:func:`map_places_of`) when given."""
+    def of_bundle(cls, bundle: MapBundle, config: LocalizationConfig) -> MapIndex:
+        """The bundle's index."""
         points_m = map_points(bundle)
         coarse = match_grid_from_points(points_m, max(config.search_resolution_m, bundle.resolution_m), 1.0,
                                         n_levels=COARSE_LEVELS)
         fine = match_grid_from_points(points_m, bundle.resolution_m, 1.0, n_levels=FINE_LEVELS)
         coverage = Coverage.of_bundle(bundle)
         origins = max_pyramid(coverage.near_cells_of(coarse, ORIGIN_REACH_M).astype(np.uint8), coarse.n_levels)
-        return cls(coarse, fine, coverage, origins, places)
+        return cls(coarse, fine, coverage, origins)
 
 
 def map_points(bundle: MapBundle) -> np.ndarray:

@@ -130,7 +130,7 @@ def localize_in_maps(maps: Sequence[tuple[str, MapBundle]], log: DriveLog, confi
     chosen, result = None, None
     for i in order:
         t0 = time.perf_counter()
-        index = MapIndex.of_bundle(maps[i][1], config.localization, places=made[i])
+        index = MapIndex.of_bundle(maps[i][1], config.localization)
         placed = Localizer(index, drive, config.localization, threads, OwnLoops.of(config)).run()
         tries[i].localised, tries[i].best_score = placed.localised, placed.best_score
         tries[i].seconds += time.perf_counter() - t0
