@@ -142,6 +142,8 @@ def accuracy(
         console.print("\n[bold]Kidnapped[/bold] in made-up office floors (python -m bench.kidnap)")
         console.print(kidnap.table([kidnap.measure(number) for number in range(1, kidnap.FLOORS + 1)]),
                       highlight=False)
+        console.print("\nKidnapped in the simulated office, nearly symmetric under a half turn")
+        console.print(kidnap.office_table(kidnap.office_rows()), highlight=False)
     if places and datasets and not quick:
         from bench import place_recall
 

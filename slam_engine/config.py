@@ -191,6 +191,15 @@ class LocalizationConfig(_Section):
     agree_m: float = Field(0.3, gt=0.0, le=10.0, description="The second stretch's placement agrees with the "
                            "first (tracked to it) within this distance [m] ...")
     agree_rad: float = Field(0.1, gt=0.0, le=3.2, description="... and this heading difference [rad].")
+    max_seen_through: float = Field(0.1, ge=0.0, le=1.0, description="A placement (both stretches) is refused "
+                                    "when more than this share of its end points on cells the map observed fall "
+                                    "where the map saw free space, seen_through_margin_m or more from anything "
+                                    "else: the drive's walls stand in the map's rooms (a look-alike building).")
+    seen_through_margin_m: float = Field(0.2, ge=0.0, le=5.0, description="See max_seen_through [m].")
+    max_seen_through_track: float = Field(0.3, ge=0.0, le=1.0, description="A live localisation's scan is not "
+                                          "found when more than this share of the end points of the scans matched "
+                                          "over its last 2 m fall where the map saw free space (see "
+                                          "max_seen_through): a robot carried off to a look-alike place.")
     track_window_m: float = Field(0.5, gt=0.0, le=10.0, description="Each scan is searched for within this "
                                   "distance of where the odometry puts it [m] ...")
     track_window_rad: float = Field(0.3, gt=0.0, le=3.2, description="... and this turn [rad].")
@@ -226,6 +235,9 @@ class LocalizationConfig(_Section):
                                      "judge but none matched, and searches the whole map again: a robot carried "
                                      "off is found again within a few metres (a finished drive waits "
                                      "lost_after_m: it has the scans after to judge by).")
+    live_stretch_m: float = Field(2.0, gt=0.0, le=100.0, description="stretch_m of a live localisation's "
+                                  "searches [m]: shorter, to place the drive sooner (a finished drive's "
+                                  "localisation keeps 4 m: its re-finds in aces-rough-b are fewer with 2-3 m).")
     own_loops: bool = Field(True, description="Close the drive's own loops (see own_loops_after_m); off: a "
                             "drive out of the map is carried by its scan-to-scan matches alone.")
 

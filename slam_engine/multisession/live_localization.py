@@ -4,7 +4,7 @@ The same search and tracking as a whole drive's localisation (:mod:`~slam_engine
 taken scan by scan. Each scan is matched to the drive's recent scans (:class:`ScanJoiner`), then:
 
 - **searching** (not placed yet, or lost): the drive is searched for over the whole map in a background
-  thread, on the drive's scans so far (since its last match, when lost): a stretch of ``stretch_m`` of
+  thread, on the drive's scans so far (since its last match, when lost): a stretch of ``live_stretch_m`` of
   travel, placed unambiguously and confirmed by the next stretch (grown while ambiguous, as far as the
   drive goes). The scans meanwhile are reported without a pose (or,
   when lost, where the drive's own motion carries it, with confidence 0). A placement is tracked forward
@@ -13,11 +13,12 @@ taken scan by scan. Each scan is matched to the drive's recent scans (:class:`Sc
 - **carried**: it did not match, though the map could judge it: placed by the drive's own motion, not
   confidently; after ``live_lost_after_m`` of such travel the drive is **lost** and searched for again
   (carried by its motion meanwhile, confidence 0): a robot carried off (kidnapped) is noticed there, and
-  its poses are never reported as found meanwhile. A scan whose score drops below ``SCORE_DROP_SHARE`` of
-  the found scan before it is carried too (the first scan after a kidnap can still fit, weakly, where the
-  robot was). It is found again when two searches on disjoint stretches place it in one place (look-alike
-  rooms can hold one stretch and its confirmation), the second one's starting at the first one's
-  confirming stretch;
+  its poses are never reported as found meanwhile. A scan whose score drops sharply below the last found
+  scan's is carried too, until a scan scores near that level again (the first scans after a kidnap can
+  still fit, weakly, near where the robot was), and so is one while the returns of the scans matched over
+  the last 2 m fall where the map saw free space (a look-alike place: its walls fit, its furniture and
+  doors do not). A lost drive is found again by a search, whose placement the map's free space must not
+  contradict either (``max_seen_through``);
 - **outside**: the scan falls where the map never saw: carried by the drive's own motion, not lost.
 
 Poses are those of the moment (no smoothing with later scans: a finished drive's batch localisation
@@ -29,15 +30,17 @@ from __future__ import annotations
 
 import math
 import threading
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
+from slam_engine.backend.loop_closer import thin
 from slam_engine.config import SlamConfig
 from slam_engine.model.map_bundle import MapBundle
-from slam_engine.model.poses import compose, relative
-from slam_engine.multisession.localization import DriveScans, Localizer, MapIndex, ScanJoiner
+from slam_engine.model.poses import compose, place_points, relative
+from slam_engine.multisession.localization import TRACK_POINTS, DriveScans, Localizer, MapIndex, ScanJoiner
 
 SEARCHING, FOUND, CARRIED, OUTSIDE, LOST = "searching", "found", "carried", "outside", "lost"
 STATES = (SEARCHING, FOUND, CARRIED, OUTSIDE, LOST)
@@ -45,7 +48,15 @@ STATES = (SEARCHING, FOUND, CARRIED, OUTSIDE, LOST)
 # (kidnapped) whose first scan there still fits where it was, weakly (0.55 after 1.00 in a made-up floor); the
 # sharpest drop of a drive tracked in its own building was to 0.53 of the scan before (intel-b, once in 278)
 SCORE_DROP_SHARE = 0.6
-HYPOTHESIS_SLACK = 0.05  # two placements of a lost drive agree within agree_m and this share of the travel between
+# ... and the drive is found again by tracking only once a scan scores this share of the scan before the drop
+# (carried off to a look-alike place, the office's scans scored 0.5-0.84 after 1.00), else by a search
+RECOVER_SHARE = 0.9
+# a drop is SEEN_DROP_SHARE where the scan's returns also fall where the map saw free space (the office's
+# look-alike rooms: 0.67 after 1.00, a quarter of its returns seen through)
+SEEN_DROP_SHARE = 0.8
+# a found scan is judged with the scans matched over this much travel before it [m] (one scan's returns can
+# fall on free space for a moment: people, a door, trees), when they hold this many end points on observed cells
+SEEN_THROUGH_SPAN_M, SEEN_THROUGH_MIN_POINTS = 2.0, 100
 
 
 @dataclass(frozen=True)
@@ -75,6 +86,7 @@ class LiveLocalizer:
         c = self.config.localization
         self.index = index if index is not None else MapIndex.of_bundle(bundle, c)
         self.threads = max(1, int(threads))
+        self._searching = c.model_copy(update={"stretch_m": c.live_stretch_m})  # the searches' settings
         self.joiner = ScanJoiner(c.local_map_resolution_m, c.local_map_m)
         self.t_s: list[float] = []
         self.hits: list[np.ndarray] = []
@@ -93,7 +105,9 @@ class LiveLocalizer:
         self._next_try_m = 0.0  # the travel at which the next search may start [m]
         self._search: Future | None = None
         self._search_from = 0  # the first scan the next search may start a stretch at
-        self._hypothesis: tuple[int, np.ndarray] | None = None  # a lost drive's first placement again
+        self._found_score: float | None = None  # the last found scan's score (None: lost, or never found)
+        self._dropped_from: float | None = None  # the found scan's score before a sudden drop, until recovered
+        self._through: deque[tuple[float, int, int]] = deque()  # matched scans: (travel, seen through, judged)
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="live-localization")
         self._lock = threading.Lock()
 
@@ -152,14 +166,16 @@ class LiveLocalizer:
         moved = pose - predicted
         if untracked_m > c.live_lost_after_m:  # back from afar: a match is a placement, scored as one
             ok = not uncovered and score >= c.min_score
+            ok = ok and not self._seen_through(k, pose)[1]
         else:
             nudged = math.hypot(moved[0], moved[1]) <= c.nudge_m and abs(float(moved[2])) <= c.nudge_rad
             ok = not uncovered and (score >= c.track_min_score or (score >= c.nudge_min_score and nudged))
-            last = self.reports[k - 1] if k - 1 < len(self.reports) else None
-            if ok and last is not None and last.state == FOUND and score < SCORE_DROP_SHARE * last.confidence:
-                ok = False  # a sudden drop: carried off, more likely than the map's fit falling apart in a step
+            if ok:
+                own_share, contradicted = self._seen_through(k, pose)
+                ok = self._kept_its_level(score, own_share) and not contradicted
         if ok:
             self.poses[k], self._last_tracked, self._unmatched_m = pose, k, 0.0
+            self._found_score = float(score)
             self.state = FOUND
             return LivePose(k, self.t_s[k], pose.copy(), float(score), FOUND)
         self.poses[k] = predicted
@@ -170,30 +186,67 @@ class LiveLocalizer:
             self._event("lost", k)
             self._next_try_m = self.travel[k]
             self._search_from = self._last_tracked + 1  # carried off after its last match, if at all
-            self._hypothesis = None
+            self._dropped_from, self._found_score = None, None
         else:
             self.state = OUTSIDE if uncovered else CARRIED
         return LivePose(k, self.t_s[k], predicted.copy(), 0.0, self.state)
 
+    def _kept_its_level(self, score: float, seen_through: float) -> bool:
+        """Whether a scan that matched near where its motion put it (``score``; ``seen_through``: the share of
+        its returns on the map's deep free space) scores as the found scans before it did: a robot carried
+        off to a place that looks alike still matches, weakly, near where it was. A score below
+        SCORE_DROP_SHARE of the last found scan's (SEEN_DROP_SHARE where more than ``max_seen_through`` of its
+        returns are seen through) is a drop; after a drop the drive is found again by tracking only once a
+        scan scores RECOVER_SHARE of the level it dropped from (else by a search, once lost)."""
+        if self._dropped_from is not None:
+            if score < RECOVER_SHARE * self._dropped_from:
+                return False
+            self._dropped_from = None
+            return True
+        if self._found_score is None:
+            return True
+        share = SEEN_DROP_SHARE if seen_through > self.config.localization.max_seen_through else SCORE_DROP_SHARE
+        if score < share * self._found_score:
+            self._dropped_from = self._found_score
+            return False
+        return True
+
+    def _seen_through(self, k: int, pose: np.ndarray) -> tuple[float, bool]:
+        """(the share of scan k's returns, at ``pose``, that fall in the map's deep free space
+        (:meth:`MapIndex.seen_through`), whether the scans that matched over the last SEEN_THROUGH_SPAN_M of
+        travel, scan k among them, have more than ``max_seen_through_track`` of theirs there): a robot carried
+        off to a place that looks alike (the office's rooms under a half turn) can go on matching there, walls
+        and all, but its furniture and doors stand where the map saw free space."""
+        c = self.config.localization
+        through, judged = self.index.seen_through(place_points(pose, thin(self.hits[k], TRACK_POINTS)))
+        self._through.append((self.travel[k], through, judged))
+        while self._through[0][0] < self.travel[k] - SEEN_THROUGH_SPAN_M:
+            self._through.popleft()
+        all_through = sum(counts[1] for counts in self._through)
+        all_judged = sum(counts[2] for counts in self._through)
+        return (through / judged if judged else 0.0,
+                all_judged >= SEEN_THROUGH_MIN_POINTS and all_through > c.max_seen_through_track * all_judged)
+
     # --- searching --------------------------------------------------------------------------------
     def _maybe_search(self) -> None:
         """Start a search in the background when the drive is searching or lost, none runs, and it went
-        ``stretch_m`` since the last one began."""
+        ``live_stretch_m`` since the last one began."""
         c = self.config.localization
         k = len(self.t_s) - 1
         if self.state not in (SEARCHING, LOST) or self._search is not None or self.travel[k] < self._next_try_m:
             return
-        self._next_try_m = self.travel[k] + c.stretch_m
+        self._next_try_m = self.travel[k] + c.live_stretch_m
         drive = DriveScans(np.array(self.t_s), np.array(self.own), list(self.hits))
         self._search = self._pool.submit(self._placed, drive, self._search_from)
 
-    def _placed(self, drive: DriveScans, first_allowed: int) -> tuple[int, np.ndarray, float, int] | None:
+    def _placed(self, drive: DriveScans, first_allowed: int) -> tuple[int, np.ndarray, float] | None:
         """In the background: a stretch of ``drive`` (the scans so far, from ``first_allowed`` on) placed
         over the whole map and confirmed by the next one, among those ending where the drive is now: two,
         four and nine stretches long (room for a first stretch grown twice and four times while ambiguous,
-        and its confirmation), the shortest first; then tracked forward to the drive's last scan. (that
-        scan, its map pose, its match score there, the first scan of the stretch that confirmed it) or None."""
-        c = self.config.localization
+        and its confirmation), the shortest first; then tracked forward to the drive's last scan. (the last
+        scan that tracking matched, its map pose, its match score there) or None; the scans after it are
+        tracked as they come (:meth:`_take_search`)."""
+        c = self._searching
         localizer = Localizer(self.index, drive, c, self.threads)
         travel = drive.travel_m
         candidates: list[int] = []
@@ -212,12 +265,12 @@ class LiveLocalizer:
             poses = np.full((len(drive), 3), np.nan)
             confidence, tracked = np.zeros(len(drive)), np.zeros(len(drive), bool)
             poses[last] = pose
-            if last == len(drive) - 1:  # placed at the newest scan itself: its score at the placement
-                _, score = localizer.track(last, pose)
-                confidence[last] = 0.0 if math.isnan(score) else score
+            _, score = localizer.track(last, pose)  # the placed scan's score there
+            confidence[last], tracked[last] = (0.0 if math.isnan(score) else score), True
             for j in range(last + 1, len(drive)):
                 localizer.step(poses, confidence, tracked, j, j - 1)
-            return len(drive) - 1, poses[-1], float(confidence[-1]), last + 1
+            at = int(np.flatnonzero(tracked)[-1])
+            return at, poses[at], float(confidence[at])
         return None
 
     def _take_search(self) -> LivePose | None:
@@ -231,38 +284,18 @@ class LiveLocalizer:
         outcome = future.result()
         if outcome is None:
             return None
-        at, pose, confidence, confirmed_from = outcome
+        at, pose, confidence = outcome
         was_lost = self.state == LOST
-        if was_lost and not self._agrees_with_hypothesis(at, pose, confirmed_from):
-            return None  # kept as the hypothesis a later, disjoint search must agree with
         self.poses[at] = pose
         self._last_tracked, self._unmatched_m = at, 0.0
+        self._through.clear()
+        self._dropped_from, self._found_score = None, confidence
         self.state = FOUND
         self._event("found", at, jump=was_lost)
         report = LivePose(at, self.t_s[at], pose.copy(), confidence, FOUND)
         for j in range(at + 1, len(self.t_s)):  # scans that arrived while it searched
             report = self._track(j)
         return report
-
-    def _agrees_with_hypothesis(self, at: int, pose: np.ndarray, confirmed_from: int) -> bool:
-        """Whether a lost drive's placement of scan ``at`` agrees with the one before it (carried here by the
-        drive's own motion, within ``agree_m`` / ``agree_rad`` and 5 % of the travel between them): a
-        drive found again must be placed twice, on disjoint stretches, in one place (a building's look-alike
-        rooms can place one stretch and its confirmation both in the wrong room). Else the placement
-        becomes the hypothesis, and the next search starts at its confirming stretch (``confirmed_from``)."""
-        c = self.config.localization
-        hypothesis, self._hypothesis = self._hypothesis, (at, pose)
-        self._search_from = confirmed_from
-        if hypothesis is None:
-            return False
-        then, then_pose = hypothesis
-        carried = compose(then_pose, relative(self.own[then], self.own[at]))
-        gap = carried - pose
-        slack_m = c.agree_m + HYPOTHESIS_SLACK * (self.travel[at] - self.travel[then])
-        if math.hypot(gap[0], gap[1]) > slack_m or abs(math.remainder(float(gap[2]), math.tau)) > c.agree_rad:
-            return False
-        self._hypothesis = None
-        return True
 
     def _event(self, name: str, k: int, jump: bool = False) -> None:
         event = {"event": name, "t_s": round(self.t_s[k], 3), "scan": k}

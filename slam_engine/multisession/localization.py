@@ -51,7 +51,8 @@ from slam_engine.errors import ConfigError
 from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.map_bundle import MapBundle
 from slam_engine.model.poses import compose, inverse, key_poses, place_each, place_points, relative, wrap_angle
-from slam_engine.model.result import Trajectory
+from slam_engine.model.result import OccupancyGrid, Trajectory
+from slam_engine.products.rendering import FREE_THRESHOLD
 
 MATCH_RANGE_M = 20.0  # end points farther than this are left out of matching (as the loop closer does)
 TRACK_POINTS = 250  # a tracked scan is matched with at most this many end points
@@ -99,9 +100,37 @@ OWN_KEY_FRAME_M, OWN_KEY_FRAME_RAD = 0.2, 0.1
 REPORT_SHARE = 0.9
 # why a try at placing the drive failed (LocalizationResult.failed_tries, refusal_reason)
 LOW_SCORE, AMBIGUOUS, NOT_CONFIRMED, TOO_SHORT = "scored too low", "ambiguous", "not confirmed", "drive too short"
+SEEN_THROUGH = "seen through"
 # localize_log with threads: the first try at placing the drive is made on its first scans, once this
 # many stretches of travel are matched: the first stretch grown to its longest and the one confirming it
 START_STRETCHES = 2 * STRETCH_GROWTH[-1] + 1
+
+
+@dataclass
+class FreeSpace:
+    """Where the saved map saw free space well inside (at least ``margin_m`` from any cell not free):
+    ``deep`` (H, W) bool on the map's cells of ``resolution_m`` from ``origin_m`` (map frame). A placed
+    drive's returns there contradict the map: its beams ended where the map's saw through (a room of a
+    look-alike building that is wider or elsewhere, a wall the map does not have), as the map's own
+    consistency check (:mod:`slam_engine.evaluation.consistency`) judges a map's scans."""
+
+    deep: np.ndarray
+    origin_m: np.ndarray
+    resolution_m: float
+
+    @classmethod
+    def of_grid(cls, grid: OccupancyGrid, margin_m: float) -> FreeSpace:
+        """The deep free space of a rendered map ``grid``."""
+        from scipy import ndimage
+
+        free_log_odds = math.log(FREE_THRESHOLD / (1.0 - FREE_THRESHOLD))
+        free = (grid.log_odds != 0.0) & (grid.log_odds < free_log_odds)
+        inside_m = ndimage.distance_transform_edt(free) * grid.resolution_m
+        return cls(inside_m >= margin_m, np.array([grid.origin_x_m, grid.origin_y_m]), grid.resolution_m)
+
+    def holds(self, points_m: np.ndarray) -> np.ndarray:
+        """(N,) bool: which map-frame points (N, 2) [m] fall in the deep free space."""
+        return mask_at(self.deep, self.origin_m, self.resolution_m, points_m)
 
 
 @dataclass
@@ -115,16 +144,14 @@ class Coverage:
     resolution_m: float
 
     @classmethod
-    def of_bundle(cls, bundle: MapBundle, cell_m: float | None = None) -> Coverage:
-        """The bundle's scans rendered on the map's cells and pooled to COVERAGE_CELL_M; with ``cell_m``,
-        rendered on cells of that size [m] (coarser and faster: cells a ray passes by at a corner may be
-        left out)."""
-        from slam_engine.backend.map_builder import render_occupancy
-        from slam_engine.config import GridConfig
+    def of_bundle(cls, bundle: MapBundle, cell_m: float) -> Coverage:
+        """The bundle's scans rendered on cells of ``cell_m`` [m] (coarser than the map's and faster: cells a
+        ray passes by at a corner may be left out)."""
+        return cls.of_grid(rendered(bundle, max(cell_m, bundle.resolution_m)), 1)
 
-        resolution_m = bundle.resolution_m if cell_m is None else max(cell_m, bundle.resolution_m)
-        grid = render_occupancy(bundle.scans(), bundle.poses, bundle.origin_v, GridConfig(resolution_m=resolution_m))
-        factor = 1 if cell_m is not None else max(1, int(round(COVERAGE_CELL_M / bundle.resolution_m)))
+    @classmethod
+    def of_grid(cls, grid: OccupancyGrid, factor: int) -> Coverage:
+        """The observed cells of a rendered map ``grid``, pooled ``factor`` times larger."""
         pooled = grid.pooled(factor)
         return cls(pooled.known(), np.array([pooled.origin_x_m, pooled.origin_y_m]), pooled.resolution_m)
 
@@ -155,6 +182,7 @@ class MapIndex:
     fine: MatchGrid
     coverage: Coverage
     origins: np.ndarray
+    free: FreeSpace
 
     @classmethod
     def of_bundle(cls, bundle: MapBundle, config: LocalizationConfig) -> MapIndex:
@@ -163,9 +191,24 @@ class MapIndex:
         coarse = match_grid_from_points(points_m, max(config.search_resolution_m, bundle.resolution_m), 1.0,
                                         n_levels=COARSE_LEVELS)
         fine = match_grid_from_points(points_m, bundle.resolution_m, 1.0, n_levels=FINE_LEVELS)
-        coverage = Coverage.of_bundle(bundle)
+        grid = rendered(bundle, bundle.resolution_m)
+        coverage = Coverage.of_grid(grid, max(1, int(round(COVERAGE_CELL_M / bundle.resolution_m))))
         origins = max_pyramid(coverage.near_cells_of(coarse, ORIGIN_REACH_M).astype(np.uint8), coarse.n_levels)
-        return cls(coarse, fine, coverage, origins)
+        return cls(coarse, fine, coverage, origins, FreeSpace.of_grid(grid, config.seen_through_margin_m))
+
+    def seen_through(self, points_m: np.ndarray) -> tuple[int, int]:
+        """(how many of them fall in the map's deep free space, how many on cells it observed) of end points
+        (N, 2) [m, map frame]."""
+        judged = points_m[self.coverage.covers(points_m)]
+        return int(self.free.holds(judged).sum()), len(judged)
+
+
+def rendered(bundle: MapBundle, resolution_m: float) -> OccupancyGrid:
+    """The bundle's scans rendered as an occupancy grid on cells of ``resolution_m`` [m] (map frame)."""
+    from slam_engine.backend.map_builder import render_occupancy
+    from slam_engine.config import GridConfig
+
+    return render_occupancy(bundle.scans(), bundle.poses, bundle.origin_v, GridConfig(resolution_m=resolution_m))
 
 
 def map_points(bundle: MapBundle) -> np.ndarray:
@@ -536,7 +579,17 @@ class Localizer:
         gap = poses[second_last] - second
         if math.hypot(gap[0], gap[1]) > c.agree_m or abs(float(wrap_angle(gap[2]))) > c.agree_rad:
             return None
+        through, judged = (a + b for a, b in zip(self.seen_through(first, last, pose),
+                                                 self.seen_through(last + 1, second_last, second), strict=True))
+        if through > c.max_seen_through * judged:
+            self._why = SEEN_THROUGH
+            return None
         return first, last, pose
+
+    def seen_through(self, first: int, last: int, pose: np.ndarray) -> tuple[int, int]:
+        """(how many of them fall in the map's deep free space, how many on cells it observed) of the end
+        points of the stretch ``first..last`` placed with scan ``last`` at ``pose`` (map frame)."""
+        return self.index.seen_through(place_points(pose, self.drive.cloud(first, last, self.config.max_points)))
 
     def first_tries(self) -> list[int]:
         """The scans whose stretches are searched for the first placement, in order: every stretch's first
@@ -822,7 +875,8 @@ def refusal_reason(result: LocalizationResult, min_score: float) -> str:
     """Why a drive was not placed, in one line (for a refused drive's message): the best score against
     ``min_score`` and what became of the stretches tried."""
     what = {LOW_SCORE: f"below {min_score:g}", AMBIGUOUS: "ambiguous (another place fit almost as well)",
-            NOT_CONFIRMED: "not confirmed by the next stretch", TOO_SHORT: "too near the drive's end to confirm"}
+            NOT_CONFIRMED: "not confirmed by the next stretch", TOO_SHORT: "too near the drive's end to confirm",
+            SEEN_THROUGH: "placed where the map saw free space through its returns"}
     text = f"best score {result.best_score:.3f} ({min_score:g} needed, unambiguous and confirmed)"
     tries = sorted(result.failed_tries.items(), key=lambda item: -item[1])
     if not tries:

@@ -45,9 +45,10 @@ def test_the_office_driven_again_is_found_within_two_stretches_and_tracked(offic
     live, reports = _stream(bundle, again)
     states = [report.state for _, report in reports]
     first = states.index(FOUND)
-    # searching (no pose) until a stretch and its confirmation were driven: 8.2 m measured, then found throughout
+    # searching (no pose) until a stretch and its confirmation were driven: 6.2 m measured (2 m stretches, grown
+    # once while ambiguous; 8.2 m with 4 m stretches), then found throughout
     assert all(state == SEARCHING for state in states[:first]) and set(states[first:]) == {FOUND}
-    assert reports[first][1].pose is not None and live.summary()["first_found_travel_m"] < 10.0
+    assert reports[first][1].pose is not None and live.summary()["first_found_travel_m"] < 7.0
     errors = _errors(reports, again, rotation, translation)
     assert max(errors.values()) < 0.05  # measured 0.016 m
     assert live.summary()["states"]["found"] == len(states) - first and live.events[0]["event"] == "found"
@@ -101,6 +102,30 @@ def test_a_robot_carried_off_is_lost_within_metres_and_never_found_somewhere_els
     errors = _errors(reports, drive, rotation, translation)
     assert all(errors[i] < 0.3 for i, report in after if report.state == FOUND)
     assert [event["event"] for event in live.events][:2] == ["found", "lost"]
+
+
+@pytest.mark.slow
+def test_a_robot_carried_off_to_a_look_alike_place_is_lost_there_and_found_again(office_map) -> None:
+    """20 s in, carried to where it would have been 10 s later (6.1 m): a place of the office that looks like
+    where it was, whose scans go on fitting near there (0.4-0.8 after 1.00; walls fit, furniture and doors
+    stand in the map's free space). Measured before the drop and free-space checks: never lost, 211 scans
+    found 5.5 m off; now lost after 1.4 m, found again by a search after 5.5 m."""
+    bundle, rotation, translation = office_map
+    drive = simulate("office", seed=1, cameras=False, kidnap=(20.0, 10.0))
+    truth = drive.pose_at(drive.log.scans.t_s)
+    steps = np.hypot(*np.diff(truth[:, :2], axis=0).T)
+    kidnap = int(np.argmax(steps))
+    assert steps[kidnap] > 5.0
+    live, reports = _stream(bundle, drive)
+    after = [(i, report) for i, report in reports if i > kidnap]
+    errors = _errors(reports, drive, rotation, translation)
+    assert all(errors[i] < 0.3 for i, report in after if report.state == FOUND)
+    travel = np.concatenate([[0.0], np.cumsum(np.where(steps > 1.0, 0.0, steps))])  # driven, not carried
+    lost_at = next(i for i, report in after if report.state == LOST)
+    found_at = next(i for i, report in after if report.state == FOUND)
+    assert travel[lost_at] - travel[kidnap + 1] < 3.0 and lost_at < found_at
+    assert travel[found_at] - travel[kidnap + 1] < 10.0  # the issue's target
+    assert any(event.get("search") for event in live.events if event["event"] == "found")
 
 
 @pytest.mark.slow
