@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import math
 import threading
-from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -40,25 +39,17 @@ from slam_engine.backend.loop_closer import thin
 from slam_engine.config import SlamConfig
 from slam_engine.model.map_bundle import MapBundle
 from slam_engine.model.poses import compose, place_points, relative
-from slam_engine.multisession.localization import TRACK_POINTS, DriveScans, Localizer, MapIndex, ScanJoiner
+from slam_engine.multisession.localization import (
+    TRACK_POINTS,
+    DriveScans,
+    Localizer,
+    MapIndex,
+    ScanJoiner,
+    TrackCheck,
+)
 
 SEARCHING, FOUND, CARRIED, OUTSIDE, LOST = "searching", "found", "carried", "outside", "lost"
 STATES = (SEARCHING, FOUND, CARRIED, OUTSIDE, LOST)
-# a tracked scan scoring below this share of the scan before it (found) is not found: a robot carried off
-# (kidnapped) whose first scan there still fits where it was, weakly (0.55 after 1.00 in a made-up floor); the
-# sharpest drop of a drive tracked in its own building was to 0.53 of the scan before (intel-b, once in 278)
-SCORE_DROP_SHARE = 0.6
-# ... and the drive is found again by tracking only once a scan scores this share of the scan before the drop
-# (carried off to a look-alike place, the office's scans scored 0.5-0.84 after 1.00), else by a search
-RECOVER_SHARE = 0.9
-# a drop is SEEN_DROP_SHARE where the scan's returns also fall where the map saw free space (the office's
-# look-alike rooms: 0.67 after 1.00, a quarter of its returns seen through)
-SEEN_DROP_SHARE = 0.8
-# a found scan is judged with the scans matched over this much travel before it [m] (one scan's returns can
-# fall on free space for a moment: people, a door, trees), when they hold this many end points on observed cells
-SEEN_THROUGH_SPAN_M, SEEN_THROUGH_MIN_POINTS = 2.0, 100
-
-
 @dataclass(frozen=True)
 class LivePose:
     """Where scan ``scan`` (stamped ``t_s``) is: ``pose`` in the map frame (None while searching, never
@@ -105,9 +96,7 @@ class LiveLocalizer:
         self._next_try_m = 0.0  # the travel at which the next search may start [m]
         self._search: Future | None = None
         self._search_from = 0  # the first scan the next search may start a stretch at
-        self._found_score: float | None = None  # the last found scan's score (None: lost, or never found)
-        self._dropped_from: float | None = None  # the found scan's score before a sudden drop, until recovered
-        self._through: deque[tuple[float, int, int]] = deque()  # matched scans: (travel, seen through, judged)
+        self._check = TrackCheck(self.index, c)  # whether a matched scan is found
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="live-localization")
         self._lock = threading.Lock()
 
@@ -164,18 +153,19 @@ class LiveLocalizer:
         pose, score = self._tracker.track(k, predicted, untracked_m)
         uncovered = math.isnan(score)
         moved = pose - predicted
+        points = place_points(pose, thin(self.hits[k], TRACK_POINTS))
+        step_m = self.travel[k] - self.travel[k - 1]
         if untracked_m > c.live_lost_after_m:  # back from afar: a match is a placement, scored as one
             ok = not uncovered and score >= c.min_score
-            ok = ok and not self._seen_through(k, pose)[1]
+            if ok:
+                self._check.reset(None)
+                ok = self._check.accepts(score, points, step_m)
         else:
             nudged = math.hypot(moved[0], moved[1]) <= c.nudge_m and abs(float(moved[2])) <= c.nudge_rad
             ok = not uncovered and (score >= c.track_min_score or (score >= c.nudge_min_score and nudged))
-            if ok:
-                own_share, contradicted = self._seen_through(k, pose)
-                ok = self._kept_its_level(score, own_share) and not contradicted
+            ok = ok and self._check.accepts(score, points, step_m)
         if ok:
             self.poses[k], self._last_tracked, self._unmatched_m = pose, k, 0.0
-            self._found_score = float(score)
             self.state = FOUND
             return LivePose(k, self.t_s[k], pose.copy(), float(score), FOUND)
         self.poses[k] = predicted
@@ -186,46 +176,10 @@ class LiveLocalizer:
             self._event("lost", k)
             self._next_try_m = self.travel[k]
             self._search_from = self._last_tracked + 1  # carried off after its last match, if at all
-            self._dropped_from, self._found_score = None, None
+            self._check.reset(None)
         else:
             self.state = OUTSIDE if uncovered else CARRIED
         return LivePose(k, self.t_s[k], predicted.copy(), 0.0, self.state)
-
-    def _kept_its_level(self, score: float, seen_through: float) -> bool:
-        """Whether a scan that matched near where its motion put it (``score``; ``seen_through``: the share of
-        its returns on the map's deep free space) scores as the found scans before it did: a robot carried
-        off to a place that looks alike still matches, weakly, near where it was. A score below
-        SCORE_DROP_SHARE of the last found scan's (SEEN_DROP_SHARE where more than ``max_seen_through`` of its
-        returns are seen through) is a drop; after a drop the drive is found again by tracking only once a
-        scan scores RECOVER_SHARE of the level it dropped from (else by a search, once lost)."""
-        if self._dropped_from is not None:
-            if score < RECOVER_SHARE * self._dropped_from:
-                return False
-            self._dropped_from = None
-            return True
-        if self._found_score is None:
-            return True
-        share = SEEN_DROP_SHARE if seen_through > self.config.localization.max_seen_through else SCORE_DROP_SHARE
-        if score < share * self._found_score:
-            self._dropped_from = self._found_score
-            return False
-        return True
-
-    def _seen_through(self, k: int, pose: np.ndarray) -> tuple[float, bool]:
-        """(the share of scan k's returns, at ``pose``, that fall in the map's deep free space
-        (:meth:`MapIndex.seen_through`), whether the scans that matched over the last SEEN_THROUGH_SPAN_M of
-        travel, scan k among them, have more than ``max_seen_through_track`` of theirs there): a robot carried
-        off to a place that looks alike (the office's rooms under a half turn) can go on matching there, walls
-        and all, but its furniture and doors stand where the map saw free space."""
-        c = self.config.localization
-        through, judged = self.index.seen_through(place_points(pose, thin(self.hits[k], TRACK_POINTS)))
-        self._through.append((self.travel[k], through, judged))
-        while self._through[0][0] < self.travel[k] - SEEN_THROUGH_SPAN_M:
-            self._through.popleft()
-        all_through = sum(counts[1] for counts in self._through)
-        all_judged = sum(counts[2] for counts in self._through)
-        return (through / judged if judged else 0.0,
-                all_judged >= SEEN_THROUGH_MIN_POINTS and all_through > c.max_seen_through_track * all_judged)
 
     # --- searching --------------------------------------------------------------------------------
     def _maybe_search(self) -> None:
@@ -288,8 +242,7 @@ class LiveLocalizer:
         was_lost = self.state == LOST
         self.poses[at] = pose
         self._last_tracked, self._unmatched_m = at, 0.0
-        self._through.clear()
-        self._dropped_from, self._found_score = None, confidence
+        self._check.reset(confidence)
         self.state = FOUND
         self._event("found", at, jump=was_lost)
         report = LivePose(at, self.t_s[at], pose.copy(), confidence, FOUND)

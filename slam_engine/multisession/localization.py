@@ -6,8 +6,10 @@ global search, the map's own cells for tracking and refinement. A *stretch* of t
 over ``stretch_m`` of travel, joined by the drive's own relative poses: odometry, or another map's
 key frames) is searched for over the whole map and every heading by branch and bound (Hess et al.
 2016, Cartographer's global localisation), then refined. The placement counts only when it scores at
-least ``min_score``, no pose elsewhere scores nearly as well, and the next, disjoint stretch, searched
-for on its own, lands where the scans tracked from the first placement put it. From there each scan is
+least ``min_score``, no pose elsewhere scores nearly as well, the next, disjoint stretch, searched
+for on its own, lands where the scans tracked from the first placement put it, and no more than
+``max_seen_through`` of the two stretches' returns fall where the map saw free space (:class:`FreeSpace`:
+a look-alike building's walls stand in the map's rooms). From there each scan is
 fitted locally from where the drive's own motion puts it, or searched for in a small window around
 there, and scored only by its end points that fall where the saved map observed anything (a drive that
 leaves the map is carried by its own motion, not judged against cells the map never saw, and is not lost
@@ -27,6 +29,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -98,6 +101,19 @@ OWN_KEY_FRAME_M, OWN_KEY_FRAME_RAD = 0.2, 0.1
 # a global search prunes below this share of min_score: a weaker placement is still reported as the best
 # score of a refused drive, and pruning at min_score itself would leave it unknown
 REPORT_SHARE = 0.9
+# a tracked scan scoring below this share of the last found scan's is not found: a robot carried off (kidnapped)
+# whose first scan there still fits where it was, weakly (0.55 after 1.00 in a made-up floor); the sharpest drop
+# of a drive tracked in its own building was to 0.53 of the scan before (intel-b, once in 278) ...
+SCORE_DROP_SHARE = 0.6
+# ... or this share where more than max_seen_through of its returns fall in the map's free space (carried off in
+# the office to a look-alike place: 0.67 after 1.00, a quarter of its returns seen through) ...
+SEEN_DROP_SHARE = 0.8
+# ... and after a drop, a scan is found again by tracking only once it scores this share of the level it dropped
+# from (the office's look-alike places scored 0.4-0.84 after 1.00), else the drive is lost and searched for
+RECOVER_SHARE = 0.9
+# a tracked scan is judged with the scans matched over this much travel before it [m] (one scan's returns can fall
+# on free space for a moment: people, a door, trees), when they hold this many end points on observed cells
+SEEN_THROUGH_SPAN_M, SEEN_THROUGH_MIN_POINTS = 2.0, 100
 # why a try at placing the drive failed (LocalizationResult.failed_tries, refusal_reason)
 LOW_SCORE, AMBIGUOUS, NOT_CONFIRMED, TOO_SHORT = "scored too low", "ambiguous", "not confirmed", "drive too short"
 SEEN_THROUGH = "seen through"
@@ -230,6 +246,62 @@ def map_places_of(bundle: MapBundle, place_config: PlaceIndexConfig) -> PlaceInd
         return PlaceIndex.of_stored(stored)
     coverage = Coverage.of_bundle(bundle, PLACES_COVERAGE_CELL_M)
     return map_places(map_points(bundle), bundle.poses[:, :2], coverage.covers, place_config)
+
+
+class TrackCheck:
+    """Whether a scan that matched the map near where the drive's motion put it is where the drive is, judged
+    against the scans found before it, as they come (forwards or backwards): a robot carried off to a place
+    that looks like where it was goes on matching there, weakly, walls and all, but its furniture and doors
+    stand where the map saw free space. A scan is not found
+
+    - when its score drops below SCORE_DROP_SHARE of the last found scan's (SEEN_DROP_SHARE where more than
+      ``max_seen_through`` of its returns fall in the map's free space, :meth:`MapIndex.seen_through`), nor
+      after such a drop until a scan scores RECOVER_SHARE of the level it dropped from;
+    - while the scans judged over the last SEEN_THROUGH_SPAN_M of travel, it among them, have more than
+      ``max_seen_through_track`` of their returns in the map's free space."""
+
+    def __init__(self, index: MapIndex, config: LocalizationConfig):
+        self.index, self.config = index, config
+        self.reset(None)
+
+    def reset(self, score: float | None) -> None:
+        """Start again from a scan placed with ``score`` (None: none found yet, or lost)."""
+        self.found_score: float | None = score
+        self.dropped_from: float | None = None
+        self._window: deque[tuple[float, int, int]] = deque()  # judged scans: (travel, seen through, on the map)
+        self._travel_m = 0.0
+
+    def seen_through(self, points_m: np.ndarray, step_m: float) -> tuple[float, bool]:
+        """(the share of a scan's end points (N, 2) [m, map frame, at its matched pose] in the map's free
+        space, whether the scans judged over the last SEEN_THROUGH_SPAN_M have too many there); ``step_m``:
+        its travel since the scan judged before [m]."""
+        self._travel_m += abs(step_m)
+        through, judged = self.index.seen_through(points_m)
+        self._window.append((self._travel_m, through, judged))
+        while self._window[0][0] < self._travel_m - SEEN_THROUGH_SPAN_M:
+            self._window.popleft()
+        all_through = sum(counts[1] for counts in self._window)
+        all_judged = sum(counts[2] for counts in self._window)
+        return (through / judged if judged else 0.0,
+                all_judged >= SEEN_THROUGH_MIN_POINTS and all_through > self.config.max_seen_through_track * all_judged)
+
+    def accepts(self, score: float, points_m: np.ndarray, step_m: float) -> bool:
+        """Whether a scan that matched with ``score`` (its end points ``points_m`` at the match, travel
+        ``step_m`` since the scan judged before) is found (the class docstring); records it when it is."""
+        share, contradicted = self.seen_through(points_m, step_m)
+        if self.dropped_from is not None:
+            if score < RECOVER_SHARE * self.dropped_from:
+                return False
+            self.dropped_from = None
+        elif self.found_score is not None:
+            drop = SEEN_DROP_SHARE if share > self.config.max_seen_through else SCORE_DROP_SHARE
+            if score < drop * self.found_score:
+                self.dropped_from = self.found_score
+                return False
+        if contradicted:
+            return False
+        self.found_score = score
+        return True
 
 
 @dataclass
