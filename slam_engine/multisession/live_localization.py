@@ -156,10 +156,7 @@ class LiveLocalizer:
         points = place_points(pose, thin(self.hits[k], TRACK_POINTS))
         step_m = self.travel[k] - self.travel[k - 1]
         if untracked_m > c.live_lost_after_m:  # back from afar: a match is a placement, scored as one
-            ok = not uncovered and score >= c.min_score
-            if ok:
-                self._check.reset(None)
-                ok = self._check.accepts(score, points, step_m)
+            ok = not uncovered and score >= c.min_score and self._check.accepts_placement(score, points, step_m)
         else:
             nudged = math.hypot(moved[0], moved[1]) <= c.nudge_m and abs(float(moved[2])) <= c.nudge_rad
             ok = not uncovered and (score >= c.track_min_score or (score >= c.nudge_min_score and nudged))
@@ -221,6 +218,7 @@ class LiveLocalizer:
             poses[last] = pose
             _, score = localizer.track(last, pose)  # the placed scan's score there
             confidence[last], tracked[last] = (0.0 if math.isnan(score) else score), True
+            localizer.check.reset(confidence[last])
             for j in range(last + 1, len(drive)):
                 localizer.step(poses, confidence, tracked, j, j - 1)
             at = int(np.flatnonzero(tracked)[-1])

@@ -13,10 +13,12 @@ a look-alike building's walls stand in the map's rooms). From there each scan is
 fitted locally from where the drive's own motion puts it, or searched for in a small window around
 there, and scored only by its end points that fall where the saved map observed anything (a drive that
 leaves the map is carried by its own motion, not judged against cells the map never saw, and is not lost
-there: back in the map, it is tracked in a window grown with the travel since its last match); with no
-scan matched over ``lost_after_m`` of travel where the map could judge it, the drive is lost, searched
-for near where its motion carried it and then over the whole map, and a match in the widened window must
-score as a placement does. The drive's own scans are matched to each other on cells of
+there: back in the map, it is tracked in a window grown with the travel since its last match). A scan
+that matched counts as found only as :class:`TrackCheck` judges it against the found scans before it (a
+sharp score drop, or returns where the map saw free space: a drive carried off to a look-alike place).
+With no scan matched over ``lost_after_m`` of travel where the map could judge it, the drive is lost,
+searched for near where its motion carried it and then over the whole map, and a match in the widened
+window must score as a placement does. The drive's own scans are matched to each other on cells of
 ``local_map_resolution_m``, coarser than the map's (intel: as accurate, in less than half the time). A
 drive that is never placed is refused (``localised`` False, with the best score found), not forced in.
 
@@ -285,6 +287,17 @@ class TrackCheck:
         return (through / judged if judged else 0.0,
                 all_judged >= SEEN_THROUGH_MIN_POINTS and all_through > self.config.max_seen_through_track * all_judged)
 
+    def accepts_placement(self, score: float, points_m: np.ndarray, step_m: float) -> bool:
+        """Whether a scan matched in a lost drive's widened window (scoring a placement's ``min_score``) is
+        found: judged afresh, no more than ``max_seen_through`` of its returns in the map's free space (a
+        placement's bar); records it when it is."""
+        self.reset(None)
+        share, _ = self.seen_through(points_m, step_m)
+        if share > self.config.max_seen_through:
+            return False
+        self.found_score = score
+        return True
+
     def accepts(self, score: float, points_m: np.ndarray, step_m: float) -> bool:
         """Whether a scan that matched with ``score`` (its end points ``points_m`` at the match, travel
         ``step_m`` since the scan judged before) is found (the class docstring); records it when it is."""
@@ -522,6 +535,7 @@ class Localizer:
         self.uncovered = np.zeros(len(drive), bool)  # scans too far out of the map to be judged by it
         self.failed_tries: dict[str, int] = {}  # why each first try failed (LOW_SCORE, ...): how many
         self._why = ""  # why the last placed_stretch or confirmed_placement found nothing
+        self.check = TrackCheck(index, config)  # whether a matched scan is found, as step() tracks
 
     # --- global placement -------------------------------------------------------------------
     def place_stretch(self, first: int, last: int, near: Near | None = None) -> tuple[np.ndarray | None, bool]:
@@ -598,11 +612,14 @@ class Localizer:
         pose, score = self.track(k, predicted, untracked_m)
         c = self.config
         moved = pose - predicted
+        points = place_points(pose, thin(self.drive.hits[k], TRACK_POINTS))
+        step_m = float(self.drive.travel_m[k] - self.drive.travel_m[from_k])
         if untracked_m > c.lost_after_m:  # lost, in a wide window: a match there is a placement
-            ok = score >= c.min_score
+            ok = score >= c.min_score and self.check.accepts_placement(score, points, step_m)
         else:
             nudged = math.hypot(moved[0], moved[1]) <= c.nudge_m and abs(float(wrap_angle(moved[2]))) <= c.nudge_rad
             ok = score >= c.track_min_score or (score >= c.nudge_min_score and nudged)
+            ok = ok and self.check.accepts(score, points, step_m)
         poses[k] = pose if ok else predicted
         self.uncovered[k] = math.isnan(score)
         confidence[k], tracked[k] = (0.0 if self.uncovered[k] else score), ok
@@ -646,6 +663,7 @@ class Localizer:
         poses = np.full((len(drive), 3), np.nan)
         confidence, tracked = np.zeros(len(drive)), np.zeros(len(drive), bool)
         poses[last] = pose
+        self.check.reset(None)
         for k in range(last + 1, second_last + 1):
             self.step(poses, confidence, tracked, k, k - 1)
         gap = poses[second_last] - second
@@ -706,13 +724,16 @@ class Localizer:
                                       failed_tries=dict(self.failed_tries), wall_time_s=time.perf_counter() - started)
         _, last, pose = placement
         poses[last] = pose
+        self.check.reset(None)
         self.step(poses, confidence, tracked, last, last)
         events.append({"event": "found", "t_s": round(float(drive.t_s[last]), 3), "scan": last})
         travel = drive.travel_m
         last_tracked = last
+        self.check.reset(confidence[last] if tracked[last] else None)
         for j in range(last - 1, -1, -1):  # the scans before it, tracked backwards
             self.step(poses, confidence, tracked, j, j + 1, float(travel[last_tracked] - travel[j + 1]))
             last_tracked = j if tracked[j] else last_tracked
+        self.check.reset(confidence[last] if tracked[last] else None)
         jumps = self._track_forward(poses, confidence, tracked, last + 1, events)
         closures = self.own_closures(tracked, jumps)
         poses = self.smoothed(poses, tracked, jumps, closures)
@@ -763,6 +784,7 @@ class Localizer:
                     for j in range(k + 1, at + 1):  # carried to the placed scan, then placed there
                         self.step(poses, confidence, tracked, j, j - 1, c.lost_after_m)
                     poses[at] = pose
+                    self.check.reset(None)
                     self.step(poses, confidence, tracked, at, at)
                     if near is None:
                         jumps.append(at)
