@@ -1,6 +1,6 @@
 """Pydantic models shared by the service, the CLI and clients. Imports only pydantic and the
 standard library."""
 
-from api_schemas.jobs import JobCreate, JobMode, JobPublic, JobSource, JobsPublic, JobStatus
+from api_schemas.jobs import LOADING_MAP_STAGE, JobCreate, JobMode, JobPublic, JobSource, JobsPublic, JobStatus
 
-__all__ = ["JobCreate", "JobMode", "JobPublic", "JobSource", "JobStatus", "JobsPublic"]
+__all__ = ["LOADING_MAP_STAGE", "JobCreate", "JobMode", "JobPublic", "JobSource", "JobStatus", "JobsPublic"]

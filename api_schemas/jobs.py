@@ -8,6 +8,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+LOADING_MAP_STAGE = "loading the map"  # a live localisation's stage until it is ready for the stream
+
 
 class JobStatus(StrEnum):
     QUEUED = "queued"

@@ -65,9 +65,26 @@ def stream_live(api: Any, log_path: Path, format: str, settings: Any, rate: floa
 
 
 def _print_poses(reader: Any, job_id: str) -> None:
-    """A live localisation's poses on stdout: a line at each change of state and every REPORT_EVERY scans."""
+    """A live localisation's stages until it is ready on stderr (``loading the map``, then ``localising
+    scans``), then its poses on stdout: a line at each change of state and every REPORT_EVERY scans."""
     with reader() as api:
+        _print_stages(api, job_id)
         _print_each(api.follow_poses(job_id))
+
+
+def _print_stages(api: Any, job_id: str, poll_s: float = 0.1) -> None:
+    """The job's stage on stderr each time it changes, until it is past loading its map (or ended)."""
+    from api_schemas import LOADING_MAP_STAGE, JobStatus
+
+    shown = None
+    while True:
+        job = api.job(job_id)
+        if job.stage and job.stage != shown:
+            typer.echo(f"job {job_id}: {job.stage}", err=True)
+            shown = job.stage
+        if job.status not in (JobStatus.QUEUED, JobStatus.RUNNING) or (job.stage and job.stage != LOADING_MAP_STAGE):
+            return
+        time.sleep(poll_s)
 
 
 def _print_each(reports: Any) -> None:

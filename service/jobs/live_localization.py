@@ -24,6 +24,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any
 
+from api_schemas import LOADING_MAP_STAGE
 from service.jobs.context import JobContext, JobFailed
 from service.jobs.outputs import job_session, product_names
 from service.jobs.settings import engine_config
@@ -38,7 +39,7 @@ from service.storage.stream_log import (
 from slam_engine.model.messages import ScanMessage
 
 POSES_FILE = "poses.jsonl"  # one live report per line, in scan order
-LOADING_MAP = "loading the map"  # the job's stage until it is ready: the saved map read, its index built
+LOADING_MAP = LOADING_MAP_STAGE  # the job's stage until it is ready: the saved map read, its index built
 LOCALIZING_SCANS = "localising scans"  # the job's stage while it follows the stream
 POLL_S = 0.01  # how often a job that has caught up looks for the next chunk [s]: each scan's pose waits for it
 STORE_POLL_S = 0.2  # ... and for the stream's end and a cancel, in the store [s]

@@ -752,7 +752,7 @@ class Localizer:
         c, drive = self.config, self.drive
         travel = drive.travel_m
         last_tracked = start - 1
-        lost = False
+        lost = carried_off = False
         unmatched_m = 0.0  # travel since scan last_tracked over scans the map could judge but did not match [m]
         next_search = start
         jumps: list[int] = []
@@ -766,15 +766,16 @@ class Localizer:
                     events.append({"event": "found", "t_s": round(float(drive.t_s[k]), 3), "scan": k})
                 k += 1
                 continue
-            if not self.uncovered[k]:
-                unmatched_m += float(travel[k] - travel[k - 1])
+            if not self.uncovered[k] or self.check.dropped_from is not None:  # since a sharp drop, where its
+                unmatched_m += float(travel[k] - travel[k - 1])  # motion carries it says nothing
             if not lost and unmatched_m > c.lost_after_m:
                 lost = True
                 events.append({"event": "lost", "t_s": round(float(drive.t_s[k]), 3), "scan": k})
                 next_search = k + 1
+                carried_off = self.check.dropped_from is not None  # lost since a sharp drop: a kidnap
             if lost and k >= next_search:
                 untracked_m = float(travel[k] - travel[last_tracked])
-                near = None if untracked_m > GLOBAL_AFTER_M else Near(
+                near = None if carried_off or untracked_m > GLOBAL_AFTER_M else Near(
                     poses[k], min(c.track_window_m + c.window_per_m * untracked_m * REFIND_GROWTH, MAX_REFIND_WINDOW_M),
                     min(c.track_window_rad + c.window_rad_per_m * untracked_m * REFIND_GROWTH, math.pi))
                 placement = self.confirmed_placement(k, near)

@@ -217,6 +217,7 @@ def test_the_client_follows_a_live_localisation_while_it_streams(tmp_path: Path)
             result = CliRunner().invoke(app, ["submit", str(tmp_path / "later"), "--server", url, "--out", str(out),
                                               "--live", "--mode", "localize", "--map-job", mapped.id, "--rate", "0"])
             assert result.exit_code == 0, result.output
+            assert ": localising scans\n" in result.stderr  # the job said it is ready (stderr), then its poses
             printed = [line for line in result.stdout.splitlines() if line.startswith("scan ")]
             assert printed[0].startswith("scan 0 ") and ": searching, confidence 0.00" in printed[0]
             assert any(": found at x " in line for line in printed)
