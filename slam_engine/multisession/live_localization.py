@@ -166,8 +166,8 @@ class LiveLocalizer:
             self.state = FOUND
             return LivePose(k, self.t_s[k], pose.copy(), float(score), FOUND)
         self.poses[k] = predicted
-        if not uncovered or self._check.dropped_from is not None:  # since a sharp drop, where its motion
-            self._unmatched_m += self.travel[k] - self.travel[k - 1]  # carries it says nothing
+        if not uncovered:
+            self._unmatched_m += self.travel[k] - self.travel[k - 1]
         if self._unmatched_m > c.live_lost_after_m:
             self.state = LOST
             self._event("lost", k)
