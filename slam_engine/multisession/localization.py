@@ -116,7 +116,7 @@ RECOVER_SHARE = 0.9
 # a tracked scan is judged with the scans matched over this much travel before it [m] (one scan's returns can fall
 # on free space for a moment: people, a door, trees), when they hold this many end points on observed cells
 SEEN_THROUGH_SPAN_M, SEEN_THROUGH_MIN_POINTS = 2.0, 100
-MIN_SEEN_THROUGH_POINTS = 30  # a refused scan with fewer end points on observed cells is not judged by them
+REFUSED_MIN_POINTS = 30  # a scan that did not match, with fewer end points on observed cells, is not judged by them
 # why a try at placing the drive failed (LocalizationResult.failed_tries, refusal_reason)
 LOW_SCORE, AMBIGUOUS, NOT_CONFIRMED, TOO_SHORT = "scored too low", "ambiguous", "not confirmed", "drive too short"
 SEEN_THROUGH = "seen through"
@@ -290,13 +290,13 @@ class TrackCheck:
 
     def refused(self, score: float, points_m: np.ndarray) -> None:
         """A scan the map could judge did not match (``score``, too low; ``points_m``: its end points where
-        the match put it, map frame): a drop, held as :meth:`accepts` holds one, when it falls below
+        the drive's motion put it, map frame): a drop, held as :meth:`accepts` holds one, when it falls below
         SCORE_DROP_SHARE of the last found scan's and more than ``max_seen_through`` of its returns fall in
         the map's free space (the first scan of a robot carried off, too unlike where it was to match)."""
         if self.dropped_from is not None or self.found_score is None or score >= SCORE_DROP_SHARE * self.found_score:
             return
         through, judged = self.index.seen_through(points_m)
-        if judged >= MIN_SEEN_THROUGH_POINTS and through > self.config.max_seen_through * judged:
+        if judged >= REFUSED_MIN_POINTS and through > self.config.max_seen_through * judged:
             self.dropped_from = self.found_score
 
     def accepts_placement(self, score: float, points_m: np.ndarray, step_m: float) -> bool:
