@@ -35,21 +35,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam_engine.backend.loop_closer import thin
 from slam_engine.config import SlamConfig
 from slam_engine.model.map_bundle import MapBundle
-from slam_engine.model.poses import compose, place_points, relative
-from slam_engine.multisession.localization import (
-    TRACK_POINTS,
-    DriveScans,
-    Localizer,
-    MapIndex,
-    ScanJoiner,
-    TrackCheck,
-)
+from slam_engine.model.poses import compose, relative
+from slam_engine.multisession.localization import DriveScans, Localizer, MapIndex, ScanJoiner, TrackCheck
 
 SEARCHING, FOUND, CARRIED, OUTSIDE, LOST = "searching", "found", "carried", "outside", "lost"
 STATES = (SEARCHING, FOUND, CARRIED, OUTSIDE, LOST)
+
+
 @dataclass(frozen=True)
 class LivePose:
     """Where scan ``scan`` (stamped ``t_s``) is: ``pose`` in the map frame (None while searching, never
@@ -153,14 +147,13 @@ class LiveLocalizer:
         pose, score = self._tracker.track(k, predicted, untracked_m)
         uncovered = math.isnan(score)
         moved = pose - predicted
-        points = place_points(pose, thin(self.hits[k], TRACK_POINTS))
-        step_m = self.travel[k] - self.travel[k - 1]
+        hits, step_m = self.hits[k], self.travel[k] - self.travel[k - 1]
         if untracked_m > c.live_lost_after_m:  # back from afar: a match is a placement, scored as one
-            ok = not uncovered and score >= c.min_score and self._check.accepts_placement(score, points, step_m)
+            ok = not uncovered and score >= c.min_score and self._check.accepts_placement(score, pose, hits, step_m)
         else:
             nudged = math.hypot(moved[0], moved[1]) <= c.nudge_m and abs(float(moved[2])) <= c.nudge_rad
             ok = not uncovered and (score >= c.track_min_score or (score >= c.nudge_min_score and nudged))
-            ok = ok and self._check.accepts(score, points, step_m)
+            ok = ok and self._check.accepts(score, pose, hits, step_m)
         if ok:
             self.poses[k], self._last_tracked, self._unmatched_m = pose, k, 0.0
             self.state = FOUND

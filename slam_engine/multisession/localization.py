@@ -274,12 +274,12 @@ class TrackCheck:
         self._window: deque[tuple[float, int, int]] = deque()  # judged scans: (travel, seen through, on the map)
         self._travel_m = 0.0
 
-    def seen_through(self, points_m: np.ndarray, step_m: float) -> tuple[float, bool]:
-        """(the share of a scan's end points (N, 2) [m, map frame, at its matched pose] in the map's free
-        space, whether the scans judged over the last SEEN_THROUGH_SPAN_M have too many there); ``step_m``:
-        its travel since the scan judged before [m]."""
+    def _seen_through(self, pose: np.ndarray, hits_v: np.ndarray, step_m: float) -> tuple[float, bool]:
+        """(the share of a scan's returns ``hits_v`` (N, 2) [m, vehicle frame], placed at ``pose`` (map
+        frame), in the map's free space, whether the scans judged over the last SEEN_THROUGH_SPAN_M have too
+        many there); ``step_m``: its travel since the scan judged before [m]."""
         self._travel_m += abs(step_m)
-        through, judged = self.index.seen_through(points_m)
+        through, judged = self.index.seen_through(_placed_points(pose, hits_v))
         self._window.append((self._travel_m, through, judged))
         while self._window[0][0] < self._travel_m - SEEN_THROUGH_SPAN_M:
             self._window.popleft()
@@ -288,32 +288,33 @@ class TrackCheck:
         return (through / judged if judged else 0.0,
                 all_judged >= SEEN_THROUGH_MIN_POINTS and all_through > self.config.max_seen_through_track * all_judged)
 
-    def refused(self, score: float, points_m: np.ndarray) -> None:
-        """A scan the map could judge did not match (``score``, too low; ``points_m``: its end points where
-        the drive's motion put it, map frame): a drop, held as :meth:`accepts` holds one, when it falls below
+    def refused(self, score: float, pose: np.ndarray, hits_v: np.ndarray) -> None:
+        """A scan the map could judge did not match (``score``, too low; ``hits_v``: its returns, ``pose``:
+        where the drive's motion put it, map frame): a drop, held as :meth:`accepts` holds one, when it falls below
         SCORE_DROP_SHARE of the last found scan's and more than ``max_seen_through`` of its returns fall in
         the map's free space (the first scan of a robot carried off, too unlike where it was to match)."""
         if self.dropped_from is not None or self.found_score is None or score >= SCORE_DROP_SHARE * self.found_score:
             return
-        through, judged = self.index.seen_through(points_m)
+        through, judged = self.index.seen_through(_placed_points(pose, hits_v))
         if judged >= REFUSED_MIN_POINTS and through > self.config.max_seen_through * judged:
             self.dropped_from = self.found_score
 
-    def accepts_placement(self, score: float, points_m: np.ndarray, step_m: float) -> bool:
+    def accepts_placement(self, score: float, pose: np.ndarray, hits_v: np.ndarray, step_m: float) -> bool:
         """Whether a scan matched in a lost drive's widened window (scoring a placement's ``min_score``) is
         found: judged afresh, no more than ``max_seen_through`` of its returns in the map's free space (a
         placement's bar); records it when it is."""
         self.reset(None)
-        share, _ = self.seen_through(points_m, step_m)
+        share, _ = self._seen_through(pose, hits_v, step_m)
         if share > self.config.max_seen_through:
             return False
         self.found_score = score
         return True
 
-    def accepts(self, score: float, points_m: np.ndarray, step_m: float) -> bool:
-        """Whether a scan that matched with ``score`` (its end points ``points_m`` at the match, travel
-        ``step_m`` since the scan judged before) is found (the class docstring); records it when it is."""
-        share, contradicted = self.seen_through(points_m, step_m)
+    def accepts(self, score: float, pose: np.ndarray, hits_v: np.ndarray, step_m: float) -> bool:
+        """Whether a scan that matched with ``score`` at ``pose`` (map frame; its returns ``hits_v``, vehicle
+        frame; travel ``step_m`` since the scan judged before) is found (the class docstring); records it
+        when it is."""
+        share, contradicted = self._seen_through(pose, hits_v, step_m)
         if self.dropped_from is not None:
             if score < RECOVER_SHARE * self.dropped_from:
                 return False
@@ -327,6 +328,12 @@ class TrackCheck:
             return False
         self.found_score = score
         return True
+
+
+def _placed_points(pose: np.ndarray, hits_v: np.ndarray) -> np.ndarray:
+    """A scan's returns (N, 2) [m, vehicle frame] thinned as tracking takes them, placed at ``pose`` (map
+    frame)."""
+    return place_points(pose, thin(hits_v, TRACK_POINTS))
 
 
 @dataclass
@@ -624,14 +631,13 @@ class Localizer:
         pose, score = self.track(k, predicted, untracked_m)
         c = self.config
         moved = pose - predicted
-        points = place_points(pose, thin(self.drive.hits[k], TRACK_POINTS))
-        step_m = float(self.drive.travel_m[k] - self.drive.travel_m[from_k])
+        hits, step_m = self.drive.hits[k], float(self.drive.travel_m[k] - self.drive.travel_m[from_k])
         if untracked_m > c.lost_after_m:  # lost, in a wide window: a match there is a placement
-            ok = score >= c.min_score and self.check.accepts_placement(score, points, step_m)
+            ok = score >= c.min_score and self.check.accepts_placement(score, pose, hits, step_m)
         else:
             nudged = math.hypot(moved[0], moved[1]) <= c.nudge_m and abs(float(wrap_angle(moved[2]))) <= c.nudge_rad
             ok = score >= c.track_min_score or (score >= c.nudge_min_score and nudged)
-            ok = ok and self.check.accepts(score, points, step_m)
+            ok = ok and self.check.accepts(score, pose, hits, step_m)
         poses[k] = pose if ok else predicted
         self.uncovered[k] = math.isnan(score)
         confidence[k], tracked[k] = (0.0 if self.uncovered[k] else score), ok
@@ -772,7 +778,7 @@ class Localizer:
         while k < len(drive):
             self.step(poses, confidence, tracked, k, k - 1, float(travel[k - 1] - travel[last_tracked]))
             if not tracked[k] and not self.uncovered[k]:  # a kidnap's first scans can fit too badly to be tracked
-                self.check.refused(float(confidence[k]), place_points(poses[k], thin(drive.hits[k], TRACK_POINTS)))
+                self.check.refused(float(confidence[k]), poses[k], drive.hits[k])
             if tracked[k]:
                 last_tracked, unmatched_m = k, 0.0
                 if lost:
