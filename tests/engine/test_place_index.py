@@ -58,6 +58,31 @@ def test_a_turned_copy_of_a_place_is_found_with_the_heading_it_was_turned_by(off
         assert abs(float(wrap_angle(best.heading_rad - heading))) < 0.05
 
 
+def _square_walls(half_m: float, step_m: float = 0.05) -> np.ndarray:
+    """(N, 2) points on the walls of a square of half-width ``half_m`` about the origin [m]."""
+    side = np.arange(-half_m, half_m, step_m)
+    edge = np.full_like(side, half_m)
+    return np.concatenate([np.stack(xy, axis=1) for xy in ((side, edge), (side, -edge), (edge, side), (-edge, side))])
+
+
+def test_the_map_beyond_what_a_query_saw_is_not_held_against_a_place() -> None:
+    # a room, with a notch on one wall so that its heading is unique, seen from its centre; its place in
+    # the map, and a second place like it whose map also holds an outer wall that the query's walls hide
+    # (the map saw it from elsewhere). Both are the query's place: only the bins the query saw count
+    # (counting every bin of the sectors it saw: 0.99 and 0.68).
+    notch = np.stack([np.full(20, 4.0 + 0.05 * np.arange(20)), np.full(20, 1.0)], axis=1)
+    room = np.concatenate([_square_walls(4.0), notch])
+    outer = _square_walls(0.75 * RADIUS_M)
+    heading = 0.7
+    query = place_points(inverse(np.array([0.0, 0.0, heading])), room)
+    bare = PlaceIndex.build(room, np.zeros((1, 2)), RADIUS_M)
+    walled = PlaceIndex.build(np.concatenate([room, outer]), np.zeros((1, 2)), RADIUS_M)
+    found_bare, found_walled = bare.query(query, 1)[0], walled.query(query, 1)[0]
+    assert found_bare.similarity > 0.95  # measured 1.0
+    assert found_walled.similarity == pytest.approx(found_bare.similarity, abs=1e-6)
+    assert abs(float(wrap_angle(found_walled.heading_rad - heading))) < 0.05
+
+
 def test_the_revisit_at_the_end_of_the_office_loop_is_retrieved_from_the_map_of_its_start(office, scans) -> None:
     truth = office.ground_truth.poses
     travel = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(truth[:, :2], axis=0).T))])
