@@ -182,6 +182,14 @@ class LocalizationConfig(_Section):
                                           "drive's own recent scans that each scan is matched against [m].")
     search_resolution_m: float = Field(0.2, ge=0.02, le=1.0, description="Cell size of the global search's "
                                        "grid [m] (the pose is then refined on the map's own cells).")
+    from_places: bool = Field(True, description="A stretch searched for over the whole map finds its best pose "
+                              "only around the place_candidates places the map's place index proposes (within "
+                              "place_index.window_m / window_rad of each), on the whole-map search's lattice, and its "
+                              "runner-up over the whole map: the whole-map search's verdict where the index holds the "
+                              "place, too low or ambiguous (never a wrong placement) where it misses it. Off: every "
+                              "such stretch is searched for over the whole map.")
+    place_candidates: int = Field(20, ge=1, le=200, description="See from_places: the places proposed per stretch, "
+                                  "best first (5 missed aces-rough-b's first placement on seed 1).")
     min_score: float = Field(0.65, ge=0.0, le=1.0, description="Lowest mean blurred hit value under a "
                              "stretch's end points for a global placement (0-1).")
     runner_up_ratio: float = Field(0.9, gt=0.0, le=1.0, description="A placement is ambiguous when a pose "

@@ -15,9 +15,9 @@ rotation-invariant and brute force: places x rings x sectors, milliseconds for t
 The index proposes; it never accepts. :func:`search_at_places` searches for the best pose only around the
 proposed places, on the whole-map search's lattice, and for a runner-up over the whole map: where the
 index holds the place, the whole-map search's own verdict; where it misses it, ambiguous or too low,
-never a wrong unique placement. Far loop searches use it that way (indoors; localisation does not: its
-misses lost a drive there); :mod:`slam_engine.multisession.which_map` orders several saved maps by how
-much a drive looks like each. Recall@5 at the benchmark logs' true
+never a wrong unique placement. Far loop searches (indoors) and localisation's searches over the whole
+map use it that way; :mod:`slam_engine.multisession.which_map` orders several saved maps by how much a
+drive looks like each. Recall@5 at the benchmark logs' true
 revisits (``python -m bench.place_recall``, 2026-11-29): intel 0.93, aces-rough 1.0, the corridor 0.67,
 the campus 0.85.
 """

@@ -38,7 +38,14 @@ import numpy as np
 from slam_engine.config import SlamConfig
 from slam_engine.model.map_bundle import MapBundle
 from slam_engine.model.poses import compose, relative
-from slam_engine.multisession.localization import DriveScans, Localizer, MapIndex, ScanJoiner, TrackCheck
+from slam_engine.multisession.localization import (
+    DriveScans,
+    Localizer,
+    MapIndex,
+    MapPlaces,
+    ScanJoiner,
+    TrackCheck,
+)
 
 SEARCHING, FOUND, CARRIED, OUTSIDE, LOST = "searching", "found", "carried", "outside", "lost"
 STATES = (SEARCHING, FOUND, CARRIED, OUTSIDE, LOST)
@@ -70,6 +77,7 @@ class LiveLocalizer:
         self.config = SlamConfig() if config is None else config
         c = self.config.localization
         self.index = index if index is not None else MapIndex.of_bundle(bundle, c)
+        self.places = MapPlaces.of(bundle, self.config)  # where searches look first (None: the whole map)
         self.threads = max(1, int(threads))
         self._searching = c.model_copy(update={"stretch_m": c.live_stretch_m})  # the searches' settings
         self.joiner = ScanJoiner(c.local_map_resolution_m, c.local_map_m)
@@ -191,7 +199,7 @@ class LiveLocalizer:
         scan that tracking matched, its map pose, its match score there) or None; the scans after it are
         tracked as they come (:meth:`_take_search`)."""
         c = self._searching
-        localizer = Localizer(self.index, drive, c, self.threads)
+        localizer = Localizer(self.index, drive, c, self.threads, places=self.places)
         travel = drive.travel_m
         candidates: list[int] = []
         for span in (2, 4, 9):

@@ -5,7 +5,10 @@ key frames' end points at their poses: a coarse one (``localization.search_resol
 global search, the map's own cells for tracking and refinement. A *stretch* of the drive (its scans
 over ``stretch_m`` of travel, joined by the drive's own relative poses: odometry, or another map's
 key frames) is searched for over the whole map and every heading by branch and bound (Hess et al.
-2016, Cartographer's global localisation), then refined. The placement counts only when it scores at
+2016, Cartographer's global localisation), then refined; with ``from_places`` the best pose is searched
+for only around the places the map's place index proposes and the runner-up over the whole map
+(:func:`~slam_engine.backend.place_index.search_at_places`: the whole map's verdict where the index holds
+the place, never a wrong placement where it does not). The placement counts only when it scores at
 least ``min_score``, no pose elsewhere scores nearly as well, the next, disjoint stretch, searched
 for on its own, lands where the scans tracked from the first placement put it, and no more than
 ``max_seen_through`` of the two stretches' returns fall where the map saw free space (:class:`FreeSpace`:
@@ -48,7 +51,7 @@ from slam_engine.backend.correlative import (
     search,
 )
 from slam_engine.backend.loop_closer import close_loops, thin
-from slam_engine.backend.place_index import PlaceIndex, map_places
+from slam_engine.backend.place_index import PlaceCandidate, PlaceIndex, map_places, search_at_places
 from slam_engine.backend.pose_graph import Edge
 from slam_engine.backend.submaps import match_grid_from_points
 from slam_engine.config import LocalizationConfig, LoopClosingConfig, PlaceIndexConfig, SlamConfig
@@ -59,6 +62,7 @@ from slam_engine.model.poses import compose, inverse, key_poses, place_each, pla
 from slam_engine.model.result import OccupancyGrid, Trajectory
 from slam_engine.products.rendering import FREE_THRESHOLD
 
+PLACE_QUERY_POINTS = 3000  # a stretch's end points that describe it to the place index, at most
 MATCH_RANGE_M = 20.0  # end points farther than this are left out of matching (as the loop closer does)
 TRACK_POINTS = 250  # a tracked scan is matched with at most this many end points
 COARSE_LEVELS = 10  # the global grid's pyramid: blocks up to 512 cells (51 m at 0.1 m)
@@ -249,6 +253,34 @@ def map_places_of(bundle: MapBundle, place_config: PlaceIndexConfig) -> PlaceInd
         return PlaceIndex.of_stored(stored)
     coverage = Coverage.of_bundle(bundle, PLACES_COVERAGE_CELL_M)
     return map_places(map_points(bundle), bundle.poses[:, :2], coverage.covers, place_config)
+
+
+@dataclass(frozen=True)
+class MapPlaces:
+    """A saved map's place index and the settings of the searches around the places it proposes."""
+
+    index: PlaceIndex
+    config: PlaceIndexConfig
+    candidates: int  # places proposed per stretch
+
+    @classmethod
+    def of(cls, bundle: MapBundle, config: SlamConfig) -> MapPlaces | None:
+        """The bundle's places when ``localization.from_places`` asks for them, else None."""
+        if not config.localization.from_places:
+            return None
+        return cls.of_index(map_places_of(bundle, config.place_index), config)
+
+    @classmethod
+    def of_index(cls, index: PlaceIndex, config: SlamConfig) -> MapPlaces | None:
+        """``index`` with the settings of ``config`` when ``localization.from_places`` asks for it, else None."""
+        if not config.localization.from_places:
+            return None
+        return cls(index, config.place_index, config.localization.place_candidates)
+
+    def proposed(self, drive: DriveScans, first: int, last: int) -> list[PlaceCandidate]:
+        """The places the index proposes for the stretch ``first..last`` of ``drive``, best first (none
+        when it describes too little)."""
+        return self.index.query(drive.cloud(first, last, PLACE_QUERY_POINTS), self.candidates)
 
 
 class TrackCheck:
@@ -523,6 +555,7 @@ class LocalizationResult:
     failed_tries: dict[str, int] = field(default_factory=dict)  # why tries at a first placement failed: count
     wall_time_s: float = 0.0
     search_s: float = 0.0  # of wall_time_s: placing and tracking the drive (the rest: its scans, the map's index)
+    whole_map_searches: int = 0  # of global_searches, over the whole map (no place proposed, or no index used)
 
     def summary(self) -> dict:
         tracked = self.tracked
@@ -531,7 +564,8 @@ class LocalizationResult:
             "scans": int(len(self.confidence)), "scans_tracked": int(tracked.sum()),
             "scans_outside_map": int(self.outside_map.sum()),
             "mean_confidence": round(float(self.confidence.mean()), 4) if len(self.confidence) else None,
-            "events": self.events, "global_searches": self.global_searches, "own_loop_closures": self.own_closures,
+            "events": self.events, "global_searches": self.global_searches,
+            "whole_map_searches": self.whole_map_searches, "own_loop_closures": self.own_closures,
             "failed_tries": dict(self.failed_tries),
             "T_map_from_drive": None if self.T_map_from_drive is None else [round(float(v), 5)
                                                                           for v in self.T_map_from_drive],
@@ -543,14 +577,16 @@ class Localizer:
     """Places and tracks one drive in one saved map (see the module docstring)."""
 
     def __init__(self, index: MapIndex, drive: DriveScans, config: LocalizationConfig, threads: int = 1,
-                 own_loops: OwnLoops | None = None):
+                 own_loops: OwnLoops | None = None, places: MapPlaces | None = None):
         self.index = index
         self.drive = drive
         self.config = config
         self.threads = max(1, int(threads))
         self.own_loops = own_loops
+        self.places = places  # where a stretch is searched for first (None: the whole map)
         self.best_score = 0.0
         self.global_searches = 0
+        self.whole_map_searches = 0  # of global_searches, over the whole map: no place proposed
         self.uncovered = np.zeros(len(drive), bool)  # scans too far out of the map to be judged by it
         self.failed_tries: dict[str, int] = {}  # why each first try failed (LOW_SCORE, ...): how many
         self._why = ""  # why the last placed_stretch or confirmed_placement found nothing
@@ -560,7 +596,9 @@ class Localizer:
     def place_stretch(self, first: int, last: int, near: Near | None = None) -> tuple[np.ndarray | None, bool]:
         """Scan ``last``'s pose in the map from the stretch ``first..last`` searched over the whole map
         (or ``near`` a map pose of scan ``last``), refined on the map's cells, and False; None when no pose
-        scores ``min_score``, and whether another one, elsewhere, scores nearly as well."""
+        scores ``min_score``, and whether another one, elsewhere, scores nearly as well. Over the whole map
+        with ``places``, the best pose is searched for around the places they propose only (see
+        :func:`~slam_engine.backend.place_index.search_at_places`)."""
         c = self.config
         cloud = self.drive.cloud(first, last, c.max_points)
         if len(cloud) < 20:
@@ -572,10 +610,19 @@ class Localizer:
             initial, window_m, window_rad = near
         self.global_searches += 1
         floor = c.min_score * REPORT_SHARE
-        match = search(self.index.coarse, cloud, initial, window_m, window_rad, floor, ambiguity_m=c.ambiguity_m,
-                       ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio, runner_up_min_score=floor,
-                       threads=self.threads, runner_up_from=c.min_score, origins=self.index.origins,
-                       any_runner_up=True)
+        proposed = self.places.proposed(self.drive, first, last) if near is None and self.places else []
+        if proposed:
+            assert self.places is not None
+            p = self.places.config
+            match = search_at_places(self.index.coarse, cloud, initial, window_m, window_rad, proposed, p.window_m,
+                                     p.window_rad, floor, c.ambiguity_m, c.ambiguity_rad, c.runner_up_ratio, floor,
+                                     c.min_score, self.threads, self.index.origins)
+        else:
+            self.whole_map_searches += near is None
+            match = search(self.index.coarse, cloud, initial, window_m, window_rad, floor, ambiguity_m=c.ambiguity_m,
+                           ambiguity_rad=c.ambiguity_rad, runner_up_share=c.runner_up_ratio,
+                           runner_up_min_score=floor, threads=self.threads, runner_up_from=c.min_score,
+                           origins=self.index.origins, any_runner_up=True)
         if match is None:
             return None, False
         self.best_score = max(self.best_score, match.score)
@@ -739,7 +786,8 @@ class Localizer:
                 break
         if placement is None:
             return LocalizationResult(False, self.best_score, events=events, global_searches=self.global_searches,
-                                      failed_tries=dict(self.failed_tries), wall_time_s=time.perf_counter() - started)
+                                      failed_tries=dict(self.failed_tries), wall_time_s=time.perf_counter() - started,
+                                      whole_map_searches=self.whole_map_searches)
         _, last, pose = placement
         poses[last] = pose
         self.check.reset(None)
@@ -758,7 +806,8 @@ class Localizer:
         T_map_from_drive = _rigid_placement(poses[tracked], drive.poses[tracked])
         return LocalizationResult(True, self.best_score, Trajectory(drive.t_s.copy(), poses), confidence, tracked,
                                   events, T_map_from_drive, self.uncovered.copy(), self.global_searches,
-                                  len(closures), dict(self.failed_tries), time.perf_counter() - started)
+                                  len(closures), dict(self.failed_tries), time.perf_counter() - started,
+                                  whole_map_searches=self.whole_map_searches)
 
     def _track_forward(self, poses: np.ndarray, confidence: np.ndarray, tracked: np.ndarray, start: int,
                        events: list[dict]) -> list[int]:
@@ -936,7 +985,7 @@ def localize_log(bundle: MapBundle, log: DriveLog, config: SlamConfig | None = N
     if threads <= 1:
         drive = DriveScans.from_log(log, config)
         index = MapIndex.of_bundle(bundle, config.localization)
-        return drive, _placed(index, drive, config, hint, threads, started)
+        return drive, _placed(index, drive, config, hint, threads, started, MapPlaces.of(bundle, config))
     start_ready = threading.Event()
     start: list[DriveScans] = []
 
@@ -949,18 +998,19 @@ def localize_log(bundle: MapBundle, log: DriveLog, config: SlamConfig | None = N
                                START_STRETCHES * config.localization.stretch_m)
         matching.add_done_callback(lambda _: start_ready.set())  # also when it fails before its start
         index = MapIndex.of_bundle(bundle, config.localization)
+        places = MapPlaces.of(bundle, config)
         start_ready.wait()
         tried: dict[int, tuple[int, int, np.ndarray] | None] = {}
         early = None
         if start:
-            early = Localizer(index, start[0], config.localization, threads)
+            early = Localizer(index, start[0], config.localization, threads, places=places)
             outcome = early.first_try(0, hint)
             if start[0].reached_end:
                 early = None  # the rest of the drive might have changed it: tried again on the whole drive
             else:
                 tried[0] = outcome
         drive = matching.result()
-    return drive, _placed(index, drive, config, hint, threads, started, tried, early)
+    return drive, _placed(index, drive, config, hint, threads, started, places, tried, early)
 
 
 def localize(bundle: MapBundle, drive: DriveScans, config: SlamConfig | None = None, hint: np.ndarray | None = None,
@@ -969,17 +1019,21 @@ def localize(bundle: MapBundle, drive: DriveScans, config: SlamConfig | None = N
     the drive's first scan, if known."""
     config = SlamConfig() if config is None else config
     started = time.perf_counter()
-    return _placed(MapIndex.of_bundle(bundle, config.localization), drive, config, hint, threads, started)
+    return _placed(MapIndex.of_bundle(bundle, config.localization), drive, config, hint, threads, started,
+                   MapPlaces.of(bundle, config))
 
 
 def _placed(index: MapIndex, drive: DriveScans, config: SlamConfig, hint: np.ndarray | None, threads: int,
-            started: float, tried: dict | None = None, early: Localizer | None = None) -> LocalizationResult:
-    """The drive placed and tracked in the map of ``index``: ``search_s`` that alone took (the
-    localizer's own wall time), ``wall_time_s`` since ``started`` (``time.perf_counter()``). ``tried``:
-    first tries made before by ``early`` (on the drive's first scans), whose searches count too."""
-    localizer = Localizer(index, drive, config.localization, threads, OwnLoops.of(config))
+            started: float, places: MapPlaces | None = None, tried: dict | None = None,
+            early: Localizer | None = None) -> LocalizationResult:
+    """The drive placed and tracked in the map of ``index`` (``places``: its place index, where stretches
+    are searched for first): ``search_s`` that alone took (the localizer's own wall time), ``wall_time_s``
+    since ``started`` (``time.perf_counter()``). ``tried``: first tries made before by ``early`` (on the
+    drive's first scans), whose searches count too."""
+    localizer = Localizer(index, drive, config.localization, threads, OwnLoops.of(config), places)
     if early is not None:
         localizer.best_score, localizer.global_searches = early.best_score, early.global_searches
+        localizer.whole_map_searches = early.whole_map_searches
         localizer.failed_tries = dict(early.failed_tries)
     result = localizer.run(hint, tried)
     result.search_s, result.wall_time_s = result.wall_time_s, time.perf_counter() - started

@@ -33,6 +33,7 @@ from slam_engine.multisession.localization import (
     LocalizationResult,
     Localizer,
     MapIndex,
+    MapPlaces,
     OwnLoops,
     map_places_of,
 )
@@ -131,7 +132,8 @@ def localize_in_maps(maps: Sequence[tuple[str, MapBundle]], log: DriveLog, confi
     for i in order:
         t0 = time.perf_counter()
         index = MapIndex.of_bundle(maps[i][1], config.localization)
-        placed = Localizer(index, drive, config.localization, threads, OwnLoops.of(config)).run()
+        placed = Localizer(index, drive, config.localization, threads, OwnLoops.of(config),
+                           MapPlaces.of_index(made[i], config)).run()
         tries[i].localised, tries[i].best_score = placed.localised, placed.best_score
         tries[i].seconds += time.perf_counter() - t0
         if placed.localised:

@@ -131,6 +131,19 @@ def test_a_drive_is_localised_in_the_map_it_is_in_and_refused_where_it_is_in_non
     assert which.summary()["chosen"] == "office"
     refused = localize_in_maps([("office", office_map)], elsewhere, CONFIG)
     assert refused.chosen is None and refused.result is None and refused.tries[0].localised is False
+    # the index proposes where each stretch is searched for: the same placement and refusal as searching
+    # the whole map for every one, without a whole-map search for the best
+    whole_map = CONFIG.model_copy(update={"localization": CONFIG.localization.model_copy(
+        update={"from_places": False})})
+    searched = localize(office_map, which.drive, whole_map)
+    assert searched.trajectory is not None
+    assert np.allclose(searched.trajectory.poses, alone.trajectory.poses, atol=1e-9)
+    assert alone.whole_map_searches == 0 < alone.global_searches
+    assert searched.whole_map_searches > 0 and searched.summary()["whole_map_searches"] == searched.whole_map_searches
+    refused_whole = localize_in_maps([("office", office_map)], elsewhere, whole_map)
+    assert refused_whole.chosen is None and refused_whole.tries[0].localised is False
+    # below the bar the best score is what the proposed places held (measured 0.598 against 0.599)
+    assert refused.tries[0].best_score <= refused_whole.tries[0].best_score
 
 
 def test_a_search_at_the_proposed_places_answers_as_the_whole_map_or_refuses(office, scans) -> None:
