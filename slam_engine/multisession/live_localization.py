@@ -3,7 +3,8 @@
 The same search and tracking as a whole drive's localisation (:mod:`~slam_engine.multisession.localization`),
 taken scan by scan. Each scan is matched to the drive's recent scans (:class:`ScanJoiner`), then:
 
-- **searching** (not placed yet, or lost): the drive is searched for over the whole map in a background
+- **searching** (not placed yet, or lost): the drive is searched for over the whole map (around the places
+  the map's place index proposes first, as a whole drive's stretches are) in a background
   thread, on the drive's scans so far (since its last match, when lost): a stretch of ``live_stretch_m`` of
   travel, placed unambiguously and confirmed by the next stretch (grown while ambiguous, as far as the
   drive goes). The scans meanwhile are reported without a pose (or,
