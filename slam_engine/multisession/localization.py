@@ -265,10 +265,9 @@ class MapPlaces:
 
     @classmethod
     def of(cls, bundle: MapBundle, config: SlamConfig) -> MapPlaces | None:
-        """The bundle's places when ``localization.from_places`` asks for them, else None."""
-        if not config.localization.from_places:
-            return None
-        return cls.of_index(map_places_of(bundle, config.place_index), config)
+        """The bundle's places when ``localization.from_places`` asks for them (made only then), else None."""
+        return cls.of_index(map_places_of(bundle, config.place_index), config) if config.localization.from_places \
+            else None
 
     @classmethod
     def of_index(cls, index: PlaceIndex, config: SlamConfig) -> MapPlaces | None:
@@ -610,13 +609,13 @@ class Localizer:
             initial, window_m, window_rad = near
         self.global_searches += 1
         floor = c.min_score * REPORT_SHARE
-        proposed = self.places.proposed(self.drive, first, last) if near is None and self.places else []
-        if proposed:
-            assert self.places is not None
-            p = self.places.config
-            match = search_at_places(self.index.coarse, cloud, initial, window_m, window_rad, proposed, p.window_m,
-                                     p.window_rad, floor, c.ambiguity_m, c.ambiguity_rad, c.runner_up_ratio, floor,
-                                     c.min_score, self.threads, self.index.origins)
+        places = self.places if near is None else None
+        proposed = places.proposed(self.drive, first, last) if places is not None else []
+        if places is not None and proposed:
+            match = search_at_places(self.index.coarse, cloud, initial, window_m, window_rad, proposed,
+                                     places.config.window_m, places.config.window_rad, floor, c.ambiguity_m,
+                                     c.ambiguity_rad, c.runner_up_ratio, floor, c.min_score, self.threads,
+                                     self.index.origins)
         else:
             self.whole_map_searches += near is None
             match = search(self.index.coarse, cloud, initial, window_m, window_rad, floor, ambiguity_m=c.ambiguity_m,
