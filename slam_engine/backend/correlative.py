@@ -492,6 +492,42 @@ def runner_up_score(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndar
     return 0.0 if a2 < 0 else float(total / (MAX_VALUE * n))
 
 
+def runner_up_among(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, window_m: float,
+                    window_rad: float, best_pose: np.ndarray, min_score: float, ambiguity_m: float,
+                    ambiguity_rad: float, matches: list[CorrelativeMatch]) -> float | None:
+    """What :func:`runner_up_score` (same arguments) would find, read from poses already scored instead:
+    the score of the first of ``matches`` (poses of ``points_v`` on that search's lattice, e.g. the best of
+    small windows searched around it, with their scores) that its search would try and count (on the
+    lattice and within the window, outside the ambiguity box around ``best_pose``, above ``min_score``);
+    None when none of them is one. Either way the question it answers (is the best ambiguous?) gets the
+    same answer; only a None needs the search itself."""
+    points_v = np.ascontiguousarray(points_v, np.float64)
+    n = len(points_v)
+    if n == 0 or not matches:
+        return None
+    res = grid.resolution_m
+    step = angular_step_rad(points_v, res)
+    n_half = max(0, int(math.ceil(window_rad / step)))
+    window_cells = max(0, int(math.ceil(window_m / res)))
+    x0, y0, th0 = (float(v) for v in initial_pose)
+    ex_a = int(round(float(wrap_angle(float(best_pose[2]) - th0)) / step)) + n_half
+    ex_x = int(round((float(best_pose[0]) - x0) / res))
+    ex_y = int(round((float(best_pose[1]) - y0) / res))
+    ex_angles, ex_cells = int(math.ceil(ambiguity_rad / step)), int(math.ceil(ambiguity_m / res))
+    floor_total = int(min_score * MAX_VALUE * n)
+    for match in matches:
+        x, y, theta = (float(v) for v in match.pose)
+        a = int(round((theta - th0) / step)) + n_half  # unwrapped: beyond +-n_half the search tries no such heading
+        dx, dy = int(round((x - x0) / res)), int(round((y - y0) / res))
+        on_lattice = abs(th0 + (a - n_half) * step - theta) < 1e-6 * step and abs(x0 + dx * res - x) < 1e-6 * res \
+            and abs(y0 + dy * res - y) < 1e-6 * res
+        inside = 0 <= a <= 2 * n_half and abs(dx) <= window_cells and abs(dy) <= window_cells
+        excluded = abs(a - ex_a) <= ex_angles and abs(dx - ex_x) <= ex_cells and abs(dy - ex_y) <= ex_cells
+        if on_lattice and inside and not excluded and int(round(match.score * MAX_VALUE * n)) > floor_total:
+            return match.score
+    return None
+
+
 @nb.njit(cache=True, nogil=True)
 def _dense_residuals(values, origin_x, origin_y, inv_res, points_v, x, y, theta, H, g):
     """Sum of (1 - v)^2 at the points (v bilinear in [0, 1]) and the Gauss-Newton system."""

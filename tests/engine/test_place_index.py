@@ -179,6 +179,54 @@ def test_a_search_at_the_proposed_places_answers_as_the_whole_map_or_refuses(off
     assert missed.runner_up_score >= c.runner_up_ratio * missed.score
 
 
+def test_a_runner_up_among_the_proposed_places_spares_the_whole_map_search(office, scans, monkeypatch) -> None:
+    """The office and a copy of it 60 m east: a stretch fits both alike. The copy's proposed place already
+    makes the best ambiguous (:func:`runner_up_among`, as the runner-up search over the whole map judges it)
+    and search_at_places says so without that search; a pose that search would not count (in the
+    ambiguity box around the best, off its lattice, out of its window, below the share) is not taken for one."""
+    import slam_engine.backend.place_index as place_index
+    from slam_engine.backend.correlative import lattice_pose, runner_up_among, runner_up_score
+
+    office_points = world_points(office, scans)
+    shift = np.array([60.0, 0.0])
+    world = np.concatenate([office_points, office_points + shift])
+    grid = match_grid_from_points(world, 0.2, 1.0, n_levels=10)
+    truth = office.ground_truth.poses
+    last = len(truth) // 3
+    first = int(np.searchsorted(scans.travel_m, scans.travel_m[last] - 8.0))
+    cloud = thin(place_points(inverse(truth[last]), office_points[np.hypot(*(office_points - truth[last, :2]).T)
+                                                                  < 15.0]), 400)
+    centre, reach = grid.centre_and_reach()
+    c = CONFIG.localization
+    index = PlaceIndex.along(world, np.concatenate([truth[:, :2], truth[:, :2] + shift]), SPACING_M, RADIUS_M)
+    proposed = index.query(scans.cloud(first, last, 3000), 5)
+    for copy in (np.zeros(2), shift):  # both copies proposed
+        assert any(math.hypot(*(p.centre_m - truth[last, :2] - copy)) < 2.0 for p in proposed)
+    searched = [search(grid, cloud, lattice_pose(cloud, 0.2, centre, np.array([*p.centre_m, p.heading_rad])), 2.5,
+                       0.25, 0.5) for p in proposed]
+    matches = [m for m in searched if m is not None]
+    best = max(matches, key=lambda m: m.score)
+    floor = c.runner_up_ratio * best.score
+    args = (grid, cloud, centre, reach, math.pi, best.pose, floor, c.ambiguity_m, c.ambiguity_rad)
+    found = runner_up_among(*args, [m for m in matches if m is not best])
+    assert found is not None and found >= floor
+    assert runner_up_score(*args) >= floor  # the whole map's search agrees: ambiguous
+    twin = next(m for m in matches if m is not best and m.score >= floor)
+    assert math.hypot(*(twin.pose[:2] - best.pose[:2])) == pytest.approx(60.0, abs=0.3)
+    # poses its search would not count
+    near_best = replace(twin, pose=best.pose + np.array([0.2, 0.0, 0.0]))
+    off_lattice = replace(twin, pose=twin.pose + np.array([0.07, 0.0, 0.0]))
+    weak = replace(twin, score=0.99 * floor)
+    assert runner_up_among(*args, [near_best, off_lattice, weak]) is None
+    small = (grid, cloud, best.pose, 10.0, math.pi, best.pose, floor, c.ambiguity_m, c.ambiguity_rad)
+    assert runner_up_among(*small, [replace(twin, pose=lattice_pose(cloud, 0.2, best.pose, twin.pose))]) is None
+    # search_at_places takes it from there: no whole-map search
+    monkeypatch.setattr(place_index, "runner_up_score", lambda *a, **k: pytest.fail("searched the whole map"))
+    at_places = search_at_places(grid, cloud, centre, reach, math.pi, proposed, 2.5, 0.25, 0.5, c.ambiguity_m,
+                                 c.ambiguity_rad, c.runner_up_ratio, 0.5)
+    assert at_places is not None and at_places.runner_up_score >= c.runner_up_ratio * at_places.score
+
+
 def test_a_drive_is_placed_in_its_own_building_among_made_up_ones_with_the_places_its_bundle_keeps(tmp_path) -> None:
     """Three made-up office floors mapped; each one's places kept in its bundle (read back from the file,
     and made again from a bundle of the first format version, which kept none: the same ranking); a drive
