@@ -212,7 +212,8 @@ class LocalizationConfig(_Section):
                                   "distance of where the odometry puts it [m] ...")
     track_window_rad: float = Field(0.3, gt=0.0, le=3.2, description="... and this turn [rad].")
     track_min_score: float = Field(0.5, ge=0.0, le=1.0, description="A scan whose match scores below this is "
-                                   "placed by the odometry alone (confidence = its score) ...")
+                                   "placed by the odometry alone (confidence = its score; 0 below 0.6 of the lowest "
+                                   "score a scan is found with: it matched nowhere) ...")
     nudge_min_score: float = Field(0.3, ge=0.0, le=1.0, description="... unless it scores at least this and moves "
                                    "the scan by no more than nudge_m / nudge_rad from where the odometry puts it.")
     nudge_m: float = Field(0.1, ge=0.0, le=10.0, description="See nudge_min_score [m].")

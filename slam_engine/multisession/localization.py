@@ -226,6 +226,14 @@ class MapIndex:
         return int(self.free.holds(judged).sum()), len(judged)
 
 
+def unmatched_below(config: LocalizationConfig) -> float:
+    """The score below which a tracked scan's match counts as none (score 0): it would be found by no rule
+    (``track_min_score``, ``nudge_min_score``, ``min_score``) nor held as a drop any differently
+    (:meth:`TrackCheck.refused`: below SCORE_DROP_SHARE of any found scan's score). A search pruned there
+    costs a scan that matches nowhere far less (aces-rough-b, 83 such scans: its localisation 0.82 -> 0.73 s)."""
+    return SCORE_DROP_SHARE * min(config.track_min_score, config.nudge_min_score, config.min_score)
+
+
 def rendered(bundle: MapBundle, resolution_m: float) -> OccupancyGrid:
     """The bundle's scans rendered as an occupancy grid on cells of ``resolution_m`` [m] (map frame)."""
     from slam_engine.backend.map_builder import render_occupancy
@@ -665,7 +673,7 @@ class Localizer:
                     return fitted, check.score
         window_m = min(c.track_window_m + c.window_per_m * untracked_m, MAX_TRACK_WINDOW_M)
         window_rad = min(c.track_window_rad + c.window_rad_per_m * untracked_m, MAX_TRACK_WINDOW_RAD)
-        match = search(self.index.fine, points, predicted, window_m, window_rad, 0.0)
+        match = search(self.index.fine, points, predicted, window_m, window_rad, unmatched_below(c))
         if match is None:
             return predicted, 0.0
         return refine_pose(self.index.fine, points, match.pose), match.score

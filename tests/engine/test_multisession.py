@@ -157,6 +157,31 @@ def test_a_drive_that_leaves_the_map_is_carried_by_its_motion_not_judged(office)
     assert np.hypot(*(placed - truth[:, :2]).T).max() < 0.1  # measured 0.027 m: carried, then found again
 
 
+def test_a_scan_that_matches_nowhere_is_searched_only_down_to_what_could_count(halves, first_map,
+                                                                               monkeypatch) -> None:
+    """Tracking searches a scan's widened window only for matches that some rule could take (or hold as a
+    drop): below unmatched_below a scan matched nowhere, its confidence 0, where it is predicted; a scan where
+    it belongs is matched as before."""
+    import slam_engine.multisession.localization as localization
+
+    drive = DriveScans.from_log(halves[0], CONFIG)
+    localizer = Localizer(MapIndex.of_bundle(first_map.bundle, CONFIG.localization), drive, CONFIG.localization)
+    floor = localization.unmatched_below(CONFIG.localization)
+    assert floor == pytest.approx(0.6 * 0.3)  # SCORE_DROP_SHARE of the nudge's score, the lowest found
+    poses = first_map.trajectory.poses
+    off = np.array([1.5, 0.0, 0.8])  # out of the window's reach of the right pose
+    tracked = [localizer.track(k, poses[k] + shift, untracked_m=5.0) for k in (20, 60, 100)
+               for shift in (np.zeros(3), off)]
+    monkeypatch.setattr(localization, "unmatched_below", lambda config: 0.0)
+    unfloored = [localizer.track(k, poses[k] + shift, untracked_m=5.0) for k in (20, 60, 100)
+                 for shift in (np.zeros(3), off)]
+    for (pose, score), (pose_0, score_0) in zip(tracked[::2], unfloored[::2], strict=True):
+        assert score == score_0 > 0.99 and np.array_equal(pose, pose_0)  # measured 0.994-0.999
+    for k, (pose, score), (_, score_0) in zip((20, 60, 100), tracked[1::2], unfloored[1::2], strict=True):
+        assert score == 0.0 and np.array_equal(pose, poses[k] + off)
+        assert 0.0 < score_0 < floor  # what the whole window held: measured 0.13-0.14
+
+
 def test_a_drive_in_another_building_is_refused(first_map) -> None:
     elsewhere = simulate("campus", seed=1, rig="robot", cameras=False, max_duration_s=40.0)
     result = localize(first_map.bundle, DriveScans.from_log(elsewhere.log, CONFIG), CONFIG)
