@@ -144,12 +144,10 @@ class FreeSpace:
     @classmethod
     def of_grid(cls, grid: OccupancyGrid, margin_m: float) -> FreeSpace:
         """The deep free space of a rendered map ``grid``."""
-        from scipy import ndimage
-
         free_log_odds = math.log(FREE_THRESHOLD / (1.0 - FREE_THRESHOLD))
         free = (grid.log_odds != 0.0) & (grid.log_odds < free_log_odds)
-        inside_m = ndimage.distance_transform_edt(free) * grid.resolution_m
-        return cls(inside_m >= margin_m, np.array([grid.origin_x_m, grid.origin_y_m]), grid.resolution_m)
+        deep = free & ~cells_within(~free, grid.resolution_m, margin_m, closed=False)
+        return cls(deep, np.array([grid.origin_x_m, grid.origin_y_m]), grid.resolution_m)
 
     def holds(self, points_m: np.ndarray) -> np.ndarray:
         """(N,) bool: which map-frame points (N, 2) [m] fall in the deep free space."""
@@ -184,10 +182,7 @@ class Coverage:
 
     def near_cells_of(self, grid: MatchGrid, reach_m: float) -> np.ndarray:
         """(H, W) bool on ``grid``'s cells: those whose centre lies within ``reach_m`` of an observed cell."""
-        from scipy import ndimage
-
-        distance_m = ndimage.distance_transform_edt(~self.observed) * self.resolution_m
-        near = distance_m <= reach_m
+        near = cells_within(self.observed, self.resolution_m, reach_m, closed=True)
         rows, cols = grid.values.shape
         ix, iy = np.meshgrid(np.arange(cols), np.arange(rows))
         centres = grid.origin_m + (np.stack([ix.ravel(), iy.ravel()], axis=1) + 0.5) * grid.resolution_m
@@ -224,6 +219,33 @@ class MapIndex:
         (N, 2) [m, map frame]."""
         judged = points_m[self.coverage.covers(points_m)]
         return int(self.free.holds(judged).sum()), len(judged)
+
+
+def cells_within(mask: np.ndarray, resolution_m: float, distance_m: float, closed: bool) -> np.ndarray:
+    """(H, W) bool: the cells of ``mask`` (H, W) whose centre lies closer than ``distance_m`` [m] (``closed``: at
+    most that far) to a True cell's centre, cells of ``resolution_m``: what thresholding the Euclidean
+    distance transform of ``~mask`` gives (the same float comparisons), without it. The disc is taken row by
+    row: a running maximum along x as wide as the disc is at each row offset, shifted by it. On a 4800 x
+    5440 map (the campus) 0.24-0.34 s against the transform's 1.3 s."""
+    from scipy import ndimage
+
+    h, w = mask.shape
+    source = np.ascontiguousarray(mask, np.uint8)
+    out = np.zeros((h, w), np.uint8)
+    reach = int(math.floor(distance_m / resolution_m)) + 1
+    for dy in range(-min(reach, h - 1), min(reach, h - 1) + 1):
+        inside = [dx for dx in range(reach + 1) if (math.sqrt(dx * dx + dy * dy) * resolution_m <= distance_m
+                                                     if closed else
+                                                     math.sqrt(dx * dx + dy * dy) * resolution_m < distance_m)]
+        if not inside:
+            continue
+        half = max(inside)
+        row = ndimage.maximum_filter1d(source, size=2 * half + 1, axis=1, mode="constant", cval=0) if half else source
+        if dy >= 0:  # out[y] |= row[y + dy]
+            np.bitwise_or(out[: h - dy], row[dy:], out=out[: h - dy])
+        else:
+            np.bitwise_or(out[-dy:], row[: h + dy], out=out[-dy:])
+    return out.astype(bool)
 
 
 def unmatched_below(config: LocalizationConfig) -> float:

@@ -8,7 +8,7 @@ import pytest
 
 from slam_engine.config import SlamConfig
 from slam_engine.model.result import OccupancyGrid
-from slam_engine.multisession.localization import SEEN_THROUGH, FreeSpace, localize_log, refusal_reason
+from slam_engine.multisession.localization import SEEN_THROUGH, FreeSpace, cells_within, localize_log, refusal_reason
 from slam_engine.pipeline import run_slam
 from slam_engine.simulation import simulate
 
@@ -26,6 +26,21 @@ def test_deep_free_space_lies_inside_the_free_cells_by_the_margin() -> None:
                        [0.2, 0.2],  # unknown
                        [-1.0, 2.5]])  # off the grid
     assert free.holds(points).tolist() == [True, False, True, False, False, False]
+
+
+@pytest.mark.parametrize("shape", [(60, 70), (3, 40), (1, 1)])
+def test_the_cells_within_a_distance_are_those_the_distance_transform_gives(shape) -> None:
+    """cells_within is the Euclidean distance transform thresholded (the same float comparisons), also at
+    distances that fall on cell centres and on masks smaller than the disc."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(7)
+    mask = rng.random(shape) < 0.03
+    mask.flat[0] = True  # at least one cell to be near
+    for resolution_m, distance_m in ((0.05, 0.2), (0.05, 0.15), (0.1, 0.3), (0.2, 0.5), (0.05, 0.01)):
+        distance = ndimage.distance_transform_edt(~mask) * resolution_m
+        assert np.array_equal(cells_within(mask, resolution_m, distance_m, closed=True), distance <= distance_m)
+        assert np.array_equal(cells_within(mask, resolution_m, distance_m, closed=False), distance < distance_m)
 
 
 @pytest.mark.slow
