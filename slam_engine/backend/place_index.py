@@ -10,7 +10,9 @@ frame) is binned the same way and compared with every place at every sector shif
 cross-correlation along the sectors, one FFT per ring), scored by cosine similarity over the bins the
 query saw (in each sector, out to a little beyond its farthest return: a place's walls behind the
 query's are not held against it); each peak of the shifts is a heading in the world frame. Retrieval is
-rotation-invariant and brute force: places x rings x sectors, milliseconds for thousands of places.
+rotation-invariant and brute force: places x rings x sectors, the places' spectra read once for the nine
+descriptions of a query (:func:`_ring_sums`): 80 ms for the campus's 5800 places (200 ms when each
+description read them twice), a few ms for a building's.
 
 The index proposes; it never accepts. :func:`search_at_places` searches for the best pose only around the
 proposed places, on the whole-map search's lattice, and for a runner-up over the whole map: where the
@@ -25,7 +27,7 @@ the campus 0.85.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -241,22 +243,32 @@ class PlaceIndex:
         described = points_v if isinstance(points_v, QueryDescription) else describe_query(points_v, self.radius_m)
         if described.radius_m != self.radius_m:
             raise ValueError(f"a query described within {described.radius_m} m asked of places of {self.radius_m} m")
-        C, C_squared = self._spectra
-        found = []
+        asked = []  # (offset, its descriptor over the bins it saw, those bins)
         for offset, q in zip(QUERY_OFFSETS_M, described.descriptors, strict=True):
-            peaks = self._peaks(q, C, C_squared)
-            if peaks is None:
-                continue
-            places, heading, scores = peaks
+            occupied = q == 1.0
+            if int(occupied.sum()) >= MIN_BINS:
+                seen = seen_bins(occupied)
+                asked.append((offset, q * seen, seen))
+        if not asked:
+            return []
+        # numerator[o, p, s] = sum over rings and query sectors j of q_o[r, j] * c[p, r, (j + s) % SECTORS]; masked:
+        # the place's energy over the bins description o saw, turned the same way. One pass over the places'
+        # spectra for every description (they are read once, not twice for each)
+        C, C_squared = self._spectra
+        numerator_f, masked_f = _ring_sums(C, C_squared, np.conj(np.fft.rfft(np.stack([a[1] for a in asked]), axis=-1)),
+                                           np.conj(np.fft.rfft(np.stack([a[2] for a in asked]), axis=-1)))
+        numerator = np.fft.irfft(numerator_f, n=SECTORS, axis=-1)
+        masked = np.fft.irfft(masked_f, n=SECTORS, axis=-1)
+        found = []
+        for o, (offset, q, _) in enumerate(asked):
+            places, heading, scores = _peaks(numerator[o], masked[o], float((q * q).sum()))
             cos, sin = np.cos(heading), np.sin(heading)
             vehicle = self.centres[places] - np.stack([cos * offset[0] - sin * offset[1],
                                                        sin * offset[0] + cos * offset[1]], axis=1)
             found.append((places, vehicle, heading, scores))
-        if not found:
-            return []
         places, vehicle, heading, scores = (np.concatenate(parts) for parts in zip(*found, strict=True))
         out: list[PlaceCandidate] = []
-        for i in np.argsort(-scores, kind="stable").tolist():
+        for i in best_first(scores):
             centre, theta = vehicle[i], float(heading[i])
             if any(math.hypot(*(centre - c.centre_m)) < SUPPRESS_M
                    and abs(float(wrap_angle(theta - c.heading_rad))) < SUPPRESS_RAD for c in out):
@@ -266,35 +278,63 @@ class PlaceIndex:
                 break
         return out
 
-    def _peaks(self, q: np.ndarray, C: np.ndarray, C_squared: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """(place, heading [rad, world], similarity) of every local peak of each place's similarity with
-        the query descriptor ``q`` over the sector shifts (``C``, ``C_squared``: the places' FFTs along
-        the sectors); None when ``q`` describes too little."""
-        occupied = q == 1.0
-        if int(occupied.sum()) < MIN_BINS:
-            return None
-        seen = seen_bins(occupied)
-        q = q * seen
-        q_energy = float((q * q).sum())
-        # numerator[p, s] = sum over rings and query sectors j of q[r, j] * c[p, r, (j + s) % SECTORS]; the
-        # place's energy over the bins the query saw, turned the same way
-        numerator = np.fft.irfft((np.conj(np.fft.rfft(q, axis=-1))[None] * C).sum(axis=1), n=SECTORS, axis=-1)
-        masked = np.fft.irfft((np.conj(np.fft.rfft(seen, axis=-1))[None] * C_squared).sum(axis=1), n=SECTORS,
-                              axis=-1)
-        similarity = numerator / np.sqrt(q_energy * np.maximum(masked, 1e-9))
-        # every heading that is a local peak of its place's profile is a candidate: corridors and
-        # rectilinear rooms look alike turned by a half or a quarter turn, and only the search can tell
-        left, right = np.roll(similarity, 1, axis=1), np.roll(similarity, -1, axis=1)
-        places, shifts = np.nonzero((similarity >= left) & (similarity > right))
-        scores = similarity[places, shifts]
-        # the heading: the peak's shift refined by a parabola through its neighbours (sub-sector)
-        lo, hi = left[places, shifts], right[places, shifts]
-        curvature = lo - 2.0 * scores + hi
-        safe = np.where(curvature < -1e-9, curvature, -1.0)
-        offset = np.where(curvature < -1e-9, 0.5 * (lo - hi) / safe, 0.0)
-        heading = np.asarray(wrap_angle((shifts + np.clip(offset, -0.5, 0.5)) * SECTOR_RAD))
-        return places, heading, scores
+
+@nb.njit(cache=True, nogil=True)
+def _ring_sums(C, C_squared, Q, S):
+    """(numerator, masked), each (O, P, F) complex: for every description o and place p, the sums over the
+    rings r of ``Q[o, r] * C[p, r]`` and of ``S[o, r] * C_squared[p, r]`` (``C``, ``C_squared``: (P, R, F) the
+    places' spectra and their squares'; ``Q``, ``S``: (O, R, F) the conjugate spectra of the descriptions over
+    the bins they saw and of those bins), added ring after ring."""
+    n_o, n_r, n_f = Q.shape
+    n_p = C.shape[0]
+    numerator = np.empty((n_o, n_p, n_f), C.dtype)
+    masked = np.empty((n_o, n_p, n_f), C.dtype)
+    for p in range(n_p):
+        for o in range(n_o):
+            for f in range(n_f):
+                numerator[o, p, f] = Q[o, 0, f] * C[p, 0, f]
+                masked[o, p, f] = S[o, 0, f] * C_squared[p, 0, f]
+        for r in range(1, n_r):
+            for o in range(n_o):
+                for f in range(n_f):
+                    numerator[o, p, f] += Q[o, r, f] * C[p, r, f]
+                    masked[o, p, f] += S[o, r, f] * C_squared[p, r, f]
+    return numerator, masked
+
+
+def _peaks(numerator: np.ndarray, masked: np.ndarray, q_energy: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(place, heading [rad, world], similarity) of every local peak of each place's similarity with a query
+    description over the sector shifts, from its cross-correlation ``numerator`` (P, SECTORS) with the
+    places, the places' energy over the bins it saw ``masked`` (P, SECTORS) and its own ``q_energy``."""
+    similarity = numerator / np.sqrt(q_energy * np.maximum(masked, 1e-9))
+    # every heading that is a local peak of its place's profile is a candidate: corridors and
+    # rectilinear rooms look alike turned by a half or a quarter turn, and only the search can tell
+    left, right = np.roll(similarity, 1, axis=1), np.roll(similarity, -1, axis=1)
+    places, shifts = np.nonzero((similarity >= left) & (similarity > right))
+    scores = similarity[places, shifts]
+    # the heading: the peak's shift refined by a parabola through its neighbours (sub-sector)
+    lo, hi = left[places, shifts], right[places, shifts]
+    curvature = lo - 2.0 * scores + hi
+    safe = np.where(curvature < -1e-9, curvature, -1.0)
+    offset = np.where(curvature < -1e-9, 0.5 * (lo - hi) / safe, 0.0)
+    heading = np.asarray(wrap_angle((shifts + np.clip(offset, -0.5, 0.5)) * SECTOR_RAD))
+    return places, heading, scores
+
+
+def best_first(scores: np.ndarray, block: int = 256) -> Iterator[int]:
+    """Indices of ``scores`` (N,), highest first, equal ones in index order: ``np.argsort(-scores,
+    kind="stable")``, sorted a block at a time as they are taken (a query takes the first few of some
+    hundred thousand peaks)."""
+    remaining = np.arange(len(scores))
+    negated = -np.asarray(scores)
+    while len(remaining) > block:
+        values = negated[remaining]
+        kth = np.partition(values, block - 1)[block - 1]
+        taken = values <= kth  # the block's best and every one tied with its last: none left behind beats them
+        chosen = remaining[taken]
+        yield from chosen[np.argsort(negated[chosen], kind="stable")].tolist()
+        remaining = remaining[~taken]
+    yield from remaining[np.argsort(negated[remaining], kind="stable")].tolist()
 
 
 def map_places(points_m: np.ndarray, path_m: np.ndarray, covers: Callable[[np.ndarray], np.ndarray],

@@ -146,6 +146,28 @@ def test_a_drive_is_localised_in_the_map_it_is_in_and_refused_where_it_is_in_non
     assert refused.tries[0].best_score <= refused_whole.tries[0].best_score
 
 
+def test_a_query_scores_every_place_as_the_spectra_say_and_takes_them_best_first(office, scans) -> None:
+    """The one pass over the places' spectra gives the sums of their products ring by ring (float32 spectra:
+    to their precision), and the candidates are taken in the order a stable sort of every peak gives
+    (equal scores in index order), sorted a block at a time."""
+    from slam_engine.backend.place_index import _ring_sums, best_first, describe_query, seen_bins
+
+    world = world_points(office, scans)
+    index = PlaceIndex.along(world, office.ground_truth.poses[:, :2], SPACING_M, RADIUS_M)
+    C, C_squared = index._spectra
+    described = describe_query(scans.cloud(100, 180, 3000), RADIUS_M).descriptors
+    seen = np.stack([seen_bins(q == 1.0) for q in described])
+    Q, S = np.conj(np.fft.rfft(described * seen, axis=-1)), np.conj(np.fft.rfft(seen, axis=-1))
+    numerator, masked = _ring_sums(C, C_squared, Q, S)
+    assert numerator.shape == (len(described), len(index), C.shape[-1])
+    np.testing.assert_allclose(numerator, (Q[:, None] * C[None]).sum(axis=2), rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(masked, (S[:, None] * C_squared[None]).sum(axis=2), rtol=1e-5, atol=1e-4)
+    rng = np.random.default_rng(3)
+    for scores in (rng.random(1000), rng.integers(0, 9, 1000) / 9.0, np.zeros(3)):
+        expected = np.argsort(-scores, kind="stable").tolist()
+        assert list(best_first(scores)) == expected and list(best_first(scores, block=7)) == expected
+
+
 def test_a_search_at_the_proposed_places_answers_as_the_whole_map_or_refuses(office, scans) -> None:
     """search_at_places finds the whole-map search's own match where the index proposes its place, and
     where the index proposes only elsewhere, never a unique match there (the runner-up search over the
