@@ -366,10 +366,8 @@ class _Lattice:
     @classmethod
     def of(cls, grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, window_m: float, window_rad: float,
            origins: np.ndarray | None) -> _Lattice:
-        res = grid.resolution_m
-        step = angular_step_rad(points_v, res)
-        n_half = max(0, int(math.ceil(window_rad / step)))
-        x0, y0, th0 = (float(v) for v in initial_pose)
+        res, step, n_half, window_cells, x0, y0, th0 = _lattice_frame(grid, points_v, initial_pose, window_m,
+                                                                      window_rad)
         cells = _rotated_cells(points_v, x0, y0, th0, step, n_half, float(grid.origin_m[0]), float(grid.origin_m[1]),
                                1.0 / res)
         if origins is None:
@@ -379,8 +377,26 @@ class _Lattice:
                 raise ValueError("search: origins must be a max pyramid on the grid's cells with its levels")
             origin_x = int(math.floor((x0 - float(grid.origin_m[0])) / res))
             origin_y = int(math.floor((y0 - float(grid.origin_m[1])) / res))
-        return cls(res, step, n_half, max(0, int(math.ceil(window_m / res))), x0, y0, th0, cells, origins, origin_x,
-                   origin_y)
+        return cls(res, step, n_half, window_cells, x0, y0, th0, cells, origins, origin_x, origin_y)
+
+
+def _lattice_frame(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, window_m: float,
+                   window_rad: float) -> tuple[float, float, int, int, float, float, float]:
+    """(res, step, n_half, window_cells, x0, y0, th0) of the lattice a search of ``points_v`` within ``window_m``
+    / ``window_rad`` of ``initial_pose`` tries (:class:`_Lattice`), without the points rotated to it."""
+    res = grid.resolution_m
+    step = angular_step_rad(points_v, res)
+    x0, y0, th0 = (float(v) for v in initial_pose)
+    return (res, step, max(0, int(math.ceil(window_rad / step))), max(0, int(math.ceil(window_m / res))), x0, y0,
+            th0)
+
+
+def _exclusion_centre(best_pose: np.ndarray, res: float, step: float, n_half: int, x0: float, y0: float,
+                      th0: float) -> tuple[int, int, int]:
+    """(heading index, dx, dy) of ``best_pose`` on a search's lattice: the centre of the runner-up search's
+    ambiguity box."""
+    return (int(round(float(wrap_angle(float(best_pose[2]) - th0)) / step)) + n_half,
+            int(round((float(best_pose[0]) - x0) / res)), int(round((float(best_pose[1]) - y0) / res)))
 
 
 def search(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndarray, window_m: float, window_rad: float,
@@ -482,9 +498,7 @@ def runner_up_score(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndar
     if n == 0:
         return 0.0
     lat = _Lattice.of(grid, points_v, initial_pose, window_m, window_rad, origins)
-    ex_a = int(round(float(wrap_angle(float(best_pose[2]) - lat.th0)) / lat.step)) + lat.n_half
-    ex_x = int(round((float(best_pose[0]) - lat.x0) / lat.res))
-    ex_y = int(round((float(best_pose[1]) - lat.y0) / lat.res))
+    ex_a, ex_x, ex_y = _exclusion_centre(best_pose, lat.res, lat.step, lat.n_half, lat.x0, lat.y0, lat.th0)
     a2, _, _, total = branch_and_bound(grid.pyramid, lat.cells, lat.window_cells, int(min_score * MAX_VALUE * n), ex_a,
                                        ex_x, ex_y, int(math.ceil(ambiguity_rad / lat.step)),
                                        int(math.ceil(ambiguity_m / lat.res)), 0.0, 0.0, max(1, int(threads)),
@@ -505,14 +519,8 @@ def runner_up_among(grid: MatchGrid, points_v: np.ndarray, initial_pose: np.ndar
     n = len(points_v)
     if n == 0 or not matches:
         return None
-    res = grid.resolution_m
-    step = angular_step_rad(points_v, res)
-    n_half = max(0, int(math.ceil(window_rad / step)))
-    window_cells = max(0, int(math.ceil(window_m / res)))
-    x0, y0, th0 = (float(v) for v in initial_pose)
-    ex_a = int(round(float(wrap_angle(float(best_pose[2]) - th0)) / step)) + n_half
-    ex_x = int(round((float(best_pose[0]) - x0) / res))
-    ex_y = int(round((float(best_pose[1]) - y0) / res))
+    res, step, n_half, window_cells, x0, y0, th0 = _lattice_frame(grid, points_v, initial_pose, window_m, window_rad)
+    ex_a, ex_x, ex_y = _exclusion_centre(best_pose, res, step, n_half, x0, y0, th0)
     ex_angles, ex_cells = int(math.ceil(ambiguity_rad / step)), int(math.ceil(ambiguity_m / res))
     floor_total = int(min_score * MAX_VALUE * n)
     for match in matches:
