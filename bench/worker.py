@@ -4,8 +4,9 @@
 config overrides, output folder and the loader / runner functions (``module:function``). The parent
 measures this process's peak memory and whole wall time; here ``wall_s`` is the SLAM run alone (not
 loading), ``products_s`` the writing of every product (``write_products``, as ``lidarmap run``
-does, with its animation snapshots), so the two can be compared, and ``scoring_s`` the bench's own
-work after that (the parent's ``run_process_s`` leaves it out of the process's wall).
+does: no animation unless the job's config asks for snapshots), so the two can be compared, and
+``scoring_s`` the bench's own work after that (the parent's ``run_process_s`` leaves it out of the
+process's wall).
 """
 
 from __future__ import annotations
@@ -80,7 +81,6 @@ def run_job(job: dict) -> dict:
     from slam_engine.evaluation.metrics import align_rigid_2d, read_ground_truth, read_relations
     from slam_engine.model.result import Trajectory
     from slam_engine.products import write_products
-    from slam_engine.products.animation import snapshot_interval
     from slam_engine.products.rendering import occupancy_with_trajectories
 
     case, seed = job["case"], int(job["seed"])
@@ -90,8 +90,6 @@ def run_job(job: dict) -> dict:
     started = time.perf_counter()
     log = resolve(job.get("loader") or DEFAULT_LOADER)(case["log_path"])
     load_s = time.perf_counter() - started
-    if "snapshot_every_scans" not in overrides and log.scans is not None:  # animation frames, as `lidarmap run`
-        overrides["snapshot_every_scans"] = snapshot_interval(len(log.scans))
     config = SlamConfig.model_validate(overrides)
     relations = read_relations(case["relations_path"]) if case.get("relations_path") else None
     ground_truth = read_ground_truth(case["ground_truth_path"]) if case.get("ground_truth_path") else None

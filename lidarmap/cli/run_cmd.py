@@ -166,16 +166,20 @@ def register(app: typer.Typer) -> None:
         lat: float | None = typer.Option(None, help="Start latitude [deg, WGS 84]: GeoTIFFs in UTM."),
         lon: float | None = typer.Option(None, help="Start longitude [deg, WGS 84]."),
         heading: float | None = typer.Option(None, help="Start heading [deg clockwise from north]."),
-        snapshot_every: int | None = typer.Option(None, help="Animation frame every N processed scans "
-                                                  f"(default: about {SNAPSHOT_FRAMES} frames; 0 = none)."),
+        animation: bool = typer.Option(False, "--animation", help="Also draw animation.gif, the map being built "
+                                       f"(about {SNAPSHOT_FRAMES} frames; about a tenth of a run's time, so only "
+                                       "when asked for)."),
+        snapshot_every: int | None = typer.Option(None, help="Animation frame every N processed scans (draws "
+                                                  "animation.gif; 0 = none, also with --animation)."),
         map_dir: Path | None = typer.Option(None, "--map", "-m", help="Extend this saved map (a mapping run's "
                                             "--out folder or its map_bundle.npz) with the drive."),
         force: bool = typer.Option(False, "--force", help="Write into an existing, non-empty --out folder."),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Show tracebacks."),
     ) -> None:
         """Build the map of a drive log and write every product (PNG, GeoTIFF, ROS map, trajectories,
-        animation, map bundle, run.json) into --out. With --map, the drive extends a saved map: it is
-        placed in it, loops between the drives are closed, and the products cover both."""
+        point cloud, map bundle, run.json; the animation when asked for) into --out. With --map, the drive
+        extends a saved map: it is placed in it, loops between the drives are closed, and the products
+        cover both."""
         from lidarmap.cli.progress_bar import StageProgressBar
         from slam_engine.evaluation import metrics as evaluation
         from slam_engine.formats import load_log
@@ -195,7 +199,8 @@ def register(app: typer.Typer) -> None:
             relation_table = None if relations is None else evaluation.read_relations(relations)
             truth = None if ground_truth is None else evaluation.read_ground_truth(ground_truth)
             drive_log = load_log(log, format)
-            if snapshot_every is None and slam_config.snapshot_every_scans == 0 and drive_log.scans is not None:
+            if animation and snapshot_every is None and slam_config.snapshot_every_scans == 0 \
+                    and drive_log.scans is not None:
                 from slam_engine.products.animation import snapshot_interval
 
                 every = snapshot_interval(len(drive_log.scans))

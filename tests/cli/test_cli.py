@@ -162,7 +162,7 @@ def test_run_wires_log_config_progress_relations_and_products(tmp_path: Path, da
     assert result.exit_code == 0, result.output
     config: SlamConfig = calls["config"]
     assert (config.particles, config.seed, config.grid.resolution_m) == (12, 5, 0.1)
-    assert config.snapshot_every_scans == 910 // 40 and calls["scans"] == 910
+    assert config.snapshot_every_scans == 0 and calls["scans"] == 910  # no animation unless asked for
     assert calls["rng"] is None  # the seed reaches the engine through the config only (config.seed above)
     assert calls["live_previews"] is False  # the progress bar shows counts, no preview maps
     run = json.loads((out / "run.json").read_text())
@@ -171,6 +171,13 @@ def test_run_wires_log_config_progress_relations_and_products(tmp_path: Path, da
     assert run["input"]["format"] == "carmen" and run["input"]["streams"]["scans"] == 910
     assert ALL_PRODUCTS - {"animation.gif"} == {p.name for p in out.iterdir()}
     assert "relation error: 0.000 +- 0.000 m" in result.stdout
+    # --animation: about 40 frames over the drive; --snapshot-every sets them, 0 still none
+    assert invoke("run", log, "--out", tmp_path / "anim", "--animation").exit_code == 0
+    assert calls["config"].snapshot_every_scans == 910 // 40
+    assert invoke("run", log, "--out", tmp_path / "every", "--animation", "--snapshot-every", "7").exit_code == 0
+    assert calls["config"].snapshot_every_scans == 7
+    assert invoke("run", log, "--out", tmp_path / "none", "--animation", "--snapshot-every", "0").exit_code == 0
+    assert calls["config"].snapshot_every_scans == 0
 
 
 def test_run_progress_bar_names_each_stage_in_order_and_ends_after_the_products(tmp_path: Path) -> None:
@@ -226,7 +233,8 @@ def test_run_prints_each_run_json_warning_as_one_line_on_stderr(tmp_path: Path) 
 @pytest.mark.slow
 def test_run_on_intel_writes_every_product(tmp_path: Path, dataset) -> None:
     out = tmp_path / "intel"
-    result = invoke("run", dataset(INTEL), "--out", out, "--particles", "5", "--seed", "1", "--resolution", "0.1")
+    result = invoke("run", dataset(INTEL), "--out", out, "--particles", "5", "--seed", "1", "--resolution", "0.1",
+                    "--animation")
     assert result.exit_code == 0, result.output
     assert {p.name for p in out.iterdir()} >= ALL_PRODUCTS
     run = json.loads((out / "run.json").read_text())
