@@ -1,5 +1,5 @@
-"""``lidarmap localize`` and ``lidarmap merge``: use a saved map (the ``map_bundle.npz`` every mapping
-run writes) again. ``lidarmap run LOG --map DIR`` (extending a map) lives with ``run``
+"""``lidarmap localize``, ``lidarmap merge`` and ``lidarmap animate``: use a saved map (the
+``map_bundle.npz`` every mapping run writes) again. ``lidarmap run LOG --map DIR`` (extending a map) lives with ``run``
 (:mod:`lidarmap.cli.run_cmd`); the work itself is the engine's (:mod:`slam_engine.multisession`)."""
 
 from __future__ import annotations
@@ -12,6 +12,8 @@ from lidarmap.cli.bad_input import bad_input_exits
 from lidarmap.cli.run_cmd import load_config, prepare_out_dir
 
 REFUSED_EXIT_CODE = 1  # the drive (or map) was understood, but has no place in the saved map
+ANIMATION_FRAMES = 40  # = slam_engine.products.animation.ANIMATION_FRAMES (for the help text; not imported here)
+MAX_ANIMATION_FRAMES = 1000
 
 
 def parse_pose(text: str | None) -> tuple[float, float, float] | None:
@@ -176,3 +178,33 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"merged: {len(joined.bundle)} key frames of {joined.bundle.drives} drives; products in {out} "
                    f"({', '.join(sorted(written))})")
 
+
+    @app.command()
+    def animate(
+        map_dir: Path = typer.Argument(..., metavar="MAP", help="A saved map: a mapping run's --out folder or its "
+                                       "map_bundle.npz."),
+        out: Path | None = typer.Option(None, "--out", "-o", help="The GIF to write (default: animation.gif beside "
+                                        "the map bundle)."),
+        frames: int = typer.Option(ANIMATION_FRAMES, help=f"Frames in all, the last the final map "
+                                   f"(1-{MAX_ANIMATION_FRAMES})."),
+        force: bool = typer.Option(False, "--force", help="Replace an existing file."),
+        verbose: bool = typer.Option(False, "--verbose", "-v", help="Show tracebacks."),
+    ) -> None:
+        """Draw a saved map's animation.gif (its map being built key frame by key frame, as lidarmap run
+        --animation draws it, the final frame the same) from its map bundle, without mapping again."""
+        from slam_engine.errors import ConfigError
+        from slam_engine.products.animation import write_bundle_animation
+        from slam_engine.products.map_bundle import BUNDLE_FILE, read_bundle
+
+        with bad_input_exits(verbose):
+            if not 1 <= frames <= MAX_ANIMATION_FRAMES:
+                raise ConfigError(f"--frames {frames}: give 1 to {MAX_ANIMATION_FRAMES}")
+            target = out if out is not None else (map_dir if map_dir.is_dir() else map_dir.parent) / "animation.gif"
+            if target.exists() and not force:
+                raise ConfigError(f"{target}: exists (--force replaces it)")
+            bundle = read_bundle(map_dir)
+            if len(bundle) == 0:
+                raise ConfigError(f"{map_dir}: the saved map ({BUNDLE_FILE}) holds no key frames to draw")
+            target.parent.mkdir(parents=True, exist_ok=True)
+            write_bundle_animation(bundle, target, frames)
+        typer.echo(f"animation of {len(bundle)} key frames ({frames} frames, the last the final map): {target}")

@@ -2,7 +2,8 @@
 the engine) plus the final map, with the trajectory so far in red. Every frame has the final map's
 framing: the canvas covers the final map's known cells (what the map shows), and a snapshot is cut
 to it. The engine draws the snapshots as the final map is drawn (its poses, its rays) whenever it
-re-renders the final map (:func:`slam_engine.pipeline.filter_result`).
+re-renders the final map (:func:`slam_engine.pipeline.filter_result`). A saved map draws the same
+frames from its bundle when asked for later (:func:`write_bundle_animation`, ``lidarmap animate``).
 
 The run keeps its snapshots small (:meth:`~slam_engine.model.result.MapSnapshot.reduced`: maps pooled to
 at most 800 cells a side, what a frame shows anyway), so frames are drawn from small maps; frames
@@ -18,7 +19,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from slam_engine.model.result import MapSnapshot, OccupancyGrid, Trajectory
+from slam_engine.config import GridConfig
+from slam_engine.model.map_bundle import MapBundle
+from slam_engine.model.result import SNAPSHOT_MAX_SIDE_CELLS, MapSnapshot, OccupancyGrid, Trajectory
 from slam_engine.products.files import atomic_path
 from slam_engine.products.rendering import TRAJECTORY_RGB, UNKNOWN_GRAY, occupancy_image
 
@@ -97,3 +100,40 @@ def write_animation_gif(snapshots: list[MapSnapshot], final_grid: OccupancyGrid,
     with atomic_path(path) as tmp:
         next(frames).save(tmp, format="GIF", save_all=True, append_images=frames, duration=durations, loop=0)
     return Path(path)
+
+
+def bundle_snapshots(bundle: MapBundle, frames: int = ANIMATION_FRAMES
+                     ) -> tuple[list[MapSnapshot], OccupancyGrid, Trajectory]:
+    """A saved map's animation, as a run draws it: (``frames`` - 1 snapshots or fewer, the final map, the
+    final trajectory). Snapshot n is the map of the bundle's first key frames (evenly many more each time) at
+    their final poses, rendered with the run's grid settings (the bundle's config), in one pass over them
+    (:func:`~slam_engine.backend.map_builder.render_occupancy`), with the trajectory of that key frame's
+    drive up to its time; the final map and trajectory are the last drive's whole."""
+    from slam_engine.backend.map_builder import render_occupancy  # numba kernels: imported when used
+
+    key_frames = len(bundle)
+    grid_config = GridConfig.model_validate({**bundle.config.get("grid", {}), "resolution_m": bundle.resolution_m})
+    marks = sorted({int(n) for n in np.ceil(np.linspace(0, key_frames, max(1, frames) + 1)[1:-1]) if n > 0})
+    kept: dict[int, OccupancyGrid] = {}
+
+    def keep(n: int, partial: OccupancyGrid) -> None:
+        kept[n] = MapSnapshot(-1, 0.0, partial, Trajectory(np.zeros(0), np.zeros((0, 3)))).reduced().grid
+
+    grid = render_occupancy(bundle.scans(), bundle.poses, bundle.origin_v, grid_config, frames_after=set(marks),
+                            on_frame=keep, frame_max_side_cells=SNAPSHOT_MAX_SIDE_CELLS)
+
+    def driven(drive: int, until_s: float) -> Trajectory:
+        mine = (bundle.trajectory_drive == drive) & (bundle.trajectory_t_s <= until_s)
+        return Trajectory(bundle.trajectory_t_s[mine], bundle.trajectory[mine])
+
+    snapshots = [MapSnapshot(n - 1, float(bundle.t_s[n - 1]), kept[n],
+                             driven(int(bundle.drive[n - 1]), float(bundle.t_s[n - 1]))) for n in marks]
+    last = int(bundle.drive[-1]) if key_frames else 0
+    return snapshots, grid, driven(last, math.inf)
+
+
+def write_bundle_animation(bundle: MapBundle, path: str | Path, frames: int = ANIMATION_FRAMES,
+                           max_side_px: int = MAX_SIDE_PX) -> Path:
+    """Write a saved map's ``animation.gif`` (:func:`bundle_snapshots`, :func:`write_animation_gif`)."""
+    snapshots, grid, trajectory = bundle_snapshots(bundle, frames)
+    return write_animation_gif(snapshots, grid, trajectory, path, max_side_px)

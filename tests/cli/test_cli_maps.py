@@ -1,5 +1,5 @@
-"""``lidarmap localize``, ``lidarmap run --map`` and ``lidarmap merge`` on the simulated office loop cut in
-two halves (written as CARMEN logs) and a drive in another building."""
+"""``lidarmap localize``, ``lidarmap run --map``, ``lidarmap merge`` and ``lidarmap animate`` on the simulated
+office loop cut in two halves (written as CARMEN logs) and a drive in another building."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 from typer.testing import CliRunner
 
 from lidarmap.cli import app
@@ -73,6 +74,20 @@ def test_localize_extend_and_merge_from_the_command_line(tmp_path, logs) -> None
     both = read_bundle(tmp_path / "ab")
     assert both.drives == 2 and (tmp_path / "ab" / "drives.png").stat().st_size > 1000
     assert len(np.loadtxt(tmp_path / "ab" / "trajectory.tum")) == len(both.trajectory)
+
+    # the animation, asked for after the run (lidarmap run draws it only with --animation): from the bundle
+    assert not (tmp_path / "a" / "animation.gif").exists()
+    drawn = invoke("animate", tmp_path / "a")
+    assert drawn.exit_code == 0, drawn.output
+    assert Image.open(tmp_path / "a" / "animation.gif").n_frames == 40
+    again = invoke("animate", tmp_path / "a")
+    assert again.exit_code == 2 and "--force" in again.stderr and len(again.stderr.strip().splitlines()) == 1
+    assert invoke("animate", tmp_path / "ab", "--frames", "6", "--out", tmp_path / "ab.gif").exit_code == 0
+    assert Image.open(tmp_path / "ab.gif").n_frames == 6  # an extended map: both drives' key frames
+    for bad, said in ((["--frames", "0"], "--frames 0"), (["--frames", "5000"], "--frames 5000")):
+        refused_frames = invoke("animate", tmp_path / "ab", "--force", *bad)
+        assert refused_frames.exit_code == 2 and said in refused_frames.stderr
+    assert "no map bundle here" in invoke("animate", tmp_path / "nothing", "--out", tmp_path / "n.gif").stderr
 
     other = invoke("run", logs["elsewhere"], "--out", tmp_path / "c", "--particles", "10")
     assert other.exit_code == 0, other.output

@@ -204,6 +204,37 @@ def test_snapshots_are_the_final_map_being_built() -> None:
                 and s_top <= top + pad), (map_extent(snapshot.grid), (left, bottom, right, top))
 
 
+def test_a_saved_maps_animation_ends_on_the_runs_final_frame(tmp_path: Path) -> None:
+    """Drawn later from the map bundle (``lidarmap animate``), the animation is the map being built key
+    frame by key frame at the final poses: as many frames as asked, the known area growing, each with its
+    drive's trajectory up to the frame's key frame, and the last frame the run's own."""
+    from PIL import Image, ImageSequence
+
+    from slam_engine.products.animation import bundle_snapshots, write_animation_gif, write_bundle_animation
+    from slam_engine.simulation import simulate
+
+    drive = simulate("office", seed=0, rig="carmen-robot", max_duration_s=80.0, cameras=False)
+    result = run_slam(drive.log, SlamConfig(particles=4, seed=0, snapshot_every_scans=40), live_previews=False)
+    assert result.bundle is not None and len(result.snapshots) >= 5
+    snapshots, grid, trajectory = bundle_snapshots(result.bundle, frames=12)
+    assert len(snapshots) == 11
+    # re-rendered as the run does, from the bundle's float32 rays: 1 cell of 128 000 differs (a ray's end
+    # rounded across a cell boundary)
+    assert grid.log_odds.shape == result.grid.log_odds.shape
+    assert (grid.log_odds != result.grid.log_odds).sum() <= 1e-4 * (result.grid.log_odds != 0).sum()
+    np.testing.assert_array_equal(trajectory.poses, result.trajectory.poses)
+    known = [int((s.grid.log_odds != 0).sum() * s.grid.resolution_m ** 2) for s in snapshots]
+    assert known == sorted(known) and known[0] < known[-1]
+    for snapshot in snapshots:
+        assert snapshot.trajectory.t_s[-1] <= snapshot.t_s and len(snapshot.trajectory) > 1
+    write_animation_gif(result.snapshots, result.grid, result.trajectory, tmp_path / "run.gif")
+    write_bundle_animation(result.bundle, tmp_path / "later.gif", frames=12)
+    run_frames = [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(Image.open(tmp_path / "run.gif"))]
+    later = [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(Image.open(tmp_path / "later.gif"))]
+    assert len(later) == 12 and later[-1].shape == run_frames[-1].shape
+    assert (later[-1] != run_frames[-1]).any(axis=2).sum() <= 2  # measured: 0
+
+
 def test_loop_closures_are_placed_on_the_final_map() -> None:
     """run.json's closures carry their two key frames' places on the final map (for the viewer)."""
     from slam_engine.simulation import simulate
