@@ -66,11 +66,17 @@ def image_venv(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("image")
     context = root / "context"
     context.mkdir()
+    patterns = dockerignore_patterns()
+
+    def left_out(folder: str, names: list[str]) -> set[str]:  # what docker leaves out of the context
+        below = Path(folder).relative_to(REPO).as_posix()
+        return {name for name in names if ignored(f"{below}/{name}", patterns)}
+
     for source in dockerfile_copies():
         path = REPO / source
         assert path.exists(), f"docker/Dockerfile copies {source}, which the checkout lacks"
-        if path.is_dir():
-            shutil.copytree(path, context / source, ignore=shutil.ignore_patterns("__pycache__"))
+        if path.is_dir():  # as the build context has it: a local bench/results (gigabytes) is not copied
+            shutil.copytree(path, context / source, ignore=left_out)
         else:
             shutil.copy2(path, context / source)
     wheels = root / "wheels"
