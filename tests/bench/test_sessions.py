@@ -182,6 +182,8 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
     monkeypatch.setattr(bench.which_map, "table", lambda rows: "which map table")
     monkeypatch.setattr(bench.kidnap, "measure", lambda number: kidnap_calls.append(number))
     monkeypatch.setattr(bench.kidnap, "table", lambda rows: "kidnap table")
+    monkeypatch.setattr(bench.kidnap, "office_rows", lambda: kidnap_calls.append("office") or [])
+    monkeypatch.setattr(bench.kidnap, "office_table", lambda rows: "office kidnap table")
     monkeypatch.setattr(bench.live, "run_live_table", lambda out, console: live_calls.append(out))
     monkeypatch.setattr(bench.live_localization, "run_live_localization_table",
                         lambda out, console: localization_calls.append(out))
@@ -220,7 +222,8 @@ def test_the_default_benchmark_ends_with_the_sessions_table(monkeypatch, tmp_pat
         assert live_calls == ([out] if runs_live else []), flags
         runs_localization = "--quick" not in flags and "--no-live-localization" not in flags
         assert localization_calls == ([out] if runs_localization else []), flags
-        assert kidnap_calls == (list(range(1, 9)) if runs_localization else []), flags  # eight made-up floors
+        # eight made-up floors, then the office
+        assert kidnap_calls == ([*range(1, 9), "office"] if runs_localization else []), flags
         # the place index's recall on the benchmark logs (with the datasets), then Karto side by side
         places = runs_sessions or flags == ["--no-sessions"]
         assert recall_calls == (list(bench.place_recall.DEFAULT_LOGS) if places else []), flags
