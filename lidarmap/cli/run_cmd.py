@@ -108,6 +108,9 @@ def print_summary(result, written: dict[str, Path], out: Path) -> None:
     for name, path in sorted(written.items()):
         table.add_row(name, f"{path.stat().st_size:,}")
     console.print(table)
+    if "animation.gif" not in written and "map_bundle.npz" in written:
+        console.print(f"animation.gif not drawn: lidarmap animate {out} draws it from the map bundle (or run with "
+                      "--animation)", highlight=False)
     run = json.loads(written["run.json"].read_text())
     timings = run["timings"]
     rate = timings["scans_per_s"]

@@ -171,6 +171,7 @@ def test_run_wires_log_config_progress_relations_and_products(tmp_path: Path, da
     assert run["input"]["format"] == "carmen" and run["input"]["streams"]["scans"] == 910
     assert ALL_PRODUCTS - {"animation.gif"} == {p.name for p in out.iterdir()}
     assert "relation error: 0.000 +- 0.000 m" in result.stdout
+    assert "animation.gif not drawn" not in result.stdout  # the stand-in result has no bundle to draw it from
     # --animation: about 40 frames over the drive; --snapshot-every sets them, 0 still none
     assert invoke("run", log, "--out", tmp_path / "anim", "--animation").exit_code == 0
     assert calls["config"].snapshot_every_scans == 910 // 40

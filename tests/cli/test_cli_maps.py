@@ -47,6 +47,7 @@ def logs(tmp_path_factory) -> dict[str, Path]:
 def test_localize_extend_and_merge_from_the_command_line(tmp_path, logs) -> None:
     mapped = invoke("run", logs["a"], "--out", tmp_path / "a", "--particles", "10")
     assert mapped.exit_code == 0, mapped.output
+    assert f"animation.gif not drawn: lidarmap animate {tmp_path / 'a'} draws it" in " ".join(mapped.stdout.split())
     assert read_bundle(tmp_path / "a").drives == 1
 
     found = invoke("localize", logs["b"], "--map", tmp_path / "a", "--out", tmp_path / "loc")
