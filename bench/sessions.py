@@ -3,7 +3,8 @@ datasets (``sessions/``: each benchmark drive cut in two halves, ``NAME-a`` and 
 with its odometry starting at an unrelated pose).
 
 For every seed, each half is mapped on its own (``run_slam``: its map bundle and the engine's wall
-time), then:
+time; with ``NAME-a.gt.txt`` beside it, the ``a`` map's absolute trajectory error: how far the saved map is
+bent, which its relations do not show and a drive localised in it inherits), then:
 
 - **localise**: ``NAME-b`` in ``NAME-a``'s map, without a start pose (``localize_log``, what ``lidarmap
   localize`` runs). ``NAME-a``'s trajectory (from its bundle) followed by ``NAME-b``'s localised one is
@@ -135,7 +136,7 @@ def run_seed(drives: list[SessionDrive], seed: int, overrides: dict | None = Non
     """Every check's numbers for one seed (see the module docstring); JSON-ready."""
     from slam_engine.config import SlamConfig, merge_settings, shortcut_overrides
     from slam_engine.errors import MapBundleError
-    from slam_engine.evaluation.metrics import read_relations
+    from slam_engine.evaluation.metrics import absolute_trajectory_error, read_ground_truth, read_relations
     from slam_engine.formats import load_log
     from slam_engine.frontend.particle_filter import engine_threads
     from slam_engine.multisession.joining import join, merge
@@ -162,7 +163,10 @@ def run_seed(drives: list[SessionDrive], seed: int, overrides: dict | None = Non
             bundles[name] = result.bundle
             scans = logs[name].scans
             mapping[name] = {"scans": 0 if scans is None else len(scans), "wall_s": result.wall_time_s,
-                             "key_frames": len(result.bundle)}
+                             "key_frames": len(result.bundle), "ate_m": None}
+            truth = Path(path).with_name(f"{name}.gt.txt")  # beside the log, as lidarmap run finds it
+            if truth.is_file():
+                mapping[name]["ate_m"] = absolute_trajectory_error(result.trajectory, read_ground_truth(truth))
             say(f"  seed {seed}: mapped {name} ({mapping[name]['scans']} scans) in {result.wall_time_s:.1f} s")
             del result
 
@@ -275,6 +279,10 @@ def checks_for(drives: list[SessionDrive], targets: Targets = DEFAULT_TARGETS) -
     rows = [Check(f"localise:{n}", f"localise {n}-b in {n}-a's map, cross-session relations ({n}-ab)",
                   ("localise", f"{n}-b in {n}-a", "relations", "ab", "trans_mean_m"), "at_most",
                   targets.localise_m.get(n)) for n in names]
+    # no target: how far the saved map itself is bent (its relations do not show it), which a drive localised
+    # in it inherits
+    rows += [Check(f"map-ate:{n}", f"{n}-a's map: absolute trajectory error against its ground truth",
+                   ("mapping", f"{n}-a", "ate_m"), "at_most") for n in names]
     rows += [Check(f"extend:{n}", f"extend {n}-a with {n}-b, all relations",
                    ("extend", n, "relations", "all", "trans_mean_m"), "at_most", targets.extend_m.get(n))
              for n in names]
@@ -390,7 +398,7 @@ def details_table(results: dict):
     from rich.table import Table
 
     table = Table(title="Per seed: relation error m (ab / all), wall s", title_justify="left")
-    for column in ("seed", "drive", "localise m", "localise s (scans + search)", "map b s", "ratio",
+    for column in ("seed", "drive", "map a ATE m", "localise m", "localise s (scans + search)", "map b s", "ratio",
                    "extend m", "extend s", "merge m", "merge s"):
         table.add_column(column, justify="left" if column == "drive" else "right")
     for run in results["runs"]:
@@ -402,7 +410,8 @@ def details_table(results: dict):
                 rel = record.get("relations")
                 return "–" if not rel else f"{_m(rel['ab']['trans_mean_m'])} / {_m(rel['all']['trans_mean_m'])}"
 
-            table.add_row(str(run["seed"]), name, pair(loc) if loc.get("localised") else "not localised",
+            ate = (run.get("mapping", {}).get(f"{name}-a") or {}).get("ate_m")
+            table.add_row(str(run["seed"]), name, _m(ate), pair(loc) if loc.get("localised") else "not localised",
                           f"{loc.get('wall_s', 0):.1f} ({loc.get('scans_s', 0):.1f} + {loc.get('localize_s', 0):.1f})",
                           f"{loc.get('mapping_s', 0):.1f}", f"{loc.get('time_ratio', 0):.2f}",
                           pair(ext), f"{ext.get('wall_s', 0):.1f}", pair(mrg) if mrg else "–",

@@ -44,6 +44,10 @@ def write_sessions(folder):
         np.savetxt(folder / f"{name}-all.relations", rows, fmt="%.6f")
         across = (rows[:, 0] < middle) != (rows[:, 1] < middle)
         np.savetxt(folder / f"{name}-ab.relations", rows[across], fmt="%.6f")
+        if name == "office":  # the a half's ground truth beside it: its map's absolute error is measured
+            truth = drive.ground_truth
+            first = truth.t_s < middle
+            np.savetxt(folder / f"{name}-a.gt.txt", np.column_stack([truth.t_s[first], truth.poses[first]]), fmt="%.6f")
     return folder
 
 
@@ -94,7 +98,8 @@ def test_localise_extend_merge_and_refuse_on_simulated_halves(sessions_run):
 def test_checks_json_and_tables(sessions_run):
     _, results, text = sessions_run
     rows = {row["id"]: row for row in results["checks"]}
-    assert list(rows) == ["localise:campus", "localise:office", "extend:campus", "extend:office",
+    assert list(rows) == ["localise:campus", "localise:office", "map-ate:campus", "map-ate:office",
+                          "extend:campus", "extend:office",
                           "refuse:campus:office", "refuse:office:campus", "merge:campus", "merge:office",
                           "time:campus", "time:office", "which:campus", "which:office", "which-time:campus",
                           "which-time:office", "changes:campus", "changes:office", "changes-time:campus",
@@ -105,6 +110,10 @@ def test_checks_json_and_tables(sessions_run):
     assert rows["localise:office"]["values"] == [run["localise"]["office-b in office-a"]["relations"]["ab"]
                                                  ["trans_mean_m"]]
     assert results["code"]["commit"] and results["options"]["seeds"] == [0]
+    # the a map's absolute error where its ground truth lies beside it (the office), none without (the campus)
+    ate = run["mapping"]["office-a"]["ate_m"]
+    assert 0 < ate < 0.1 and rows["map-ate:office"]["values"] == [ate] and rows["map-ate:office"]["passed"] is None
+    assert run["mapping"]["campus-a"]["ate_m"] is None and f"{ate:.3f}" in text
     assert results["drives"] == ["campus", "office"]
     assert "localise office-b in office-a's map, cross-session relations (office-ab)" in text
     assert f"{rows['extend:office']['values'][0]:.4f} m" in text and "refused (best score" in text
