@@ -148,7 +148,8 @@ def run_seed(drives: list[SessionDrive], seed: int, overrides: dict | None = Non
     config = SlamConfig.model_validate(merge_settings(overrides or {},
                                                       shortcut_overrides({"seed": seed, "particles": particles})))
     threads = engine_threads()
-    logs, bundles, mapping = {}, {}, {}
+    logs, bundles = {}, {}
+    mapping: dict[str, dict[str, Any]] = {}
     localisations: dict[str, dict[str, Any]] = {}
     extensions: dict[str, dict[str, Any]] = {}
     merges: dict[str, dict[str, Any]] = {}
