@@ -24,7 +24,7 @@ import numpy as np
 
 from slam_engine.backend.flagged_retry import FlaggedRetry, kept_alternative, retry_alternatives
 from slam_engine.backend.map_alignment import align_to_map
-from slam_engine.backend.map_builder import render_occupancy
+from slam_engine.backend.map_builder import render_occupancy, render_with_frames
 from slam_engine.backend.odometry_smoothing import smooth_with_odometry
 from slam_engine.backend.pose_graph import Edge
 from slam_engine.backend.submap_choice import CheckedLoopClosing, close_loops_checked
@@ -41,7 +41,6 @@ from slam_engine.model.drive_log import DriveLog
 from slam_engine.model.map_bundle import MapBundle
 from slam_engine.model.messages import ScanMessage
 from slam_engine.model.result import (
-    SNAPSHOT_MAX_SIDE_CELLS,
     MapSnapshot,
     OccupancyGrid,
     ScanStats,
@@ -307,16 +306,10 @@ def _product_map(slam: SlamFilter, key_frames: np.ndarray, trajectory: Trajector
         marks = slam.frame_marks or [(s.scan_index, s.t_s) for s in slam.snapshots]
         # how many key frames each frame's map takes: those at or before its time
         key_frames_in = np.searchsorted(slam.key_frame_times(), [t_s for _, t_s in marks], side="right").tolist()
-        frames: dict[int, MapSnapshot] = {}
-
-        def keep_frame(n: int, partial: OccupancyGrid) -> None:
-            frames[n] = MapSnapshot(-1, 0.0, partial, trajectory).reduced()
-
-        grid = render_occupancy(slam.product_scans(), key_frames, slam.projector.origin_v, config.grid,
-                                frames_after=set(key_frames_in), on_frame=keep_frame,
-                                frame_max_side_cells=SNAPSHOT_MAX_SIDE_CELLS)
+        grid, frames = render_with_frames(slam.product_scans(), key_frames, slam.projector.origin_v, config.grid,
+                                          set(key_frames_in))
         grid = grid if own_map is None else own_map
-        snapshots = [MapSnapshot(scan_index, t_s, frames[n].grid, trajectory.until(t_s))
+        snapshots = [MapSnapshot(scan_index, t_s, frames[n], trajectory.until(t_s))
                      for (scan_index, t_s), n in zip(marks, key_frames_in, strict=True) if n in frames]
         return grid, snapshots
     # live: the snapshots taken during the filter are the map being built

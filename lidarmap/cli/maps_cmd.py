@@ -9,10 +9,9 @@ from pathlib import Path
 import typer
 
 from lidarmap.cli.bad_input import bad_input_exits
-from lidarmap.cli.run_cmd import load_config, prepare_out_dir
+from lidarmap.cli.run_cmd import SNAPSHOT_FRAMES, load_config, prepare_out_dir
 
 REFUSED_EXIT_CODE = 1  # the drive (or map) was understood, but has no place in the saved map
-ANIMATION_FRAMES = 40  # = slam_engine.products.animation.ANIMATION_FRAMES (for the help text; not imported here)
 MAX_ANIMATION_FRAMES = 1000
 
 
@@ -185,7 +184,7 @@ def register(app: typer.Typer) -> None:
                                        "map_bundle.npz."),
         out: Path | None = typer.Option(None, "--out", "-o", help="The GIF to write (default: animation.gif beside "
                                         "the map bundle)."),
-        frames: int = typer.Option(ANIMATION_FRAMES, help=f"Frames in all, the last the final map "
+        frames: int = typer.Option(SNAPSHOT_FRAMES, help=f"Frames in all, the last the final map "
                                    f"(1-{MAX_ANIMATION_FRAMES})."),
         force: bool = typer.Option(False, "--force", help="Replace an existing file."),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Show tracebacks."),

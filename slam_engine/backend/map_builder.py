@@ -10,7 +10,7 @@ from slam_engine.config import GridConfig
 from slam_engine.frontend.grid import ParticleGrids
 from slam_engine.frontend.lidar_points import ProjectedScan
 from slam_engine.frontend.raycast import insert_scan
-from slam_engine.model.result import OccupancyGrid
+from slam_engine.model.result import SNAPSHOT_MAX_SIDE_CELLS, MapSnapshot, OccupancyGrid, Trajectory
 
 
 def render_occupancy(scans: Sequence[ProjectedScan], poses: np.ndarray, origin_v: np.ndarray, grid: GridConfig,
@@ -31,3 +31,19 @@ def render_occupancy(scans: Sequence[ProjectedScan], poses: np.ndarray, origin_v
             on_frame(k + 1, grids.occupancy_grid(0) if frame_max_side_cells is None
                      else grids.occupancy_grid_within(0, frame_max_side_cells))
     return grids.occupancy_grid(0)
+
+
+def render_with_frames(scans: Sequence[ProjectedScan], poses: np.ndarray, origin_v: np.ndarray, grid: GridConfig,
+                       frames_after: Collection[int]) -> tuple[OccupancyGrid, dict[int, OccupancyGrid]]:
+    """:func:`render_occupancy` and, in the same pass, the map of the first n scans for each n in
+    ``frames_after`` at an animation frame's size, kept compressed as a run keeps its snapshots
+    (:meth:`~slam_engine.model.result.MapSnapshot.reduced`): the animation's frames at the final poses."""
+    frames: dict[int, OccupancyGrid] = {}
+    nowhere = Trajectory(np.zeros(0), np.zeros((0, 3)))
+
+    def keep(n: int, partial: OccupancyGrid) -> None:
+        frames[n] = MapSnapshot(-1, 0.0, partial, nowhere).reduced().grid
+
+    final = render_occupancy(scans, poses, origin_v, grid, frames_after=frames_after, on_frame=keep,
+                             frame_max_side_cells=SNAPSHOT_MAX_SIDE_CELLS)
+    return final, frames

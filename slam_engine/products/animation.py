@@ -21,7 +21,7 @@ from PIL import Image, ImageDraw
 
 from slam_engine.config import GridConfig
 from slam_engine.model.map_bundle import MapBundle
-from slam_engine.model.result import SNAPSHOT_MAX_SIDE_CELLS, MapSnapshot, OccupancyGrid, Trajectory
+from slam_engine.model.result import MapSnapshot, OccupancyGrid, Trajectory
 from slam_engine.products.files import atomic_path
 from slam_engine.products.rendering import TRAJECTORY_RGB, UNKNOWN_GRAY, occupancy_image
 
@@ -107,20 +107,14 @@ def bundle_snapshots(bundle: MapBundle, frames: int = ANIMATION_FRAMES
     """A saved map's animation, as a run draws it: (``frames`` - 1 snapshots or fewer, the final map, the
     final trajectory). Snapshot n is the map of the bundle's first key frames (evenly many more each time) at
     their final poses, rendered with the run's grid settings (the bundle's config), in one pass over them
-    (:func:`~slam_engine.backend.map_builder.render_occupancy`), with the trajectory of that key frame's
+    (:func:`~slam_engine.backend.map_builder.render_with_frames`), with the trajectory of that key frame's
     drive up to its time; the final map and trajectory are the last drive's whole."""
-    from slam_engine.backend.map_builder import render_occupancy  # numba kernels: imported when used
+    from slam_engine.backend.map_builder import render_with_frames  # numba kernels: imported when used
 
     key_frames = len(bundle)
     grid_config = GridConfig.model_validate({**bundle.config.get("grid", {}), "resolution_m": bundle.resolution_m})
     marks = sorted({int(n) for n in np.ceil(np.linspace(0, key_frames, max(1, frames) + 1)[1:-1]) if n > 0})
-    kept: dict[int, OccupancyGrid] = {}
-
-    def keep(n: int, partial: OccupancyGrid) -> None:
-        kept[n] = MapSnapshot(-1, 0.0, partial, Trajectory(np.zeros(0), np.zeros((0, 3)))).reduced().grid
-
-    grid = render_occupancy(bundle.scans(), bundle.poses, bundle.origin_v, grid_config, frames_after=set(marks),
-                            on_frame=keep, frame_max_side_cells=SNAPSHOT_MAX_SIDE_CELLS)
+    grid, kept = render_with_frames(bundle.scans(), bundle.poses, bundle.origin_v, grid_config, marks)
 
     def driven(drive: int, until_s: float) -> Trajectory:
         mine = (bundle.trajectory_drive == drive) & (bundle.trajectory_t_s <= until_s)
