@@ -68,8 +68,9 @@ def accuracy(
                                    "against one map alone (seeds 0-2, about 4 minutes; not with --quick or "
                                    "--no-datasets)."),
     out: Path | None = typer.Option(None, help="Output folder (default bench/results/<date-time>)."),
-    record: bool = typer.Option(False, help="Write this run's relation errors (median and worst seed per scored "
-                                "log) into bench/recorded.json, the record later runs are compared with."),
+    record: bool = typer.Option(False, help="Write this run's relation errors and ATE (median and worst seed per "
+                                "log) and flagged maps into bench/recorded.json, the record later runs are "
+                                "compared with."),
     timeout_s: float = typer.Option(3600.0, min=1.0, help="Time limit per run, seconds."),
     busy: int = typer.Option(0, min=0, max=64, help="CPU-bound processes to run beside every run "
                              "('while True: pass'): timings on a busy machine."),

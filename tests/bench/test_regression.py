@@ -44,8 +44,44 @@ def test_a_better_result_is_said_and_can_become_the_record(tmp_path) -> None:
     path.write_text('{"logs": {"intel": {"median_m": 0.021, "worst_m": 0.022, "seeds": [0]}}}')
     written = record(_results(**{"real-fr079": (0.0466, 0.0478)}), path)
     assert read_recorded(path) == written
-    assert written["logs"]["real-fr079"] == {"median_m": 0.0466, "worst_m": 0.0478, "seeds": [0, 1, 2]}
+    assert written["logs"]["real-fr079"] == {"median_m": 0.0466, "worst_m": 0.0478, "ate_median_m": None,
+                                             "ate_worst_m": None, "flagged_runs": 0, "seeds": [0, 1, 2]}
     assert "intel" in written["logs"]  # logs this run did not map keep their record
+
+
+def test_a_map_bent_without_moving_its_relations_is_a_regression() -> None:
+    """A half drive's map 0.5 m off its ground truth read 0.027 m in relations: the ATE is guarded too,
+    with more room than the relations (it moves more between seeds)."""
+    recorded = {"logs": {"intel": {"median_m": 0.021, "worst_m": 0.022, "ate_median_m": 0.048, "ate_worst_m": 0.052}}}
+
+    def verdict(ate_median: float) -> str:
+        results = _results(intel=(0.021, 0.022))
+        results["summaries"][0]["slam"]["ate_m"] = {"median": ate_median, "worst": ate_median + 0.01}
+        return compare(results, recorded)[0]["verdict"]
+
+    assert verdict(0.060) == "as recorded"  # 0.048 * 1.25 + 0.01 = 0.07 allowed
+    assert verdict(0.075) == "bent"
+    rows = compare(_results(intel=(0.021, 0.022)), recorded)  # a run without ground truth: relations only
+    assert rows[0]["verdict"] == "as recorded" and rows[0]["recorded_ate_median_m"] == 0.048
+
+
+def test_more_maps_flagged_than_recorded_is_a_regression_scored_or_not() -> None:
+    """A map the engine itself flags as inconsistent is a failure, also on a log without relations."""
+    recorded = {"logs": {"intel": {"median_m": 0.021, "worst_m": 0.022, "flagged_runs": 0},
+                         "malaga": {"median_m": None, "worst_m": None, "flagged_runs": 2}}}
+    results = _results(intel=(0.021, 0.022))
+    results["summaries"][0]["flagged_runs"] = 1
+    results["summaries"].append({"case": "malaga", "scored": False, "seeds": [0, 1, 2], "seeds_ok": 3,
+                                 "slam": {"trans_mean_m": {"median": None, "worst": None}}, "flagged_runs": 2})
+    rows = {r["case"]: r for r in compare(results, recorded)}
+    assert rows["intel"]["verdict"] == "flagged" and rows["malaga"]["verdict"] == "as recorded"
+    assert [r["case"] for r in regressions(list(rows.values()))] == ["intel"]
+    results["summaries"][1]["flagged_runs"] = 3
+    assert compare(results, recorded)[1]["verdict"] == "flagged"
+    console = Console(width=250, record=True)
+    print_regressions(compare(results, recorded), recorded, console)
+    text = console.export_text()
+    assert "REGRESSION against the record: intel, malaga" in text and "3 (2)" in text
 
 
 def test_a_failed_run_is_a_regression() -> None:
