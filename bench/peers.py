@@ -1,10 +1,14 @@
 """Side by side with Karto (the fastest peer, the core slam_toolbox grew from): whole processes,
-interleaved on one machine (lidarmap, Karto, lidarmap, Karto, ...), the median of each and their ratio.
+interleaved on one machine (lidarmap, Karto, lidarmap, Karto, ...), the median of each and their ratio,
+beside each one's peak memory and relation error on the log (what the time buys: a ratio alone does
+not say that Karto's corridor map is lost).
 
 Karto is built from ``../shared/peers`` (its README: ``build_karto.sh`` writes
 ``$TMPDIR/peers/bin/karto_carmen``; ``LIDARMAP_KARTO`` names another binary). Without it the table says
 how to build it. lidarmap runs as a user runs it: ``lidarmap run LOG --out DIR --seed S`` (products and
-scoring included); Karto writes its poses only.
+scoring included); Karto writes its poses only. Karto's poses are scored against ``NAME.relations``
+beside the log like lidarmap's (relations at scans it skipped, below its minimum travel, are not
+matched: the table says how many were), lidarmap's error is its run's own ``run.json``.
 
     python -m bench.peers [--rounds 3] [LOG ...]   # default: aces-rough, infinite-corridor-rough, intel
 """
@@ -12,6 +16,7 @@ scoring included); Karto writes its poses only.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import statistics
@@ -19,8 +24,10 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+
+import numpy as np
 
 from bench.cases import datasets_root
 
@@ -35,45 +42,111 @@ def karto_binary() -> Path | None:
 
 
 @dataclass
+class Scored:
+    """A trajectory's mean relation error [m] over the relations it could be matched at."""
+
+    trans_mean_m: float
+    matched: int
+    relations: int
+
+    def cell(self) -> str:
+        if self.matched == 0:
+            return "–"
+        text = f"{self.trans_mean_m:.3f}"
+        return text if self.matched == self.relations else f"{text} ({self.matched}/{self.relations})"
+
+
+@dataclass
 class SideBySide:
-    """One log's whole-process times [s], per round."""
+    """One log's whole-process times [s] and peak memory [MB] per round, and each one's relation error
+    (None without relations beside the log)."""
 
     log: str
     lidarmap_s: list[float]
     karto_s: list[float]
+    lidarmap_peak_mb: list[float] = field(default_factory=list)
+    karto_peak_mb: list[float] = field(default_factory=list)
+    lidarmap_error: Scored | None = None
+    karto_error: Scored | None = None
 
     @property
     def ratio(self) -> float:
         return statistics.median(self.lidarmap_s) / statistics.median(self.karto_s)
 
     def row(self) -> str:
+        peaks = "–" if not self.lidarmap_peak_mb or not self.karto_peak_mb else \
+            f"{statistics.median(self.lidarmap_peak_mb):.0f} / {statistics.median(self.karto_peak_mb):.0f}"
+        errors = "–" if self.lidarmap_error is None or self.karto_error is None else \
+            f"{self.lidarmap_error.cell()} / {self.karto_error.cell()}"
         return (f"| {self.log} | {statistics.median(self.lidarmap_s):.2f} | {statistics.median(self.karto_s):.2f} | "
-                f"{self.ratio:.2f} |")
+                f"{self.ratio:.2f} | {peaks} | {errors} |")
 
 
-def _timed(command: list[str]) -> float:
+def _timed(command: list[str]) -> tuple[float, float]:
+    """Wall time [s] and peak resident memory [MB] of one whole process."""
     started = time.perf_counter()
-    done = subprocess.run(command, capture_output=True, text=True, check=False)
-    if done.returncode != 0:
-        raise RuntimeError(f"{' '.join(command)} failed ({done.returncode}): {done.stderr.strip()[-300:]}")
-    return time.perf_counter() - started
+    with tempfile.TemporaryFile() as err:
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err)
+        _, status, usage = os.wait4(process.pid, 0)
+        wall_s = time.perf_counter() - started
+        process.returncode = os.waitstatus_to_exitcode(status)
+        if process.returncode != 0:
+            err.seek(0)
+            tail = err.read().decode(errors="replace").strip()[-300:]
+            raise RuntimeError(f"{' '.join(command)} failed ({process.returncode}): {tail}")
+    return wall_s, usage.ru_maxrss / 1024.0  # Linux: kilobytes
+
+
+def lidarmap_error(out_dir: Path) -> Scored | None:
+    """lidarmap's relation error from its run's ``run.json`` (None when the run had no relations)."""
+    figures = ((json.loads((out_dir / "run.json").read_text()).get("accuracy") or {}).get("relations") or {}).get("all")
+    if not figures:
+        return None
+    n = int(figures["n_relations"])
+    return Scored(float(figures["trans_mean_m"]), n - int(figures["n_failed"]), n)
+
+
+def karto_error(poses_path: Path, relations_path: Path) -> Scored | None:
+    """Karto's ``t x y theta`` poses scored against the log's relations (None without them)."""
+    from slam_engine.evaluation.metrics import read_relations, relation_errors
+    from slam_engine.model.result import Trajectory
+
+    if not relations_path.is_file():
+        return None
+    relations = read_relations(relations_path)
+    rows = np.loadtxt(poses_path, ndmin=2)
+    if len(rows) == 0:
+        return Scored(float("nan"), 0, len(relations))
+    metrics = relation_errors(Trajectory(rows[:, 0], rows[:, 1:4]), relations)
+    return Scored(metrics.all.trans_mean_m, len(relations) - int(np.isnan(metrics.trans_errors_m).sum()),
+                  len(relations))
 
 
 def side_by_side(log: Path, karto: Path, rounds: int, seed: int = 0) -> SideBySide:
-    """``rounds`` interleaved pairs of whole processes on ``log``."""
+    """``rounds`` interleaved pairs of whole processes on ``log``; the errors of the last round."""
     lidarmap = [sys.executable, "-m", "lidarmap.cli", "run", str(log), "--seed", str(seed), "--force", "--out"]
-    result = SideBySide(log.stem.split(".")[0], [], [])
+    name = log.name.split(".")[0]
+    result = SideBySide(name, [], [])
     with tempfile.TemporaryDirectory(prefix="bench-peers-") as scratch:
+        out, poses = Path(scratch) / "lidarmap", Path(scratch) / "karto.txt"
         for _ in range(rounds):
-            result.lidarmap_s.append(_timed([*lidarmap, str(Path(scratch) / "lidarmap")]))
-            result.karto_s.append(_timed([str(karto), str(log), str(Path(scratch) / "karto.txt")]))
-            shutil.rmtree(Path(scratch) / "lidarmap", ignore_errors=True)
+            shutil.rmtree(out, ignore_errors=True)
+            wall_s, peak_mb = _timed([*lidarmap, str(out)])
+            result.lidarmap_s.append(wall_s)
+            result.lidarmap_peak_mb.append(peak_mb)
+            wall_s, peak_mb = _timed([str(karto), str(log), str(poses)])
+            result.karto_s.append(wall_s)
+            result.karto_peak_mb.append(peak_mb)
+        result.lidarmap_error = lidarmap_error(out)
+        result.karto_error = karto_error(poses, log.with_name(f"{name}.relations"))
     return result
 
 
 def table(rows: list[SideBySide], rounds: int) -> str:
-    head = "| log | lidarmap [s] | Karto [s] | lidarmap / Karto |\n|---|---|---|---|"
-    note = f"(whole processes, median of {rounds} interleaved rounds)"
+    head = ("| log | lidarmap [s] | Karto [s] | lidarmap / Karto | peak lidarmap / Karto [MB] | "
+            "relation error lidarmap / Karto [m] |\n|---|---|---|---|---|---|")
+    note = (f"(whole processes, median of {rounds} interleaved rounds; relation errors of the last round, "
+            "(matched/all) where Karto skipped scans that relations start or end at)")
     return "\n".join([head] + [r.row() for r in rows] + [note])
 
 
