@@ -24,14 +24,15 @@ from typing import Any
 KERNEL_MODULES = ("slam_engine.frontend.grid", "slam_engine.frontend.map_pooling", "slam_engine.frontend.raycast",
                   "slam_engine.frontend.scan_matcher", "slam_engine.backend.correlative", "slam_engine.backend.submaps",
                   "slam_engine.backend.polygon_fill", "slam_engine.backend.travel_graph",
-                  "slam_engine.multisession.changes")
+                  "slam_engine.backend.place_index", "slam_engine.multisession.changes")
 # Kernels a run calls from Python (the others are compiled into these).
 ENTRY_KERNELS = ("grid._privatize", "grid._tiles_to_grid", "map_pooling.pool_known_max",
                  "raycast.collect_touched_tiles", "raycast.integrate_rays", "raycast._integrate_particle",
                  "raycast.clear_marks", "scan_matcher.match_particles", "scan_matcher.score_particles",
                  "correlative._rotated_cells", "correlative.branch_and_bound", "correlative._refine",
                  "correlative._refine_many", "submaps._blurred_hits", "polygon_fill.fill_polygons",
-                 "travel_graph.shortest_distances", "changes._count_rays")
+                 "travel_graph.shortest_distances", "place_index._bin_points", "place_index._ring_sums",
+                 "changes._count_rays")
 
 
 def kernels() -> dict[str, Any]:
@@ -95,6 +96,10 @@ def warm_up() -> dict[str, list[str]]:
     from slam_engine.backend.travel_graph import adjacency, shortest_distances
 
     shortest_distances(*adjacency(3, np.array([0, 1]), np.array([1, 2]), np.array([1.0, 1.0])), 0, 10.0)
+    from slam_engine.backend.place_index import PlaceIndex
+
+    # the place index: places binned, and a query (a localisation's or a far search's first)
+    PlaceIndex.build(wall, np.array([[2.0, 0.0], [2.0, 4.0]]), 16.0).query(wall - [2.0, 0.0], 1)
     from slam_engine.multisession.changes import detect_changes
 
     detect_changes(OccupancyGrid(np.full((40, 40), -1.0, np.float32), 0.05, 0.0, 0.0), [wall[:5] - 1.0],

@@ -73,16 +73,17 @@ def describe(points_m: np.ndarray, centre_m: np.ndarray | tuple[float, float], r
     return _described(points_m, np.asarray(centre_m, np.float64)[None, :2], radius_m)[0]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def _bin_points(points_m, order, bucket_starts, width, lo_x, lo_y, cell_m, reach, centres_m, radius_m, hit):
     """Marks in ``hit`` (P, RINGS, SECTORS) each bin of place p (centre ``centres_m[p]``) that a point within
     ``radius_m`` of it (not on it) falls in. The points are bucketed on square cells of ``cell_m`` from
     (``lo_x``, ``lo_y``), ``width`` a row: ``order[bucket_starts[b]:bucket_starts[b + 1]]`` are bucket b's; a
     place looks in the buckets up to ``reach`` (``reach * cell_m`` >= ``radius_m``) from its own that come
-    within the radius."""
+    within the radius. Places run in parallel threads (each writes only its own bins): the same bins as
+    a serial loop."""
     two_pi = 2.0 * np.pi
     height = (bucket_starts.shape[0] - 1) // width
-    for p in range(centres_m.shape[0]):
+    for p in nb.prange(centres_m.shape[0]):
         cx, cy = centres_m[p, 0], centres_m[p, 1]
         bx = int(math.floor((cx - lo_x) / cell_m))
         by = int(math.floor((cy - lo_y) / cell_m))
