@@ -129,13 +129,28 @@ class SqliteBackend(_EnginePerProcess):
         from service.storage.migration import upgrade_schema  # imported when used (Alembic)
 
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        conn = sqlite3.connect(self.path, timeout=SQLITE_BUSY_TIMEOUT_S, isolation_level=None)
-        try:
-            conn.execute("PRAGMA journal_mode = WAL")  # kept by the file; not allowed inside a transaction
-        finally:
-            conn.close()
+        self._write_ahead_log()
         with self.transaction() as connection:
             upgrade_schema(connection)
+
+    def _write_ahead_log(self) -> None:
+        """Put the file in WAL mode (kept by the file; not allowed inside a transaction). The switch needs
+        the file to itself, and SQLite answers "database is locked" at once, without waiting its busy
+        timeout, while another process that opened it at the same moment holds a lock (the API and its
+        workers starting on a new database: 2 starts of 60 with six stores failed so): tried again until
+        the busy timeout."""
+        deadline = time.monotonic() + SQLITE_BUSY_TIMEOUT_S
+        while True:
+            conn = sqlite3.connect(self.path, timeout=SQLITE_BUSY_TIMEOUT_S, isolation_level=None)
+            try:
+                conn.execute("PRAGMA journal_mode = WAL")
+                return
+            except sqlite3.OperationalError as exc:
+                if "locked" not in str(exc) or time.monotonic() > deadline:
+                    raise
+            finally:
+                conn.close()
+            time.sleep(0.02)
 
 
 class PostgresBackend(_EnginePerProcess):

@@ -153,6 +153,31 @@ def inspect_columns(store: JobStore, table: str) -> list[dict]:
         return inspect(conn).get_columns(table)
 
 
+def test_a_new_sqlite_database_waits_for_a_writer_before_its_journal_mode(tmp_path) -> None:
+    """SQLite refuses the switch to WAL at once ("database is locked"), without its busy timeout, while
+    another process writes: a store starting then waits for it (2 starts of 60 failed with six stores
+    starting together on a new file)."""
+    from service.storage.database import SqliteBackend
+
+    path = tmp_path / "lidarmap.sqlite3"
+    writer = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+    writer.execute("CREATE TABLE other (x INTEGER)")
+    writer.execute("BEGIN IMMEDIATE")
+    writer.execute("INSERT INTO other VALUES (1)")
+    release = threading.Timer(0.3, lambda: writer.execute("COMMIT"))
+    release.start()
+    store = JobStore(SqliteBackend(path))
+    try:
+        store.initialise()  # switches to WAL once the writer is done, then migrates
+    finally:
+        release.join()
+        writer.close()
+    assert revision(store) == head_revision()
+    with sqlite3.connect(path) as conn:
+        assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    store.close()
+
+
 def test_processes_starting_together_migrate_once(new_store) -> None:
     """Four stores (as the API and three workers) initialise one new database at the same instant."""
     stores = [pickle.loads(pickle.dumps(new_store)) for _ in range(4)]  # as sent to worker processes
