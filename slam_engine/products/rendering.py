@@ -154,17 +154,18 @@ def write_occupancy_with_trajectories_png(path, grid: OccupancyGrid, trajectory:
     mask = Image.new("L", (gray.shape[1], gray.shape[0]), 0)
     _draw_trajectories(ImageDraw.Draw(mask), grid, trajectory, reference, (1, 2, 3))
     inks = np.array([(0, 0, 0), REFERENCE_RGB, TRAJECTORY_RGB, START_RGB], np.uint8)
-    ink = np.asarray(mask)
+    height, width = gray.shape
 
     def rows():
-        for r0 in range(0, gray.shape[0], _BAND_ROWS):
+        for r0 in range(0, height, _BAND_ROWS):
             band = np.repeat(gray[r0:r0 + _BAND_ROWS, :, None], 3, axis=2)
-            drawn = ink[r0:r0 + _BAND_ROWS]
+            # the mask's band alone: the whole mask as an array took two more copies of it at once
+            drawn = np.asarray(mask.crop((0, r0, width, min(r0 + _BAND_ROWS, height))))
             marked = drawn > 0
             band[marked] = inks[drawn[marked]]
             yield band
 
-    write_png_rows(path, gray.shape[1], gray.shape[0], rows())
+    write_png_rows(path, width, height, rows())
 
 
 def write_png_rows(path, width: int, height: int, bands) -> None:

@@ -115,3 +115,16 @@ def test_the_file_holds_the_points_open3d_filters_would_give(mapped) -> None:
     read_back = np.asarray(o3d.io.read_point_cloud(str(written[POINT_CLOUD_FILE])).points)
     assert np.array_equal(sorted_rows(read_back), sorted_rows(expected))
     assert b"property double x" in written[POINT_CLOUD_FILE].read_bytes()[:200]
+
+
+def test_neighbours_looked_up_in_pieces_give_the_same_points(mapped, monkeypatch) -> None:
+    """The outlier filter's neighbour search runs a piece of the points at a time (memory): any piece
+    size gives the same points as all at once."""
+    from slam_engine.products import point_cloud
+
+    result, _ = mapped
+    voxels = point_cloud.voxel_centroids(map_points(result.bundle), result.bundle.resolution_m)
+    monkeypatch.setattr(point_cloud, "QUERY_CHUNK", len(voxels) + 1)
+    whole = point_cloud.without_statistical_outliers(voxels)
+    monkeypatch.setattr(point_cloud, "QUERY_CHUNK", 97)
+    assert len(voxels) > 10 * 97 and np.array_equal(point_cloud.without_statistical_outliers(voxels), whole)

@@ -208,6 +208,25 @@ def test_trajectory_overlay_draws_slam_red_and_dead_reckoning_blue(products: dic
     assert tuple(image[row, col]) == (30, 90, 230)
 
 
+def test_rasters_written_in_bands_are_the_whole_images(tmp_path, monkeypatch) -> None:
+    """The trajectories PNG and the GeoTIFF are made a band of rows at a time (memory): with bands
+    that do not divide the map, the same pixels as the whole image in memory."""
+    from slam_engine.products import geotiff, rendering
+
+    grid, traj, dr = make_grid(), make_trajectory(), make_trajectory(drift=0.8)
+    monkeypatch.setattr(rendering, "_BAND_ROWS", 7)
+    rendering.write_occupancy_with_trajectories_png(tmp_path / "t.png", grid, traj, dr,
+                                                    rendering.occupancy_rasters(grid).gray)
+    expected = np.asarray(rendering.occupancy_with_trajectories(grid, traj, dr))
+    assert np.array_equal(np.asarray(Image.open(tmp_path / "t.png").convert("RGB")), expected)
+    monkeypatch.setattr(geotiff, "ROWS_PER_STRIP", 16)
+    monkeypatch.setattr(geotiff, "ROWS_PER_PIECE", 5)
+    geotiff.write_occupancy_geotiff(grid, tmp_path / "o.tif")
+    probability, known = occupancy_north_up(grid)
+    with rasterio.open(tmp_path / "o.tif") as ds:
+        assert np.array_equal(ds.read(1), np.where(known, probability, -1).astype(np.float32))
+
+
 def test_texture_png_is_north_up_and_transparent_where_unseen(products: dict[str, Path]) -> None:
     image = np.asarray(Image.open(products["texture.png"]))
     assert image.shape == (H, W, 4)
