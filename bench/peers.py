@@ -23,7 +23,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -82,17 +81,20 @@ class SideBySide:
                 f"{self.ratio:.2f} | {peaks} | {errors} |")
 
 
-# Runs the command as its own child and writes that child's peak resident memory [KB] into argv[1]. A
-# child's peak counts its parent's at the fork (Linux carries the high-water mark over into exec): timed
-# straight from this process (hundreds of MB inside `make bench`), every command read at least that.
-# Forked from this small helper instead, a command cannot read below the helper's few MB.
-_PEAK_HELPER = """import os, sys
+# Runs the command as its own child and writes that child's peak resident memory [KB] and wall time [s]
+# (from its fork to its end: the helper's own start is not counted) into argv[1]. A child's peak counts
+# its parent's at the fork (Linux carries the high-water mark over into exec): timed straight from this
+# process (hundreds of MB inside `make bench`), every command read at least that. Forked from this small
+# helper instead, a command cannot read below the helper's few MB.
+_PEAK_HELPER = """import os, sys, time
+started = time.perf_counter()
 pid = os.fork()
 if pid == 0:
     os.execvp(sys.argv[2], sys.argv[2:])
 _, status, usage = os.wait4(pid, 0)
+wall_s = time.perf_counter() - started
 with open(sys.argv[1], "w") as out:
-    out.write(str(usage.ru_maxrss))
+    out.write(f"{usage.ru_maxrss} {wall_s!r}")
 sys.exit(os.waitstatus_to_exitcode(status))
 """
 
@@ -100,15 +102,14 @@ sys.exit(os.waitstatus_to_exitcode(status))
 def _timed(command: list[str]) -> tuple[float, float]:
     """Wall time [s] and peak resident memory [MB] of one whole process (:data:`_PEAK_HELPER`)."""
     with tempfile.TemporaryDirectory(prefix="bench-peak-") as scratch:
-        peak_file = Path(scratch) / "peak_kb"
-        started = time.perf_counter()
-        done = subprocess.run([sys.executable, "-c", _PEAK_HELPER, str(peak_file), *command],
+        figures = Path(scratch) / "figures"
+        done = subprocess.run([sys.executable, "-c", _PEAK_HELPER, str(figures), *command],
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, check=False)
-        wall_s = time.perf_counter() - started
         if done.returncode != 0:
             tail = done.stderr.decode(errors="replace").strip()[-300:]
             raise RuntimeError(f"{' '.join(command)} failed ({done.returncode}): {tail}")
-        return wall_s, int(peak_file.read_text()) / 1024.0  # Linux: kilobytes
+        peak_kb, wall_s = figures.read_text().split()
+        return float(wall_s), int(peak_kb) / 1024.0  # Linux: kilobytes
 
 
 def lidarmap_error(out_dir: Path) -> Scored | None:
