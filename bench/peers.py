@@ -132,9 +132,8 @@ def karto_error(poses_path: Path, relations_path: Path) -> Scored | None:
     rows = np.loadtxt(poses_path, ndmin=2)
     if len(rows) == 0:
         return Scored(float("nan"), 0, len(relations))
-    metrics = relation_errors(Trajectory(rows[:, 0], rows[:, 1:4]), relations)
-    return Scored(metrics.all.trans_mean_m, len(relations) - int(np.isnan(metrics.trans_errors_m).sum()),
-                  len(relations))
+    stats = relation_errors(Trajectory(rows[:, 0], rows[:, 1:4]), relations).all
+    return Scored(stats.trans_mean_m, stats.n_scored, stats.n_relations)
 
 
 def side_by_side(log: Path, karto: Path, rounds: int, seed: int = 0) -> SideBySide:

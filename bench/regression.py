@@ -32,6 +32,7 @@ TOLERANCE_M = 0.001
 LOST_M = 0.10  # a seed above this relation error [m] has lost its map
 ATE_TOLERANCE_SHARE = 0.25  # an ATE median this much worse than the record (and ATE_TOLERANCE_M) is a regression:
 ATE_TOLERANCE_M = 0.01      # the ATE moves more between seeds than the relations (the campus 0.53-0.77 m)
+ERRORS = ("median_m", "worst_m", "ate_median_m", "ate_worst_m")  # a log's figures [m] in the record
 
 
 def read_recorded(path: Path = RECORDED_PATH) -> dict:
@@ -92,7 +93,7 @@ def compare(results: dict, recorded: dict) -> list[dict]:
     for name, now in _measured(results).items():
         before = logs.get(name)
         row = {"case": name, **now, "published": PUBLISHED.get(name)}
-        for key in ("median_m", "worst_m", "ate_median_m", "ate_worst_m", "flagged_runs"):
+        for key in (*ERRORS, "flagged_runs"):
             row[f"recorded_{key}"] = None if before is None else before.get(key)
         row["verdict"] = _verdict(now, before)
         rows.append(row)
@@ -146,7 +147,7 @@ def record(results: dict, path: Path = RECORDED_PATH) -> dict:
     recorded = read_recorded(path)
     logs = dict(recorded.get("logs", {}))
     for name, now in _measured(results).items():
-        logs[name] = {key: _rounded(now[key]) for key in ("median_m", "worst_m", "ate_median_m", "ate_worst_m")}
+        logs[name] = {key: _rounded(now[key]) for key in ERRORS}
         logs[name].update(flagged_runs=now["flagged_runs"], seeds=now["seeds"])
     out = {"recorded": time.strftime("%Y-%m-%d"), "code": results.get("code"),
            "options": {k: results["options"].get(k) for k in ("particles", "config")},

@@ -29,8 +29,7 @@ NODATA = -1
 OCCUPANCY_KINDS = ("probability", "percent")
 
 ZLIB_LEVEL = 1  # 3x faster than zlib's default 6 on an occupancy raster, the file ~40 % larger
-ROWS_PER_STRIP = 256  # the local-frame probability GeoTIFF is written this many rows at a time ...
-ROWS_PER_PIECE = 64  # ... computed this many at a time
+ROWS_PER_STRIP = 256  # the local-frame probability GeoTIFF is computed and written this many rows at a time
 
 
 def occupancy_values(grid: OccupancyGrid, kind: str = "probability",
@@ -57,20 +56,13 @@ def write_occupancy_geotiff(grid: OccupancyGrid, path: str | Path, georef: Geore
     georef = georef or Georeference.local()
     if kind == "probability" and georef.is_local:
         h, w = grid.shape
-        strips = (_probability_strip(grid, r0, min(h, r0 + ROWS_PER_STRIP)) for r0 in range(0, h, ROWS_PER_STRIP))
+        strips = (probability_band(grid, r0, min(h, r0 + ROWS_PER_STRIP)) for r0 in range(0, h, ROWS_PER_STRIP))
         top_m = grid.origin_y_m + h * grid.resolution_m
         return _write(path, strips, (h, w, 1), np.dtype(np.float32), grid.origin_x_m, top_m, grid.resolution_m,
                       georef, nodata=NODATA)
     values = occupancy_values(grid, kind, rasters)
     raster = north_up_raster(values, grid.resolution_m, grid.origin_x_m, grid.origin_y_m, georef, NODATA)
     return _write_raster(path, raster, georef, nodata=NODATA)
-
-
-def _probability_strip(grid: OccupancyGrid, r0: int, r1: int) -> np.ndarray:
-    """:func:`probability_band` of rows ``r0..r1``, computed :data:`ROWS_PER_PIECE` rows at a time (its
-    float64 temporaries, five of a strip's size at once, took 40 MB a strip on the corridor's map)."""
-    return np.concatenate([probability_band(grid, a, min(r1, a + ROWS_PER_PIECE))
-                           for a in range(r0, r1, ROWS_PER_PIECE)])
 
 
 def write_texture_geotiff(texture: TextureMap, path: str | Path, georef: Georeference | None = None) -> Path:

@@ -67,8 +67,8 @@ def without_statistical_outliers(points: np.ndarray, neighbours: int = OUTLIER_N
     mean_distance = np.empty(len(points))
     for start in range(0, len(points), QUERY_CHUNK):  # in pieces: all the neighbours at once took 64 MB
         distances, _ = tree.query(points[start:start + QUERY_CHUNK], k=neighbours, workers=-1)
-        mean_distance[start:start + QUERY_CHUNK] = np.cumsum(distances, axis=1)[:, -1] / neighbours  # in order,
-        # as Open3D sums them
+        # summed in order, as Open3D does
+        mean_distance[start:start + QUERY_CHUNK] = np.cumsum(distances, axis=1)[:, -1] / neighbours
     spaced = mean_distance > 0  # a point with its neighbours all on it counts, but adds nothing
     cloud_mean = mean_distance[spaced].sum() / len(points)
     std = np.sqrt(np.sum((mean_distance[spaced] - cloud_mean) ** 2) / (len(points) - 1))

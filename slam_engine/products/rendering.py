@@ -66,10 +66,14 @@ def north_up_log_odds(grid: OccupancyGrid, r0: int, r1: int) -> np.ndarray:
 
 def probability_band(grid: OccupancyGrid, r0: int, r1: int) -> np.ndarray:
     """North-up rows ``r0..r1`` of the GeoTIFF's values: float32 probability, -1 where unknown
-    (the same values as from the whole-grid :func:`occupancy_north_up`)."""
-    log_odds = north_up_log_odds(grid, r0, r1)
-    p = 1.0 / (1.0 + np.exp(-log_odds.astype(np.float64)))
-    return np.where(log_odds != 0.0, p, -1.0).astype(np.float32)
+    (the same values as from the whole-grid :func:`occupancy_north_up`), computed :data:`_BAND_ROWS`
+    rows at a time (the float64 temporaries of a 256-row strip took 40 MB on the corridor's map)."""
+    out = np.empty((r1 - r0, grid.shape[1]), np.float32)
+    for a in range(r0, r1, _BAND_ROWS):
+        log_odds = north_up_log_odds(grid, a, min(r1, a + _BAND_ROWS))
+        p = 1.0 / (1.0 + np.exp(-log_odds.astype(np.float64)))
+        out[a - r0: a - r0 + len(log_odds)] = np.where(log_odds != 0.0, p, -1.0)
+    return out
 
 
 def occupancy_rasters(grid: OccupancyGrid) -> OccupancyRasters:

@@ -220,7 +220,6 @@ def test_rasters_written_in_bands_are_the_whole_images(tmp_path, monkeypatch) ->
     expected = np.asarray(rendering.occupancy_with_trajectories(grid, traj, dr))
     assert np.array_equal(np.asarray(Image.open(tmp_path / "t.png").convert("RGB")), expected)
     monkeypatch.setattr(geotiff, "ROWS_PER_STRIP", 16)
-    monkeypatch.setattr(geotiff, "ROWS_PER_PIECE", 5)
     geotiff.write_occupancy_geotiff(grid, tmp_path / "o.tif")
     probability, known = occupancy_north_up(grid)
     with rasterio.open(tmp_path / "o.tif") as ds:
