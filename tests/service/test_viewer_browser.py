@@ -539,11 +539,18 @@ def test_a_finished_map_is_fitted_keyed_and_summarised(tmp_path) -> None:
             page.wait_for_selector(".leaflet-overlay-pane svg path.trajectory-slam")
             page.wait_for_selector("#job-summary:not([hidden])")
             page.wait_for_timeout(500)  # last tiles settle
+            trajectory = page.locator(".leaflet-overlay-pane svg path.trajectory-slam")
+            path, settled = trajectory.bounding_box(), None
+            for _ in range(20):  # a zoom still animating (once in CI: 652 px wide, 621 after) settles first
+                page.wait_for_timeout(100)
+                settled = trajectory.bounding_box()
+                if settled == path:
+                    break
+                path = settled
 
             # fitted: the trajectory and a 2 m margin fill the pane's limiting side (at whole zooms with
             # a 25 % margin the room's trajectory filled under half of the pane)
             pane = page.locator("#map").bounding_box()
-            path = page.locator(".leaflet-overlay-pane svg path.trajectory-slam").bounding_box()
             south, west, north, east = page.evaluate(
                 "(() => { const b = window.lidarmap.jobMap.layers.trajectory.getBounds();"
                 " return [b.getSouth(), b.getWest(), b.getNorth(), b.getEast()]; })()")
